@@ -1,0 +1,1 @@
+"""Commissioning: the flow, acceptance checks, pose check, reports, sensor registry, TUI, command line."""

@@ -1,0 +1,64 @@
+"""The ``bubble`` command line: one entry point, subcommands registered by each package.
+
+Every package that adds subcommands has a ``cli`` module with ``register(subparsers)``; each
+subcommand sets ``func(args) -> int`` (the exit code). Handlers import their heavy modules
+(torch, h5py, textual) lazily so that ``bubble --help`` stays fast.
+
+Errors: ``InputError`` prints one line ``bubble: error: ...`` and exits 2; ``HardwareFault``
+prints ``bubble: fault: ...`` and exits 3; Ctrl-C exits 130. No tracebacks for either.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, HardwareFault, InputError
+
+#: Modules providing ``register(subparsers)``, in the order their commands are listed.
+COMMAND_MODULES = (
+    "hw_mocks.cli",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports usage errors as one line and exit code 2 (its default code)."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        self.exit(EXIT_BAD_INPUT, f"bubble: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="bubble", description=__doc__.splitlines()[0])
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        ver = version("bubble-bench")
+    except PackageNotFoundError:
+        ver = "unknown"
+    parser.add_argument("--version", action="version", version=f"bubble {ver}")
+    subparsers = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as err:
+        print(f"bubble: error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except HardwareFault as err:
+        print(f"bubble: fault: {err.kind}: {err}", file=sys.stderr)
+        return EXIT_FAULT
+    except KeyboardInterrupt:
+        print("bubble: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

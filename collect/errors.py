@@ -1,0 +1,30 @@
+"""Exception types shared by every layer, and the exit codes the command line maps them to.
+
+* ``InputError``: bad input from the user (missing/corrupt file, bad YAML, unknown object, ...).
+  The command line prints its message as one line and exits with ``EXIT_BAD_INPUT`` (2).
+* ``HardwareFault``: a device misbehaved (camera silent, serial garbage/unplug, protective stop,
+  force limit). The run stops the arm, retracts, keeps what was recorded and exits with
+  ``EXIT_FAULT`` (3); ``bubble commission`` turns it into a rejected run (exit 1).
+"""
+
+EXIT_OK = 0
+EXIT_REJECTED = 1
+EXIT_BAD_INPUT = 2
+EXIT_FAULT = 3
+EXIT_INTERRUPTED = 130
+
+
+class InputError(Exception):
+    """Bad user input; ``str(err)`` is the one line shown to the user."""
+
+
+class HardwareFault(Exception):
+    """A device fault detected by a driver.
+
+    ``kind`` names the fault (``camera-stall``, ``serial-garbage``, ``serial-unplug``,
+    ``protective-stop``, ``force-spike``, or a driver-specific name).
+    """
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(message)
+        self.kind = kind

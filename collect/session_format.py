@@ -1,0 +1,66 @@
+"""Names and constants of the HDF5 session format (the contract in DESIGN.md).
+
+One file per recording session, readable with plain h5py. Writers (``collect.session_writer``)
+and readers (``collect.session_reader``) take every name from here.
+"""
+
+FORMAT_NAME = "bubble-session"
+FORMAT_VERSION = 1
+
+#: frames/depth is uint16 in this unit; 0 means invalid. 1e-5 m = 10 um, max 0.655 m.
+DEPTH_UNIT_M = 1e-5
+
+# Frame phases (frames/phase, uint8); the mapping is also stored in frames/phase attrs.
+PHASE_FREE = 0  # membrane free, no object pressed (no-contact reference frames)
+PHASE_APPROACH = 1
+PHASE_PRESS = 2
+PHASE_HOLD = 3
+PHASE_RETRACT = 4
+PHASES = {
+    "free": PHASE_FREE,
+    "approach": PHASE_APPROACH,
+    "press": PHASE_PRESS,
+    "hold": PHASE_HOLD,
+    "retract": PHASE_RETRACT,
+}
+
+# Root attributes.
+ATTR_FORMAT = "format"
+ATTR_FORMAT_VERSION = "format_version"
+ATTR_SOFTWARE_VERSION = "software_version"
+ATTR_SENSOR_SERIAL = "sensor_serial"
+ATTR_SENSOR_SPEC = "sensor_spec"  # JSON
+ATTR_INTRINSICS = "intrinsics"  # JSON {fx, fy, cx, cy, width, height, distortion?}
+ATTR_CAMERA_IN_TCP = "camera_in_tcp"  # JSON [x,y,z,rx,ry,rz] m + rotation vector: camera frame in TCP frame
+ATTR_CREATED = "created"  # ISO 8601 UTC
+ATTR_SIMULATED = "simulated"  # bool
+
+# Per-frame datasets (N = frames).
+FRAMES_IR = "frames/ir"  # (N,H,W) uint16 amplitude
+FRAMES_DEPTH = "frames/depth"  # (N,H,W) uint16 in DEPTH_UNIT_M, 0 = invalid; attrs: unit_m
+FRAMES_T_DEVICE = "frames/t_device"  # (N,) float64 s, camera clock
+FRAMES_T_HOST = "frames/t_host"  # (N,) float64 s, host clock
+FRAMES_SEQ = "frames/seq"  # (N,) int64 camera sequence number
+FRAMES_OBJECT = "frames/object"  # (N,) int16 index into objects/name, -1 = no object
+FRAMES_POSE_ID = "frames/pose_id"  # (N,) int32 contact pose index within the session, -1 = none
+FRAMES_PHASE = "frames/phase"  # (N,) uint8 PHASES; attrs hold the enum
+FRAMES_TCP_POSE = "frames/tcp_pose"  # (N,6) float64 arm TCP pose at frame time [m, rotvec]
+
+# Arm state stream (M samples).
+ARM_T = "arm/t"  # (M,) float64 s host clock
+ARM_TCP_POSE = "arm/tcp_pose"  # (M,6) float64 [x,y,z,rx,ry,rz] m + rotation vector, base frame
+ARM_TCP_WRENCH = "arm/tcp_wrench"  # (M,6) float64 [Fx,Fy,Fz,Tx,Ty,Tz] N, N m, base frame
+
+# Pressure board stream (P samples).
+PRESSURE_T = "pressure/t"  # (P,) float64 s host clock
+PRESSURE_HPA = "pressure/hpa"  # (P,) float64 hPa absolute
+
+# Objects on the fixture plate (O objects).
+OBJECTS_NAME = "objects/name"  # (O,) str
+OBJECTS_FIXTURE_POSE = "objects/fixture_pose"  # (O,6) float64 object origin in base frame [m, rotvec]
+OBJECTS_MESH_SHA256 = "objects/mesh_sha256"  # (O,) str
+OBJECTS_PRIMITIVE = "objects/primitive"  # (O,) str JSON shape description, e.g. {"type":"cylinder","radius":..}
+OBJECTS_MESH_GROUP = "objects/meshes"  # objects/meshes/<name>/vertices (V,3) float32 m, faces (F,3) int32
+
+# Simulated sessions only.
+SIM_TRUE_DEPTH = "sim/true_depth"  # (N,H,W) float32 m, true membrane depth along the optical axis

@@ -1,0 +1,1 @@
+"""Learning side: session data loading, depth networks, loss, metrics, training, export, inference."""
