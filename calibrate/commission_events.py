@@ -62,6 +62,18 @@ class CollectionProgress:
 
 
 @dataclass
+class BenchSnapshot:
+    """Live bench state, emitted a few times per second while the bench is connected."""
+
+    simulated: bool
+    tcp_pose: list[float]  # [x,y,z,rx,ry,rz] m + rotation vector, base frame
+    wrench: list[float]  # [Fx,Fy,Fz,Tx,Ty,Tz] N, N m, base frame
+    pressure_hpa: float
+    ir: object = None  # latest (H,W) uint16 amplitude image, or None
+    depth_m: object = None  # latest (H,W) float32 m ToF depth (0 = invalid), or None
+
+
+@dataclass
 class TrainingProgress:
     """One point of the live training curve."""
 
@@ -86,5 +98,12 @@ class Verdict:
 
 
 CommissionEvent = (
-    StepStarted | StepProgress | StepFinished | CollectionProgress | TrainingProgress | FaultRaised | Verdict
+    StepStarted
+    | StepProgress
+    | StepFinished
+    | CollectionProgress
+    | BenchSnapshot
+    | TrainingProgress
+    | FaultRaised
+    | Verdict
 )
