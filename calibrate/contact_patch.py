@@ -1,0 +1,82 @@
+"""Contact patch from tactile depth: where the membrane is pushed in, lifted to a point cloud.
+
+The first stage of the paper's pose pipeline (Sec. V): compare a depth map with the
+no-contact reference of the same sensor, keep the pixels pushed toward the camera by more than
+a threshold (the contact patch), lift them to 3-D with the pinhole intrinsics and downsample
+the cloud to a fixed number of points (1500 in the paper), deterministically.
+
+Depth maps are ``(H,W) float32 m`` camera z-depth, 0 (or non-finite) = invalid.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from collect.errors import InputError
+
+#: Points kept per cloud (the paper's 1500).
+N_POINTS = 1500
+
+#: Depth decrease from the reference (m) that marks a pixel as in contact.
+CONTACT_THRESHOLD_M = 1.5e-3
+
+
+def _valid(depth: np.ndarray) -> np.ndarray:
+    return np.isfinite(depth) & (depth > 0.0)
+
+
+def reference_depth(frames: np.ndarray) -> np.ndarray:
+    """No-contact reference: per-pixel median of the valid depths of ``frames (K,H,W) m``.
+
+    Returns ``(H,W) float32 m``, 0 where no frame was valid.
+    """
+    frames = np.asarray(frames, dtype=np.float32)
+    if frames.ndim != 3 or len(frames) == 0:
+        raise InputError(f"no-contact reference needs (K,H,W) depth frames, got shape {frames.shape}")
+    masked = np.where(_valid(frames), frames, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels (never valid) -> NaN
+        ref = np.nanmedian(masked, axis=0)
+    ref = np.nan_to_num(ref, nan=0.0)
+    return ref.astype(np.float32)
+
+
+def contact_mask(depth: np.ndarray, reference: np.ndarray,
+                 threshold_m: float = CONTACT_THRESHOLD_M) -> np.ndarray:
+    """``(H,W) bool``: valid in both and closer to the camera than the reference by > threshold."""
+    depth = np.asarray(depth, dtype=np.float32)
+    reference = np.asarray(reference, dtype=np.float32)
+    if depth.shape != reference.shape:
+        raise InputError(f"depth {depth.shape} and reference {reference.shape} differ in shape")
+    with np.errstate(invalid="ignore"):
+        return _valid(depth) & _valid(reference) & (reference - depth > threshold_m)
+
+
+def lift(depth: np.ndarray, mask: np.ndarray, intrinsics: dict) -> np.ndarray:
+    """Pixels of ``mask`` lifted to camera-frame points ``(N,3) float64 m``, in raster order.
+
+    ``intrinsics``: ``fx, fy, cx, cy`` (pixels); ``x = (u - cx) z / fx``, ``y = (v - cy) z / fy``.
+    """
+    rows, cols = np.nonzero(mask)
+    z = depth[rows, cols].astype(np.float64)
+    x = (cols - float(intrinsics["cx"])) * z / float(intrinsics["fx"])
+    y = (rows - float(intrinsics["cy"])) * z / float(intrinsics["fy"])
+    return np.stack([x, y, z], axis=1)
+
+
+def downsample(points: np.ndarray, n_points: int = N_POINTS) -> np.ndarray:
+    """At most ``n_points`` of ``points (N,3)``, evenly strided over their order (deterministic)."""
+    if len(points) <= n_points:
+        return points
+    idx = np.round(np.linspace(0, len(points) - 1, n_points)).astype(np.int64)
+    return points[idx]
+
+
+def contact_points(depth: np.ndarray, reference: np.ndarray, intrinsics: dict,
+                   threshold_m: float = CONTACT_THRESHOLD_M,
+                   n_points: int = N_POINTS) -> np.ndarray:
+    """Contact patch of ``depth (H,W) m`` against ``reference (H,W) m`` as ``(<=n_points,3) m``."""
+    mask = contact_mask(depth, reference, threshold_m)
+    return downsample(lift(depth, mask, intrinsics), n_points)

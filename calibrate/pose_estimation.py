@@ -1,0 +1,353 @@
+"""Proximity pose estimation (the paper's Sec. V): fit a known shape to a tactile point cloud.
+
+The pose ``X`` of the object (geometry ``G``) in the camera frame maps object coordinates to
+camera coordinates, ``p_cam = R(q) p_obj + t``. It is parametrized by
+``theta = [t (3) m, q (4)]`` with ``q = [w, x, y, z]`` a quaternion, and estimated by nonlinear
+least squares (``scipy.optimize.least_squares``, analytic Jacobian) on
+
+    r_i = phi(R(q/|q|)^T (p_i - t))            one residual per contact point p_i (m)
+    r_n = w_n (|q|^2 - 1)                      unit-norm residual (fixes the quaternion's scale)
+    r_p = w_p (theta - theta_prior)            weak prior (pins directions the patch leaves free)
+
+where ``phi`` is the shape's proximity field (signed distance, negative inside, m). The cost is
+the sum of squared signed distances of the points to the surface. The quaternion is normalized
+inside the residual and the unit-norm residual removes the remaining scale freedom.
+
+The prior term is weak (default weight 1e-2, a million times below the data term in every
+direction the points constrain); it only decides the directions the data leave free, e.g. the
+rotation of a cylinder about its axis and the shift along it. See ``docs/pose.md``.
+
+Shapes: ``Cylinder`` (capped, analytic) and ``GridSDF`` (any triangle mesh, a signed-distance
+field precomputed on a grid and trilinearly interpolated). ``shape_from_object`` builds one from
+the object's description in a session file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from collect.errors import InputError
+
+#: Fewest contact points a fit accepts (the pose has 6 degrees of freedom; a handful of points
+#: gives a meaningless fit).
+MIN_POINTS = 30
+
+
+class Shape(Protocol):
+    """A shape with a proximity field in its own (object) frame."""
+
+    def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``points (N,3) m`` in the object frame -> ``(phi (N,) m, grad (N,3))``, negative inside."""
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Solid capped cylinder: axis along object z through ``center``; ``radius``, ``height`` m."""
+
+    radius: float
+    height: float
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(points, dtype=np.float64) - np.asarray(self.center)
+        r = np.hypot(p[:, 0], p[:, 1])
+        safe_r = np.where(r > 1e-12, r, 1.0)
+        radial = np.stack([p[:, 0] / safe_r, p[:, 1] / safe_r, np.zeros_like(r)], axis=1)
+        radial[r <= 1e-12] = (1.0, 0.0, 0.0)
+        sign_z = np.where(p[:, 2] >= 0.0, 1.0, -1.0)
+        d_r = r - self.radius  # distance to the side wall (signed)
+        d_z = np.abs(p[:, 2]) - 0.5 * self.height  # distance to the nearer cap plane (signed)
+
+        a = np.maximum(d_r, 0.0)
+        b = np.maximum(d_z, 0.0)
+        outside_d = np.hypot(a, b)
+        outside = outside_d > 0.0
+        inside_side = d_r >= d_z  # inside: the nearer surface is the side wall
+
+        phi = np.where(outside, outside_d, np.maximum(d_r, d_z))
+        safe_d = np.where(outside, outside_d, 1.0)
+        w_r = np.where(outside, a / safe_d, inside_side.astype(np.float64))
+        w_z = np.where(outside, b / safe_d, (~inside_side).astype(np.float64))
+        grad = radial * w_r[:, None]
+        grad[:, 2] += w_z * sign_z
+        return phi, grad
+
+
+@dataclass(frozen=True)
+class GridSDF:
+    """Signed-distance field of any closed mesh, sampled on a regular grid (object frame).
+
+    ``values (X,Y,Z) float64 m`` at points ``origin + spacing * (i, j, k)``; trilinear
+    interpolation inside the grid, points outside are clamped to the grid box and the distance
+    to it is added (the field stays continuous and points toward the object).
+    """
+
+    values: np.ndarray
+    origin: np.ndarray  # (3,) m
+    spacing: float  # m
+
+    @classmethod
+    def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, spacing: float = 1.5e-3,
+                  margin: float = 0.015, band: float = 6e-3) -> "GridSDF":
+        """Precompute from a closed, outward-oriented triangle mesh ``vertices (V,3) m``, ``faces (F,3)``.
+
+        Within ``band`` (m) of the surface: distance to the nearest of dense surface samples,
+        signed by the side of that sample's face normal. Farther out: ``band`` plus the grid
+        distance to the band, negative in the regions the band encloses.
+        """
+        import trimesh
+        from scipy import ndimage
+        from scipy.spatial import cKDTree
+
+        mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                               process=False)
+        if len(mesh.faces) == 0:
+            raise InputError("object mesh has no faces; cannot build its signed-distance field")
+        n_samples = int(np.clip(mesh.area / (0.5 * spacing) ** 2, 20_000, 300_000))
+        samples, face_idx = trimesh.sample.sample_surface(mesh, n_samples, seed=0)
+        normals = mesh.face_normals[face_idx]
+        lo = mesh.bounds[0] - margin
+        shape = tuple(np.ceil((mesh.bounds[1] + margin - lo) / spacing).astype(int) + 1)
+        axes = [lo[k] + spacing * np.arange(shape[k]) for k in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        dist, nearest = cKDTree(samples).query(grid, distance_upper_bound=band, workers=1)
+        in_band = np.isfinite(dist)
+        values = np.empty(len(grid))
+        near = nearest[in_band]
+        side = np.einsum("ij,ij->i", grid[in_band] - samples[near], normals[near])
+        values[in_band] = np.where(side < 0.0, -dist[in_band], dist[in_band])
+        far = (~in_band).reshape(shape)
+        labels, _ = ndimage.label(far)
+        faces_of_box = [labels[0], labels[-1], labels[:, 0], labels[:, -1], labels[:, :, 0], labels[:, :, -1]]
+        outside_labels = np.unique(np.concatenate([f.ravel() for f in faces_of_box]))
+        far_dist = band + ndimage.distance_transform_edt(far) * spacing
+        far_sign = np.where(np.isin(labels, outside_labels[outside_labels > 0]), 1.0, -1.0)
+        values[~in_band] = (far_sign * far_dist)[far]
+        return cls(values=values.reshape(shape), origin=lo, spacing=float(spacing))
+
+    def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(points, dtype=np.float64)
+        hi_idx = np.asarray(self.values.shape) - 1
+        g = (p - self.origin) / self.spacing
+        g_in = np.clip(g, 0.0, hi_idx)
+        i0 = np.minimum(np.floor(g_in).astype(np.int64), hi_idx - 1)
+        f = g_in - i0
+        v = self.values
+        corner = {}
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    corner[dx, dy, dz] = v[i0[:, 0] + dx, i0[:, 1] + dy, i0[:, 2] + dz]
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        c00 = corner[0, 0, 0] * (1 - fx) + corner[1, 0, 0] * fx
+        c01 = corner[0, 0, 1] * (1 - fx) + corner[1, 0, 1] * fx
+        c10 = corner[0, 1, 0] * (1 - fx) + corner[1, 1, 0] * fx
+        c11 = corner[0, 1, 1] * (1 - fx) + corner[1, 1, 1] * fx
+        c0 = c00 * (1 - fy) + c10 * fy
+        c1 = c01 * (1 - fy) + c11 * fy
+        phi = c0 * (1 - fz) + c1 * fz
+        d_x = ((corner[1, 0, 0] - corner[0, 0, 0]) * (1 - fy) * (1 - fz)
+               + (corner[1, 1, 0] - corner[0, 1, 0]) * fy * (1 - fz)
+               + (corner[1, 0, 1] - corner[0, 0, 1]) * (1 - fy) * fz
+               + (corner[1, 1, 1] - corner[0, 1, 1]) * fy * fz)
+        d_y = (c10 - c00) * (1 - fz) + (c11 - c01) * fz
+        d_z = c1 - c0
+        grad = np.stack([d_x, d_y, d_z], axis=1) / self.spacing
+        # Outside the grid box: add the distance to the box, along the clamping direction.
+        out = (g - g_in) * self.spacing
+        out_norm = np.linalg.norm(out, axis=1)
+        outside = out_norm > 0.0
+        if np.any(outside):
+            phi = phi + out_norm
+            grad[outside] = out[outside] / out_norm[outside, None]
+        return phi, grad
+
+
+def shape_from_object(primitive: dict | None, vertices: np.ndarray | None = None,
+                      faces: np.ndarray | None = None) -> Shape:
+    """The shape to fit for an object described in a session file.
+
+    ``primitive`` ``{"type": "cylinder", "radius": m, "height": m, "center": [x,y,z] m}``
+    (``center`` defaults to ``[0, 0, height/2]``: the base on the fixture at the origin) gives a
+    ``Cylinder``; any other type with a mesh gives a ``GridSDF`` of the mesh.
+    """
+    kind = (primitive or {}).get("type")
+    if kind == "cylinder":
+        try:
+            radius = float(primitive["radius"])
+            height = float(primitive["height"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise InputError(f"cylinder primitive needs numeric radius and height: {primitive}") from err
+        center = tuple(float(c) for c in primitive.get("center", (0.0, 0.0, 0.5 * height)))
+        if not (radius > 0.0 and height > 0.0) or len(center) != 3:
+            raise InputError(f"bad cylinder primitive: {primitive}")
+        return Cylinder(radius=radius, height=height, center=center)
+    if vertices is not None and faces is not None and len(faces):
+        return GridSDF.from_mesh(vertices, faces)
+    raise InputError(f"object shape {kind!r} has no signed-distance model and no mesh")
+
+
+# ----------------------------------------------------------------------------------------------
+# Quaternion algebra, q = [w, x, y, z].
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(4,) [w,x,y,z]`` -> rotation matrix ``(3,3)``."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``(3,3)`` -> unit quaternion ``(4,) [w,x,y,z]`` with ``w >= 0``."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(rot).as_quat()
+    q = np.array([w, x, y, z])
+    return q if w >= 0 else -q
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Object pose in the camera frame: ``p_cam = R(quaternion) p_obj + position``."""
+
+    position: np.ndarray  # (3,) m
+    quaternion: np.ndarray  # (4,) [w,x,y,z], unit norm
+
+    @classmethod
+    def from_matrix(cls, transform: np.ndarray) -> "Pose":
+        """From a homogeneous transform ``(4,4)`` (object -> camera, m)."""
+        return cls(np.asarray(transform[:3, 3], np.float64).copy(), matrix_to_quat(transform[:3, :3]))
+
+    def matrix(self) -> np.ndarray:
+        """Homogeneous transform ``(4,4)``, object -> camera."""
+        out = np.eye(4)
+        out[:3, :3] = quat_to_matrix(self.quaternion)
+        out[:3, 3] = self.position
+        return out
+
+    def theta(self) -> np.ndarray:
+        """Parameter vector ``(7,) [t (m), q]``."""
+        return np.concatenate([self.position, self.quaternion])
+
+
+def position_error(a: Pose, b: Pose) -> float:
+    """``e_x = ||p1 - p2||`` (m)."""
+    return float(np.linalg.norm(a.position - b.position))
+
+
+def orientation_error(a: Pose, b: Pose) -> float:
+    """``e_theta = 1 - |q1 . q2|`` (Huynh 2009, metric 3; 0 = same orientation, at most 1)."""
+    return float(1.0 - min(1.0, abs(float(np.dot(a.quaternion, b.quaternion)))))
+
+
+# ----------------------------------------------------------------------------------------------
+# Residuals and their analytic Jacobian.
+
+
+def point_residuals(theta: np.ndarray, points: np.ndarray, shape: Shape,
+                    with_jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Signed distances of the camera-frame ``points (N,3) m`` to the shape posed by ``theta (7,)``.
+
+    Returns ``r (N,) m`` and, if asked, ``J (N,7) = dr/dtheta`` (analytic, through the
+    normalization of the quaternion).
+    """
+    t = theta[:3]
+    q = theta[3:]
+    q_norm = float(np.linalg.norm(q))
+    u = q / q_norm
+    w = u[0]
+    a = -u[1:]  # vector part of the conjugate: R(u)^T v = rotate v by conj(u)
+    v = points - t
+    # f = R(u)^T v = (w^2 - |a|^2) v + 2 (a.v) a + 2 w (a x v)
+    a_dot_v = v @ a
+    a_cross_v = np.cross(a, v)
+    p_obj = (w * w - a @ a) * v + 2.0 * a_dot_v[:, None] * a + 2.0 * w * a_cross_v
+    phi, g = shape.signed_distance(p_obj)
+    if not with_jacobian:
+        return phi, None
+
+    jac = np.empty((len(points), 7))
+    rot = quat_to_matrix(u)
+    jac[:, :3] = -(g @ rot.T)  # dr/dt = -(R g)^T
+    g_dot_v = np.einsum("ij,ij->i", g, v)
+    g_dot_a = g @ a
+    # dr/dw = g . (2 w v + 2 a x v)
+    dr_dw = 2.0 * w * g_dot_v + 2.0 * np.einsum("ij,ij->i", g, a_cross_v)
+    # dr/da = -2 (g.v) a + 2 (a.v) g + 2 (g.a) v - 2 w (g x v); dr/d(vector part) = -dr/da
+    dr_da = (-2.0 * g_dot_v[:, None] * a + 2.0 * a_dot_v[:, None] * g
+             + 2.0 * g_dot_a[:, None] * v - 2.0 * w * np.cross(g, v))
+    dr_du = np.concatenate([dr_dw[:, None], -dr_da], axis=1)
+    # u = q/|q|: du/dq = (I - u u^T)/|q|
+    jac[:, 3:] = (dr_du - np.outer(dr_du @ u, u)) / q_norm
+    return phi, jac
+
+
+@dataclass(frozen=True)
+class FitResult:
+    pose: Pose
+    rms_m: float  # root mean square signed distance of the points at the solution
+    n_points: int
+    iterations: int  # Jacobian evaluations
+    success: bool
+
+
+class ProximityPoseEstimator:
+    """Fits a shape's pose to contact points; one instance per shape, reused across frames."""
+
+    def __init__(self, shape: Shape, prior_weight: float = 1e-2, norm_weight: float = 1.0,
+                 max_evaluations: int = 50):
+        self.shape = shape
+        self.prior_weight = float(prior_weight)
+        self.norm_weight = float(norm_weight)
+        self.max_evaluations = int(max_evaluations)
+
+    def _residuals(self, theta, points, theta_prior):
+        phi, _ = point_residuals(theta, points, self.shape, with_jacobian=False)
+        q = theta[3:]
+        extra = np.concatenate([[self.norm_weight * (q @ q - 1.0)],
+                                self.prior_weight * (theta - theta_prior)])
+        return np.concatenate([phi, extra])
+
+    def _jacobian(self, theta, points, theta_prior):
+        _, jac_points = point_residuals(theta, points, self.shape, with_jacobian=True)
+        jac = np.zeros((len(points) + 8, 7))
+        jac[: len(points)] = jac_points
+        jac[len(points), 3:] = 2.0 * self.norm_weight * theta[3:]
+        jac[len(points) + 1:, :] = self.prior_weight * np.eye(7)
+        return jac
+
+    def fit(self, points: np.ndarray, prior: Pose, start: Pose | None = None) -> FitResult:
+        """Pose of the shape best explaining ``points (N,3) m`` (camera frame).
+
+        ``prior``: pose near the true one (the weak prior term pulls toward it);
+        ``start``: initial guess (default the prior; pass the previous frame's result to warm start).
+        Raises ``InputError`` for too few or non-finite points.
+        """
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise InputError(f"contact points must be (N,3), got {points.shape}")
+        if len(points) < MIN_POINTS:
+            raise InputError(f"too few contact points for a pose fit: {len(points)} < {MIN_POINTS}")
+        if not np.all(np.isfinite(points)):
+            raise InputError("contact points contain NaN or infinite values")
+        theta_prior = prior.theta()
+        x0 = (start or prior).theta()
+        if x0[3:] @ theta_prior[3:] < 0:  # same hemisphere as the prior
+            x0 = np.concatenate([x0[:3], -x0[3:]])
+        sol = least_squares(self._residuals, x0, jac=self._jacobian, method="lm",
+                            args=(points, theta_prior), xtol=1e-10, ftol=1e-10,
+                            max_nfev=self.max_evaluations)
+        q = sol.x[3:] / np.linalg.norm(sol.x[3:])
+        if q[0] < 0:
+            q = -q
+        rms = float(np.sqrt(np.mean(sol.fun[: len(points)] ** 2)))
+        return FitResult(pose=Pose(sol.x[:3].copy(), q), rms_m=rms, n_points=len(points),
+                         iterations=int(sol.njev or sol.nfev), success=bool(sol.status > 0))

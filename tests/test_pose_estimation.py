@@ -1,0 +1,177 @@
+"""Proximity pose estimation: shapes' signed distances, the analytic Jacobian, and the fit."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from calibrate.pose_estimation import (
+    Cylinder,
+    GridSDF,
+    Pose,
+    ProximityPoseEstimator,
+    matrix_to_quat,
+    orientation_error,
+    point_residuals,
+    position_error,
+    quat_to_matrix,
+    shape_from_object,
+)
+from collect.errors import InputError
+
+CYL = Cylinder(radius=0.04, height=0.1, center=(0.0, 0.0, 0.05))
+
+
+def _pose(rotvec, t) -> Pose:
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    transform[:3, 3] = t
+    return Pose.from_matrix(transform)
+
+
+def _side_and_rim_patch(rng, n=1500):
+    """Points on the cylinder's side near its top rim and on the top cap edge (object frame)."""
+    n_side = n * 2 // 3
+    ang = rng.uniform(-0.6, 0.6, n)
+    side = np.stack([0.04 * np.cos(ang[:n_side]), 0.04 * np.sin(ang[:n_side]),
+                     rng.uniform(0.075, 0.1, n_side)], axis=1)
+    rad = rng.uniform(0.025, 0.04, n - n_side)
+    cap = np.stack([rad * np.cos(ang[n_side:]), rad * np.sin(ang[n_side:]), np.full(n - n_side, 0.1)], axis=1)
+    return np.concatenate([side, cap])
+
+
+def test_cylinder_signed_distance_values_and_gradients():
+    pts = np.array([
+        [0.05, 0.0, 0.05],  # 1 cm outside the side wall
+        [0.0, 0.0, 0.13],  # 3 cm above the top cap
+        [0.0, 0.0, -0.02],  # 2 cm below the bottom cap
+        [0.07, 0.0, 0.14],  # outside the top rim: corner region, 3-4-5 triangle
+        [0.035, 0.0, 0.05],  # inside, 5 mm from the wall
+        [0.0, 0.0, 0.098],  # inside, 2 mm from the top
+    ])
+    phi, grad = CYL.signed_distance(pts)
+    np.testing.assert_allclose(phi, [0.01, 0.03, 0.02, 0.05, -0.005, -0.002], atol=1e-12)
+    np.testing.assert_allclose(grad, [[1, 0, 0], [0, 0, 1], [0, 0, -1], [0.6, 0, 0.8], [1, 0, 0], [0, 0, 1]],
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("region", ["side", "cap", "inside", "corner"])
+def test_point_jacobian_matches_finite_differences(region):
+    rng = np.random.default_rng(1)
+    pose = _pose([0.3, -0.2, 0.5], [0.01, -0.02, 0.09])
+    obj = {
+        "side": lambda: np.stack([0.043 * np.ones(50), rng.uniform(-0.01, 0.01, 50), rng.uniform(0.02, 0.08, 50)], 1),
+        "cap": lambda: np.stack([rng.uniform(-0.02, 0.02, 50), rng.uniform(-0.02, 0.02, 50), 0.103 * np.ones(50)], 1),
+        "inside": lambda: np.stack([rng.uniform(-0.01, 0.01, 50), rng.uniform(0.03, 0.035, 50), rng.uniform(0.03, 0.07, 50)], 1),
+        "corner": lambda: np.stack([0.045 + rng.uniform(0, 0.005, 50), rng.uniform(-0.002, 0.002, 50), rng.uniform(0.104, 0.11, 50)], 1),
+    }[region]()
+    points = obj @ quat_to_matrix(pose.quaternion).T + pose.position
+    # a non-unit quaternion exercises the normalization inside the residual
+    theta = np.concatenate([pose.position + 1e-3, 1.3 * pose.quaternion + 0.01])
+    _, jac = point_residuals(theta, points, CYL)
+    eps = 1e-7
+    numeric = np.stack([
+        (point_residuals(theta + eps * e, points, CYL, False)[0]
+         - point_residuals(theta - eps * e, points, CYL, False)[0]) / (2 * eps)
+        for e in np.eye(7)], axis=1)
+    np.testing.assert_allclose(jac, numeric, atol=1e-6)
+    # scaling the quaternion does not move the residuals: the Jacobian is orthogonal to q
+    np.testing.assert_allclose(jac[:, 3:] @ theta[3:], 0.0, atol=1e-10)
+
+
+def test_estimator_jacobian_includes_norm_and_prior_rows():
+    rng = np.random.default_rng(2)
+    est = ProximityPoseEstimator(CYL, prior_weight=0.1, norm_weight=2.0)
+    prior = _pose([0.1, 0.2, 0.3], [0.0, 0.0, 0.1])
+    points = rng.normal(0, 0.03, (40, 3)) + [0, 0, 0.1]
+    theta = prior.theta() * 1.1 + 0.01
+    jac = est._jacobian(theta, points, prior.theta())
+    eps = 1e-7
+    numeric = np.stack([(est._residuals(theta + eps * e, points, prior.theta())
+                         - est._residuals(theta - eps * e, points, prior.theta())) / (2 * eps)
+                        for e in np.eye(7)], axis=1)
+    np.testing.assert_allclose(jac, numeric, atol=1e-6)
+
+
+def test_quaternion_matrix_round_trip():
+    rot = Rotation.from_rotvec([0.4, -1.1, 2.0]).as_matrix()
+    q = matrix_to_quat(rot)
+    assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+    np.testing.assert_allclose(quat_to_matrix(q), rot, atol=1e-12)
+
+
+def test_fit_recovers_pose_from_perturbed_prior_with_noise():
+    rng = np.random.default_rng(3)
+    true = _pose([0.3, -0.2, 0.5], [0.01, -0.02, 0.09])
+    obj = _side_and_rim_patch(rng)
+    points = obj @ quat_to_matrix(true.quaternion).T + true.position + rng.normal(0, 1e-4, obj.shape)
+    prior = _pose(Rotation.from_matrix(quat_to_matrix(true.quaternion)).as_rotvec() + [0.03, -0.02, 0.04],
+                  true.position + [0.002, -0.0015, 0.002])
+    assert position_error(prior, true) > 2.5e-3 and orientation_error(prior, true) > 1e-4
+    fit = ProximityPoseEstimator(CYL).fit(points, prior)
+    assert fit.success and fit.n_points == 1500
+    assert position_error(fit.pose, true) < 3e-4  # side + rim constrain all but the spin about the axis
+    axis_true = quat_to_matrix(true.quaternion)[:, 2]
+    axis_fit = quat_to_matrix(fit.pose.quaternion)[:, 2]
+    assert np.degrees(np.arccos(min(1.0, axis_true @ axis_fit))) < 0.2
+    assert fit.rms_m < 1.5e-4  # the noise level
+
+
+def test_side_patch_fixes_axis_line_and_leaves_symmetric_directions_at_prior():
+    rng = np.random.default_rng(4)
+    true = _pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    ang = rng.uniform(-0.5, 0.5, 800)
+    obj = np.stack([0.04 * np.cos(ang), 0.04 * np.sin(ang), rng.uniform(0.04, 0.06, 800)], 1)
+    prior = _pose([0.0, 0.0, 0.05], [0.001, 0.002, 0.003])  # spin about the axis, shift along it
+    fit = ProximityPoseEstimator(CYL).fit(obj, prior)
+    # radial offset and tilt are observable and corrected ...
+    assert abs(fit.pose.position[0]) < 1e-5 and abs(fit.pose.position[1]) < 1e-5
+    np.testing.assert_allclose(quat_to_matrix(fit.pose.quaternion)[:, 2], [0, 0, 1], atol=1e-5)
+    # ... the shift along the axis and the spin about it are not: they stay at the prior
+    assert abs(fit.pose.position[2] - 0.003) < 1e-5
+    assert abs(orientation_error(fit.pose, prior)) < 1e-8
+
+
+def test_fit_rejects_bad_points():
+    est = ProximityPoseEstimator(CYL)
+    prior = _pose([0, 0, 0], [0, 0, 0])
+    with pytest.raises(InputError, match="too few"):
+        est.fit(np.zeros((5, 3)), prior)
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    pts[3, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        est.fit(pts, prior)
+
+
+def test_grid_sdf_of_mesh_matches_cylinder_and_fits_the_same_pose():
+    mesh = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=128)
+    mesh.apply_translation([0, 0, 0.05])
+    grid = shape_from_object({"type": "mesh"}, mesh.vertices, mesh.faces)
+    assert isinstance(grid, GridSDF)
+    rng = np.random.default_rng(5)
+    probe = np.concatenate([_side_and_rim_patch(rng, 300) * [1.1, 1.1, 1.05],
+                            rng.uniform([-0.1, -0.1, -0.05], [0.1, 0.1, 0.2], (300, 3))])
+    phi_grid, grad_grid = grid.signed_distance(probe)
+    phi_cyl, _ = CYL.signed_distance(probe)
+    near = np.abs(phi_cyl) < 0.005  # inside the band: nearest surface sample
+    np.testing.assert_allclose(phi_grid[near], phi_cyl[near], atol=1e-3)
+    mid = np.abs(phi_cyl) < 0.02  # beyond the band: grid distance to the band
+    np.testing.assert_allclose(phi_grid[mid], phi_cyl[mid], atol=2.5e-3)
+    far = phi_cyl > 0.03
+    assert np.all(phi_grid[far] > 0.02)
+
+    true = _pose([0.2, 0.1, -0.3], [0.0, 0.01, 0.1])
+    obj = _side_and_rim_patch(rng)
+    points = obj @ quat_to_matrix(true.quaternion).T + true.position
+    prior = _pose([0.22, 0.08, -0.28], [0.0015, 0.009, 0.1015])
+    fit = ProximityPoseEstimator(grid).fit(points, prior)
+    assert position_error(fit.pose, true) < 1e-3
+
+
+def test_shape_from_object_cylinder_and_errors():
+    cyl = shape_from_object({"type": "cylinder", "radius": 0.04, "height": 0.1})
+    assert cyl == CYL
+    with pytest.raises(InputError):
+        shape_from_object({"type": "cylinder", "radius": -1, "height": 0.1})
+    with pytest.raises(InputError):
+        shape_from_object({"type": "torus"})
