@@ -64,3 +64,11 @@ OBJECTS_MESH_GROUP = "objects/meshes"  # objects/meshes/<name>/vertices (V,3) fl
 
 # Simulated sessions only.
 SIM_TRUE_DEPTH = "sim/true_depth"  # (N,H,W) float32 m, true membrane depth along the optical axis
+
+# Attributes of datasets and bookkeeping attributes (added by the recorder).
+ATTR_UNIT = "unit"  # physical unit of a dataset, e.g. "s", "m", "hPa"
+ATTR_UNIT_M = "unit_m"  # frames/depth: metres per count
+ATTR_INVALID = "invalid"  # frames/depth: the value that marks invalid pixels (0)
+ATTR_PHASE_ENUM = "enum"  # frames/phase: JSON {name: value} of PHASES
+ATTR_CLOSED = "closed"  # root: ISO 8601 UTC time of the last clean close, "" while recording / after a crash
+ATTR_COLLECTION_PLAN = "collection_plan"  # root: JSON of the pose plan settings (objects, poses per object, seed)

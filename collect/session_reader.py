@@ -1,0 +1,368 @@
+"""Read recorded sessions (the HDF5 format of DESIGN.md): frame selection, depth in metres, masks.
+
+    with Session.open("session.h5") as s:
+        idx = s.select(object="mug", phase=["press", "hold"])
+        depth = s.depth_m(idx)          # (n,H,W) float32 m, 0 = invalid
+        valid = s.valid(idx)            # (n,H,W) bool
+        ref = s.reference_frames("mug") # no-contact frames recorded before the mug's first press
+
+Files whose writer was killed (status flags left set by HDF5) are opened through a SWMR reader and
+hold every frame up to the writer's last flush. Bad files raise ``InputError`` with one line.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+import h5py
+import numpy as np
+
+from collect import session_format as sf
+from collect.errors import InputError
+
+_REQUIRED = (
+    sf.FRAMES_IR,
+    sf.FRAMES_DEPTH,
+    sf.FRAMES_T_DEVICE,
+    sf.FRAMES_T_HOST,
+    sf.FRAMES_SEQ,
+    sf.FRAMES_OBJECT,
+    sf.FRAMES_POSE_ID,
+    sf.FRAMES_PHASE,
+    sf.ARM_T,
+    sf.ARM_TCP_POSE,
+    sf.ARM_TCP_WRENCH,
+    sf.PRESSURE_T,
+    sf.PRESSURE_HPA,
+    sf.OBJECTS_NAME,
+    sf.OBJECTS_FIXTURE_POSE,
+    sf.OBJECTS_MESH_SHA256,
+)
+
+_PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
+
+
+def open_h5(path) -> h5py.File:
+    """Open ``path`` read-only; falls back to a SWMR reader for a file whose writer died.
+
+    Raises InputError for a missing, unreadable, non-HDF5 or truncated file.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise InputError(f"{path}: no such file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as plain_err:
+        try:
+            return h5py.File(path, "r", swmr=True)
+        except OSError:
+            raise InputError(f"{path}: not a readable HDF5 session ({_short(plain_err)})") from None
+
+
+def _short(err: Exception) -> str:
+    text = str(err)
+    return text.split("(", 1)[1].rsplit(")", 1)[0] if "(" in text and text.endswith(")") else text
+
+
+def check_session_attrs(f: h5py.File) -> None:
+    """Raise InputError unless ``f`` is a bubble session of a format version this code reads."""
+    fmt = f.attrs.get(sf.ATTR_FORMAT)
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode()
+    if fmt != sf.FORMAT_NAME:
+        raise InputError(f"{f.filename}: not a {sf.FORMAT_NAME} file (format attribute: {fmt!r})")
+    version = f.attrs.get(sf.ATTR_FORMAT_VERSION)
+    if version is None or int(version) != sf.FORMAT_VERSION:
+        raise InputError(
+            f"{f.filename}: format version {version} is not supported (this software reads version "
+            f"{sf.FORMAT_VERSION})"
+        )
+
+
+@dataclass(frozen=True)
+class SessionObject:
+    """One object of the fixture plate as stored in the session."""
+
+    index: int  # value of frames/object for this object
+    name: str
+    fixture_pose: np.ndarray  # (6,) float64 object origin in the base frame [m, rotvec]
+    mesh_sha256: str
+    primitive: dict  # shape description, e.g. {"type": "cylinder", "radius": ..}
+    vertices: np.ndarray  # (V,3) float32 m, object frame
+    faces: np.ndarray  # (F,3) int32
+
+
+@dataclass(frozen=True)
+class ArmStream:
+    t: np.ndarray  # (M,) float64 s host clock
+    tcp_pose: np.ndarray  # (M,6) float64 [m, rotvec] base frame
+    wrench: np.ndarray  # (M,6) float64 [N, N m] base frame
+
+
+@dataclass(frozen=True)
+class PressureStream:
+    t: np.ndarray  # (P,) float64 s host clock
+    hpa: np.ndarray  # (P,) float64 hPa absolute
+
+
+class Session:
+    """A recorded session opened read-only. Use ``Session.open(path)``, ideally as a context manager.
+
+    Frame indices (``idx``) for the loaders are an int (returns one ``(H,W)`` image), a slice, or a
+    1-D integer array / list (returns ``(n,H,W)`` in the given order; repeats allowed).
+    """
+
+    def __init__(self, f: h5py.File):
+        self._f = f
+        self.path = f.filename
+        attrs = f.attrs
+        try:
+            self.sensor_serial = _text(attrs[sf.ATTR_SENSOR_SERIAL])
+            self.sensor_spec = json.loads(_text(attrs[sf.ATTR_SENSOR_SPEC]))
+            self.intrinsics = json.loads(_text(attrs[sf.ATTR_INTRINSICS]))
+            self.camera_in_tcp = np.asarray(json.loads(_text(attrs[sf.ATTR_CAMERA_IN_TCP])), dtype=np.float64)
+            self.simulated = bool(attrs[sf.ATTR_SIMULATED])
+            self.created = _text(attrs.get(sf.ATTR_CREATED, ""))
+            self.software_version = _text(attrs.get(sf.ATTR_SOFTWARE_VERSION, ""))
+            #: True when the last recording into the file was closed cleanly (False after a crash)
+            self.closed_cleanly = bool(_text(attrs.get(sf.ATTR_CLOSED, "")))
+        except (KeyError, ValueError, TypeError) as err:
+            raise InputError(f"{self.path}: missing or malformed session attribute ({err})") from None
+        missing = [name for name in _REQUIRED if name not in f]
+        if self.simulated and sf.SIM_TRUE_DEPTH not in f:
+            missing.append(sf.SIM_TRUE_DEPTH)
+        if missing:
+            raise InputError(f"{self.path}: corrupt session, missing {', '.join(missing)}")
+        _, self.height, self.width = f[sf.FRAMES_IR].shape
+        if f[sf.FRAMES_DEPTH].shape[1:] != (self.height, self.width):
+            raise InputError(f"{self.path}: corrupt session, frames/ir and frames/depth differ in size")
+        if (int(self.intrinsics.get("height", -1)), int(self.intrinsics.get("width", -1))) != (
+            self.height,
+            self.width,
+        ):
+            raise InputError(f"{self.path}: intrinsics size does not match the {self.width}x{self.height} frames")
+        frame_sets = [sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.FRAMES_T_DEVICE, sf.FRAMES_T_HOST, sf.FRAMES_SEQ,
+                      sf.FRAMES_OBJECT, sf.FRAMES_POSE_ID, sf.FRAMES_PHASE]
+        frame_sets += [name for name in (sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH) if name in f]
+        lengths = [f[name].shape[0] for name in frame_sets]
+        #: frames held by every per-frame dataset (a crash mid-flush can leave one batch uneven)
+        self.n_frames = int(min(lengths))
+        n = self.n_frames
+        self.depth_unit_m = float(f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_UNIT_M, sf.DEPTH_UNIT_M))
+        #: (N,) per-frame metadata, loaded eagerly (small)
+        self.t_device = f[sf.FRAMES_T_DEVICE][:n]
+        self.t_host = f[sf.FRAMES_T_HOST][:n]
+        self.seq = f[sf.FRAMES_SEQ][:n]
+        self.object_index = f[sf.FRAMES_OBJECT][:n].astype(np.int16)
+        self.pose_id = f[sf.FRAMES_POSE_ID][:n].astype(np.int32)
+        self.phase = f[sf.FRAMES_PHASE][:n].astype(np.uint8)
+        self._tcp_pose = f[sf.FRAMES_TCP_POSE][:n] if sf.FRAMES_TCP_POSE in f else None
+        self.objects = _read_objects(f)
+        self.object_names = [o.name for o in self.objects]
+        for name, values in (
+            (sf.FRAMES_T_DEVICE, self.t_device),
+            (sf.FRAMES_T_HOST, self.t_host),
+            (sf.FRAMES_TCP_POSE, self._tcp_pose),
+        ):
+            _check_finite(self.path, name, values)
+        bad_phase = ~np.isin(self.phase, list(_PHASE_NAMES))
+        if bad_phase.any():
+            raise InputError(f"{self.path}: corrupt session, unknown phase value at frame {int(np.argmax(bad_phase))}")
+        if ((self.object_index < -1) | (self.object_index >= len(self.objects))).any():
+            raise InputError(f"{self.path}: corrupt session, frames/object out of range")
+
+    # ------------------------------------------------------------------ opening
+    @classmethod
+    def open(cls, path) -> "Session":
+        """Open a session file read-only. Raises InputError for missing/corrupt/truncated files,
+        another format or format version, or NaN in the per-frame metadata."""
+        f = open_h5(path)
+        try:
+            check_session_attrs(f)
+            return cls(f)
+        except InputError:
+            f.close()
+            raise
+        except (OSError, RuntimeError, KeyError, ValueError) as err:
+            f.close()
+            raise InputError(f"{os.fspath(path)}: corrupt or truncated session ({_short(err)})") from None
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ selection
+    def object_id(self, name: str) -> int:
+        """Index of object ``name`` in ``objects`` (= its value in frames/object); InputError if unknown."""
+        if name not in self.object_names:
+            raise InputError(f"{self.path}: no object {name!r} (objects: {', '.join(self.object_names) or 'none'})")
+        return self.object_names.index(name)
+
+    def select(self, object=None, phase=None, pose_id=None) -> np.ndarray:
+        """Indices (ascending int64) of the frames matching every given filter.
+
+        object: name or list of names (None = all frames, including those with no object).
+        phase: name (``free``/``approach``/``press``/``hold``/``retract``) or list of names.
+        pose_id: int or list of ints.
+        """
+        keep = np.ones(self.n_frames, dtype=bool)
+        if object is not None:
+            names = [object] if isinstance(object, str) else list(object)
+            keep &= np.isin(self.object_index, [self.object_id(n) for n in names])
+        if phase is not None:
+            names = [phase] if isinstance(phase, str) else list(phase)
+            unknown = [n for n in names if n not in sf.PHASES]
+            if unknown:
+                raise InputError(f"unknown phase {unknown[0]!r} (phases: {', '.join(sf.PHASES)})")
+            keep &= np.isin(self.phase, [sf.PHASES[n] for n in names])
+        if pose_id is not None:
+            ids = [pose_id] if np.isscalar(pose_id) else list(pose_id)
+            keep &= np.isin(self.pose_id, ids)
+        return np.flatnonzero(keep).astype(np.int64)
+
+    def reference_frames(self, object: str) -> np.ndarray:
+        """Indices of the no-contact (``free``) frames of ``object`` recorded before its first press."""
+        oid = self.object_id(object)
+        mine = self.object_index == oid
+        pressed = np.flatnonzero(mine & (self.phase != sf.PHASE_FREE))
+        first = pressed[0] if len(pressed) else self.n_frames
+        free = np.flatnonzero(mine & (self.phase == sf.PHASE_FREE))
+        return free[free < first].astype(np.int64)
+
+    def phase_name(self, idx) -> np.ndarray | str:
+        """Phase names of frames ``idx`` (str for an int index)."""
+        values = self.phase[idx]
+        if np.isscalar(values):
+            return _PHASE_NAMES[int(values)]
+        return np.array([_PHASE_NAMES[int(v)] for v in values])
+
+    # ------------------------------------------------------------------ loaders
+    def ir(self, idx) -> np.ndarray:
+        """IR amplitude ``(n,H,W) uint16`` (``(H,W)`` for an int index)."""
+        return self._load(sf.FRAMES_IR, idx)
+
+    def depth_raw(self, idx) -> np.ndarray:
+        """ToF depth as stored: ``(n,H,W) uint16`` in ``depth_unit_m``, 0 = invalid."""
+        return self._load(sf.FRAMES_DEPTH, idx)
+
+    def depth_m(self, idx) -> np.ndarray:
+        """ToF depth ``(n,H,W) float32`` m along the optical axis; invalid pixels are 0."""
+        return self.depth_raw(idx).astype(np.float32) * np.float32(self.depth_unit_m)
+
+    def valid(self, idx) -> np.ndarray:
+        """``(n,H,W) bool``: True where the ToF depth is valid (non-zero)."""
+        return self.depth_raw(idx) > 0
+
+    def true_depth(self, idx) -> np.ndarray:
+        """True membrane depth ``(n,H,W) float32`` m along the optical axis (simulated sessions only)."""
+        if not self.simulated:
+            raise InputError(f"{self.path}: not a simulated session, it holds no true depth")
+        values = self._load(sf.SIM_TRUE_DEPTH, idx)
+        _check_finite(self.path, sf.SIM_TRUE_DEPTH, values)
+        return values
+
+    def tcp_pose(self, idx) -> np.ndarray:
+        """Arm TCP pose at frame time ``(n,6) float64`` [x,y,z m, rotation vector rad], base frame.
+
+        Interpolated from ``arm/*`` on the host clock when the file has no ``frames/tcp_pose``.
+        """
+        if self._tcp_pose is not None:
+            return self._tcp_pose[idx]
+        arm = self.arm()
+        if len(arm.t) == 0:
+            raise InputError(f"{self.path}: no arm poses recorded")
+        t = np.atleast_1d(self.t_host[idx])
+        pose = np.stack([np.interp(t, arm.t, arm.tcp_pose[:, k]) for k in range(6)], axis=-1)
+        return pose if np.ndim(self.t_host[idx]) else pose[0]
+
+    def arm(self) -> ArmStream:
+        """The arm state stream (TCP pose and wrench samples on the host clock)."""
+        f = self._f
+        n = min(f[name].shape[0] for name in (sf.ARM_T, sf.ARM_TCP_POSE, sf.ARM_TCP_WRENCH))
+        stream = ArmStream(f[sf.ARM_T][:n], f[sf.ARM_TCP_POSE][:n], f[sf.ARM_TCP_WRENCH][:n])
+        for name, values in ((sf.ARM_T, stream.t), (sf.ARM_TCP_POSE, stream.tcp_pose), (sf.ARM_TCP_WRENCH, stream.wrench)):
+            _check_finite(self.path, name, values)
+        return stream
+
+    def pressure(self) -> PressureStream:
+        """The bubble pressure stream (hPa absolute on the host clock)."""
+        f = self._f
+        n = min(f[sf.PRESSURE_T].shape[0], f[sf.PRESSURE_HPA].shape[0])
+        stream = PressureStream(f[sf.PRESSURE_T][:n], f[sf.PRESSURE_HPA][:n])
+        _check_finite(self.path, sf.PRESSURE_T, stream.t)
+        _check_finite(self.path, sf.PRESSURE_HPA, stream.hpa)
+        return stream
+
+    def collection_plan(self) -> dict | None:
+        """The pose-plan settings stored by ``bubble collect`` (None if the file has none)."""
+        text = _text(self._f.attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
+        return json.loads(text) if text else None
+
+    def _load(self, name: str, idx) -> np.ndarray:
+        try:
+            return self._read(self._f[name], idx)
+        except (OSError, RuntimeError) as err:
+            raise InputError(f"{self.path}: corrupt or truncated session, cannot read {name} ({_short(err)})") from None
+
+    def _read(self, ds: h5py.Dataset, idx) -> np.ndarray:
+        if isinstance(idx, (int, np.integer)):
+            i = int(idx) + (self.n_frames if idx < 0 else 0)
+            if not 0 <= i < self.n_frames:
+                raise IndexError(f"frame {idx} out of range ({self.n_frames} frames)")
+            return ds[i]
+        if isinstance(idx, slice):
+            start, stop, step = idx.indices(self.n_frames)
+            if step == 1:
+                return ds[start : max(start, stop)]
+            idx = np.arange(start, stop, step)
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        if len(idx) and (idx.min() < 0 or idx.max() >= self.n_frames):
+            raise IndexError(f"frame indices out of range ({self.n_frames} frames)")
+        unique, inverse = np.unique(idx, return_inverse=True)
+        out = np.empty((len(unique),) + ds.shape[1:], dtype=ds.dtype)
+        # read runs of consecutive frames with one slice each (much faster than point selection)
+        breaks = np.flatnonzero(np.diff(unique) != 1) + 1
+        for run in np.split(np.arange(len(unique)), breaks):
+            if len(run):
+                out[run[0] : run[-1] + 1] = ds[unique[run[0]] : unique[run[-1]] + 1]
+        return out[inverse]
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _check_finite(path: str, name: str, values) -> None:
+    if values is None or values.dtype.kind != "f":
+        return
+    bad = ~np.isfinite(values)
+    if bad.any():
+        first = int(np.argwhere(bad)[0][0])
+        raise InputError(f"{path}: corrupt session, NaN/inf in {name} (row {first})")
+
+
+def _read_objects(f: h5py.File) -> list[SessionObject]:
+    names = [_text(n) for n in f[sf.OBJECTS_NAME][()]]
+    poses = f[sf.OBJECTS_FIXTURE_POSE][()]
+    shas = [_text(s) for s in f[sf.OBJECTS_MESH_SHA256][()]]
+    prims = [_text(p) for p in f[sf.OBJECTS_PRIMITIVE][()]] if sf.OBJECTS_PRIMITIVE in f else [""] * len(names)
+    if not (len(names) == len(poses) == len(shas) == len(prims)):
+        raise InputError(f"{f.filename}: corrupt session, objects/* datasets differ in length")
+    _check_finite(f.filename, sf.OBJECTS_FIXTURE_POSE, poses)
+    objects = []
+    for i, name in enumerate(names):
+        group = f.get(f"{sf.OBJECTS_MESH_GROUP}/{name}")
+        vertices = group["vertices"][()] if group is not None else np.zeros((0, 3), np.float32)
+        faces = group["faces"][()] if group is not None else np.zeros((0, 3), np.int32)
+        _check_finite(f.filename, f"{sf.OBJECTS_MESH_GROUP}/{name}/vertices", vertices)
+        objects.append(
+            SessionObject(i, name, poses[i], shas[i], json.loads(prims[i]) if prims[i] else {}, vertices, faces)
+        )
+    return objects

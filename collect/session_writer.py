@@ -1,0 +1,539 @@
+"""Crash-safe HDF5 session recorder (the format of DESIGN.md, names in ``collect.session_format``).
+
+``SessionWriter`` takes frames, arm samples and pressure readings from the control loop and writes
+them from a background thread, so the caller never waits on the disk: ``append_*`` only copies the
+arrays into a bounded queue. The writer thread drains the queue in batches, appends to chunked
+(one chunk per frame), compressed, growable datasets, and flushes at least every
+``flush_interval_s`` (default 0.5 s).
+
+Crash safety: the file is written with ``libver="latest"`` in SWMR (single-writer/multiple-reader)
+mode, in which HDF5 orders its metadata writes so that the file on disk is consistent after every
+flush. A process killed with SIGKILL leaves a file holding every frame up to the last flush; it
+opens with ``h5py.File(path, "r", swmr=True)`` (``collect.session_reader`` does that for you) and
+``resume=True`` continues it.
+
+Compression: LZF with the byte-shuffle filter (see docs/session_format.md and
+docs/bench_recorder.md for the measurements behind this choice).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+
+import h5py
+import numpy as np
+
+from collect import session_format as sf
+from collect.errors import HardwareFault, InputError
+
+#: Filters of the per-frame image datasets: fast (well above the camera rate on one core) and
+#: about 1.5x smaller than raw for ToF images; gzip-1+shuffle is ~7 % smaller but ~1.5x slower.
+IMAGE_COMPRESSION = {"compression": "lzf", "shuffle": True}
+
+#: Rows per chunk of the 1-D/2-D per-sample datasets (timestamps, poses, streams).
+ROW_CHUNK = 512
+
+#: Queue capacity in items (frames + stream samples); ~10 s of frames at 45 fps with streams.
+QUEUE_ITEMS = 2048
+
+_STR = h5py.string_dtype("utf-8")
+
+
+def software_version() -> str:
+    """Installed ``bubble-bench`` version, or ``"unknown"`` when running from a bare checkout."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("bubble-bench")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass
+class WriterStats:
+    """Counters of a running writer (read from any thread; values are snapshots)."""
+
+    frames_queued: int = 0  # frames handed to append_frame since open
+    frames_written: int = 0  # frames written to the file since open
+    frames_flushed: int = 0  # frames on disk at the last flush (total in the file, incl. resumed)
+    flushes: int = 0
+    max_queue_depth: int = 0  # largest queue length seen by the writer thread
+    write_s: float = 0.0  # time the writer thread spent writing + flushing, s
+
+
+class SessionWriter:
+    """Append-only recorder of one session file.
+
+    Args:
+        path: output ``.h5`` file. Must not exist unless ``resume`` is true.
+        sensor_serial: serial of the sensor (root attr; checked on resume).
+        sensor_spec: JSON-serializable dict describing the sensor (root attr, JSON).
+        intrinsics: ``{fx, fy, cx, cy, width, height[, distortion]}`` in pixels; fixes ``(H,W)``.
+        camera_in_tcp: ``[x,y,z,rx,ry,rz]`` m + rotation vector, camera frame in the TCP frame.
+        simulated: true for sessions recorded on the simulated bench (enables ``sim/true_depth``).
+        objects: dicts with ``name``, ``fixture_pose`` (6,) m + rotvec, ``mesh_sha256`` str,
+            ``primitive`` (dict or JSON str), ``vertices`` (V,3) m, ``faces`` (F,3) int.
+        resume: append to an existing session instead of creating one. Objects already in the file
+            keep their index; new ones are appended (``object_indices`` maps the given list).
+        flush_interval_s: longest time between flushes while data is arriving, s (<= 1).
+
+    Raises:
+        InputError: the file exists (without ``resume``), cannot be created, or (with ``resume``) is
+            missing, not a session, of another format version, sensor, or image size.
+    """
+
+    def __init__(
+        self,
+        path,
+        *,
+        sensor_serial: str,
+        sensor_spec: dict,
+        intrinsics: dict,
+        camera_in_tcp,
+        simulated: bool,
+        objects: list[dict],
+        resume: bool = False,
+        flush_interval_s: float = 0.5,
+    ):
+        self.path = os.fspath(path)
+        self.simulated = bool(simulated)
+        self.height = int(intrinsics["height"])
+        self.width = int(intrinsics["width"])
+        self.flush_interval_s = float(flush_interval_s)
+        self.stats = WriterStats()
+        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_ITEMS)
+        self._error: BaseException | None = None
+        self._closed = False
+        if resume:
+            self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated)
+        else:
+            self._file = _create(self.path)
+            _write_root_attrs(
+                self._file, sensor_serial, sensor_spec, intrinsics, camera_in_tcp, self.simulated
+            )
+            _create_datasets(self._file, self.height, self.width, self.simulated)
+        self.object_indices = _merge_objects(self._file, objects)
+        self._file.attrs[sf.ATTR_CLOSED] = ""
+        self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
+        #: pose ids with retract frames already in the file (resume skips them)
+        self.completed_pose_ids = frozenset(_completed_pose_ids(self._file))
+        #: object indices with no-contact reference frames already in the file
+        self.referenced_objects = frozenset(_referenced_objects(self._file))
+        self.stats.frames_flushed = self.n_frames_at_open
+        self._file.flush()
+        self._file.swmr_mode = True
+        self._frames = {name: self._file[name] for name in _FRAME_DATASETS}
+        if self.simulated:
+            self._frames[sf.SIM_TRUE_DEPTH] = self._file[sf.SIM_TRUE_DEPTH]
+        self._thread = threading.Thread(target=self._run, name="session-writer", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ producer side
+    def append_frame(
+        self,
+        ir: np.ndarray,
+        depth: np.ndarray,
+        t_device: float,
+        t_host: float,
+        seq: int,
+        object_index: int,
+        pose_id: int,
+        phase: int,
+        tcp_pose,
+        true_depth: np.ndarray | None = None,
+    ) -> None:
+        """Queue one camera frame.
+
+        Args:
+            ir: (H,W) uint16 amplitude. depth: (H,W) uint16 in ``DEPTH_UNIT_M``, 0 = invalid.
+            t_device / t_host: s (camera clock / host clock). seq: camera sequence number.
+            object_index: index into ``objects/name`` (-1 = none). pose_id: -1 = none.
+            phase: one of ``session_format.PHASES`` values. tcp_pose: (6,) m + rotvec.
+            true_depth: (H,W) float32 m, required for simulated sessions, ignored otherwise.
+        """
+        shape = (self.height, self.width)
+        if ir.shape != shape or depth.shape != shape:
+            raise ValueError(f"frame shape {ir.shape}/{depth.shape} != session shape {shape}")
+        if phase not in _PHASE_VALUES:
+            raise ValueError(f"unknown phase {phase}")
+        if self.simulated:
+            if true_depth is None or true_depth.shape != shape:
+                raise ValueError("simulated sessions need true_depth (H,W) float32 m per frame")
+            true_depth = np.array(true_depth, dtype=np.float32)
+        item = (
+            "frame",
+            np.array(ir, dtype=np.uint16),
+            np.array(depth, dtype=np.uint16),
+            float(t_device),
+            float(t_host),
+            int(seq),
+            int(object_index),
+            int(pose_id),
+            int(phase),
+            np.asarray(tcp_pose, dtype=np.float64).reshape(6),
+            true_depth,
+        )
+        self._put(item)
+        self.stats.frames_queued += 1
+
+    def append_arm(self, t: float, tcp_pose, wrench) -> None:
+        """Queue one arm state sample: host time s, TCP pose (6,) m + rotvec, TCP wrench (6,) N, N m."""
+        self._put(
+            (
+                "arm",
+                float(t),
+                np.asarray(tcp_pose, dtype=np.float64).reshape(6),
+                np.asarray(wrench, dtype=np.float64).reshape(6),
+            )
+        )
+
+    def append_pressure(self, t: float, hpa: float) -> None:
+        """Queue one pressure reading: host time s, absolute pressure hPa."""
+        self._put(("pressure", float(t), float(hpa)))
+
+    def close(self) -> None:
+        """Write everything queued, mark the file closed cleanly, close it. Idempotent.
+
+        Raises ``HardwareFault("recorder", ...)`` if the writer thread failed (the frames written
+        before the failure stay in the file).
+        """
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put(None)
+        self._thread.join()
+        try:
+            if self._error is None:
+                self._file.attrs[sf.ATTR_CLOSED] = _now()
+        finally:
+            self._file.close()
+        self._raise_if_failed()
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def n_frames(self) -> int:
+        """Frames in the session including queued ones (resumed frames + appended since open)."""
+        return self.n_frames_at_open + self.stats.frames_queued
+
+    # ------------------------------------------------------------------ writer thread
+    def _put(self, item) -> None:
+        if self._closed:
+            raise RuntimeError("SessionWriter is closed")
+        self._raise_if_failed()
+        self._queue.put(item)
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise HardwareFault("recorder", f"cannot write {self.path}: {self._error}") from self._error
+
+    def _run(self) -> None:
+        last_flush = time.monotonic()
+        dirty = False  # written since the last flush
+        done = False
+        while not done:
+            batch = self._next_batch(max(0.0, self.flush_interval_s - (time.monotonic() - last_flush)))
+            if batch and batch[-1] is None:
+                done = True
+                batch.pop()
+            self.stats.max_queue_depth = max(self.stats.max_queue_depth, len(batch))
+            if self._error is not None:
+                continue  # keep draining so that producers never block on a failed writer
+            try:
+                t0 = time.perf_counter()
+                if batch:
+                    self._write_batch(batch)
+                    dirty = True
+                if not dirty:
+                    last_flush = time.monotonic()
+                elif done or time.monotonic() - last_flush >= self.flush_interval_s:
+                    self._file.flush()
+                    self.stats.flushes += 1
+                    self.stats.frames_flushed = self.n_frames_at_open + self.stats.frames_written
+                    dirty = False
+                    last_flush = time.monotonic()
+                self.stats.write_s += time.perf_counter() - t0
+            except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
+                self._error = err
+
+    def _next_batch(self, timeout: float) -> list:
+        """Items waiting in the queue (waiting up to ``timeout`` s for the first), up to the ``None``
+        close sentinel, which ends the batch."""
+        batch = []
+        try:
+            batch.append(self._queue.get(timeout=timeout))
+        except queue.Empty:
+            return batch
+        while batch[-1] is not None:
+            try:
+                batch.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        return batch
+
+    def _write_batch(self, batch: list) -> None:
+        frames = [item for item in batch if item[0] == "frame"]
+        arms = [item for item in batch if item[0] == "arm"]
+        pressures = [item for item in batch if item[0] == "pressure"]
+        if frames:
+            columns = {
+                sf.FRAMES_IR: np.stack([f[1] for f in frames]),
+                sf.FRAMES_DEPTH: np.stack([f[2] for f in frames]),
+                sf.FRAMES_T_DEVICE: np.array([f[3] for f in frames]),
+                sf.FRAMES_T_HOST: np.array([f[4] for f in frames]),
+                sf.FRAMES_SEQ: np.array([f[5] for f in frames], dtype=np.int64),
+                sf.FRAMES_OBJECT: np.array([f[6] for f in frames], dtype=np.int16),
+                sf.FRAMES_POSE_ID: np.array([f[7] for f in frames], dtype=np.int32),
+                sf.FRAMES_PHASE: np.array([f[8] for f in frames], dtype=np.uint8),
+                sf.FRAMES_TCP_POSE: np.stack([f[9] for f in frames]),
+            }
+            if self.simulated:
+                columns[sf.SIM_TRUE_DEPTH] = np.stack([f[10] for f in frames])
+            for name, values in columns.items():
+                _append_rows(self._frames[name], values)
+            self.stats.frames_written += len(frames)
+        if arms:
+            _append_rows(self._file[sf.ARM_T], np.array([a[1] for a in arms]))
+            _append_rows(self._file[sf.ARM_TCP_POSE], np.stack([a[2] for a in arms]))
+            _append_rows(self._file[sf.ARM_TCP_WRENCH], np.stack([a[3] for a in arms]))
+        if pressures:
+            _append_rows(self._file[sf.PRESSURE_T], np.array([p[1] for p in pressures]))
+            _append_rows(self._file[sf.PRESSURE_HPA], np.array([p[2] for p in pressures]))
+
+
+# ---------------------------------------------------------------------- file layout helpers
+_PHASE_VALUES = frozenset(sf.PHASES.values())
+
+_FRAME_DATASETS = (
+    sf.FRAMES_IR,
+    sf.FRAMES_DEPTH,
+    sf.FRAMES_T_DEVICE,
+    sf.FRAMES_T_HOST,
+    sf.FRAMES_SEQ,
+    sf.FRAMES_OBJECT,
+    sf.FRAMES_POSE_ID,
+    sf.FRAMES_PHASE,
+    sf.FRAMES_TCP_POSE,
+)
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _append_rows(dataset: h5py.Dataset, values: np.ndarray) -> None:
+    n = dataset.shape[0]
+    dataset.resize(n + len(values), axis=0)
+    dataset[n:] = values
+
+
+def _create(path: str) -> h5py.File:
+    if os.path.exists(path):
+        raise InputError(f"{path} already exists; use --resume to append to it or choose another output")
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise InputError(f"cannot create {path}: directory {parent} does not exist")
+    try:
+        return h5py.File(path, "w-", libver="latest")
+    except OSError as err:
+        raise InputError(f"cannot create {path}: {err.strerror or err}") from None
+
+
+def _write_root_attrs(f, serial, spec, intrinsics, camera_in_tcp, simulated) -> None:
+    f.attrs[sf.ATTR_FORMAT] = sf.FORMAT_NAME
+    f.attrs[sf.ATTR_FORMAT_VERSION] = sf.FORMAT_VERSION
+    f.attrs[sf.ATTR_SOFTWARE_VERSION] = software_version()
+    f.attrs[sf.ATTR_SENSOR_SERIAL] = str(serial)
+    f.attrs[sf.ATTR_SENSOR_SPEC] = json.dumps(spec)
+    f.attrs[sf.ATTR_INTRINSICS] = json.dumps({k: _plain(v) for k, v in intrinsics.items()})
+    f.attrs[sf.ATTR_CAMERA_IN_TCP] = json.dumps([float(v) for v in np.asarray(camera_in_tcp).reshape(6)])
+    f.attrs[sf.ATTR_CREATED] = _now()
+    f.attrs[sf.ATTR_SIMULATED] = bool(simulated)
+
+
+def _plain(value):
+    """numpy scalars/arrays -> JSON-serializable Python values."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool) -> None:
+    image = dict(shape=(0, height, width), maxshape=(None, height, width), chunks=(1, height, width))
+    f.create_dataset(sf.FRAMES_IR, dtype=np.uint16, **image, **IMAGE_COMPRESSION)
+    depth = f.create_dataset(sf.FRAMES_DEPTH, dtype=np.uint16, **image, **IMAGE_COMPRESSION)
+    depth.attrs[sf.ATTR_UNIT_M] = sf.DEPTH_UNIT_M
+    depth.attrs[sf.ATTR_INVALID] = 0
+    for name, dtype, unit in (
+        (sf.FRAMES_T_DEVICE, np.float64, "s"),
+        (sf.FRAMES_T_HOST, np.float64, "s"),
+        (sf.FRAMES_SEQ, np.int64, ""),
+        (sf.FRAMES_OBJECT, np.int16, ""),
+        (sf.FRAMES_POSE_ID, np.int32, ""),
+        (sf.FRAMES_PHASE, np.uint8, ""),
+        (sf.ARM_T, np.float64, "s"),
+        (sf.PRESSURE_T, np.float64, "s"),
+        (sf.PRESSURE_HPA, np.float64, "hPa"),
+    ):
+        ds = f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(ROW_CHUNK,), dtype=dtype)
+        if unit:
+            ds.attrs[sf.ATTR_UNIT] = unit
+    f[sf.FRAMES_PHASE].attrs[sf.ATTR_PHASE_ENUM] = json.dumps(sf.PHASES)
+    for name, unit in (
+        (sf.FRAMES_TCP_POSE, "m, rad (rotation vector)"),
+        (sf.ARM_TCP_POSE, "m, rad (rotation vector)"),
+        (sf.ARM_TCP_WRENCH, "N, N m"),
+    ):
+        ds = f.create_dataset(name, shape=(0, 6), maxshape=(None, 6), chunks=(ROW_CHUNK, 6), dtype=np.float64)
+        ds.attrs[sf.ATTR_UNIT] = unit
+    if simulated:
+        true = f.create_dataset(sf.SIM_TRUE_DEPTH, dtype=np.float32, **image, **IMAGE_COMPRESSION)
+        true.attrs[sf.ATTR_UNIT] = "m"
+    for name in (sf.OBJECTS_NAME, sf.OBJECTS_MESH_SHA256, sf.OBJECTS_PRIMITIVE):
+        f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(64,), dtype=_STR)
+    pose = f.create_dataset(
+        sf.OBJECTS_FIXTURE_POSE, shape=(0, 6), maxshape=(None, 6), chunks=(64, 6), dtype=np.float64
+    )
+    pose.attrs[sf.ATTR_UNIT] = "m, rad (rotation vector), base frame"
+    f.require_group(sf.OBJECTS_MESH_GROUP)
+
+
+def _merge_objects(f: h5py.File, objects: list[dict]) -> list[int]:
+    """Add the objects not yet in the file; return the file index of each given object."""
+    names = [n.decode() if isinstance(n, bytes) else n for n in f[sf.OBJECTS_NAME][()]]
+    shas = [s.decode() if isinstance(s, bytes) else s for s in f[sf.OBJECTS_MESH_SHA256][()]]
+    indices = []
+    for obj in objects:
+        name = str(obj["name"])
+        if not name or "/" in name or name in (".", ".."):
+            raise InputError(f"object name {name!r} cannot be stored (empty, '/', '.' or '..')")
+        if name in names:
+            i = names.index(name)
+            if shas[i] != obj["mesh_sha256"]:
+                raise InputError(
+                    f"object {name!r} in {f.filename} has another mesh (sha256 {shas[i][:12]}...) "
+                    f"than the one given ({obj['mesh_sha256'][:12]}...)"
+                )
+            indices.append(i)
+            continue
+        primitive = obj.get("primitive") or {}
+        primitive = primitive if isinstance(primitive, str) else json.dumps(_plain_tree(primitive))
+        _append_rows(f[sf.OBJECTS_NAME], np.array([name], dtype=object))
+        _append_rows(f[sf.OBJECTS_MESH_SHA256], np.array([obj["mesh_sha256"]], dtype=object))
+        _append_rows(f[sf.OBJECTS_PRIMITIVE], np.array([primitive], dtype=object))
+        _append_rows(f[sf.OBJECTS_FIXTURE_POSE], np.asarray(obj["fixture_pose"], dtype=np.float64).reshape(1, 6))
+        group = f[sf.OBJECTS_MESH_GROUP].create_group(name)
+        vertices = group.create_dataset("vertices", data=np.asarray(obj["vertices"], dtype=np.float32))
+        vertices.attrs[sf.ATTR_UNIT] = "m, object frame"
+        group.create_dataset("faces", data=np.asarray(obj["faces"], dtype=np.int32))
+        names.append(name)
+        shas.append(obj["mesh_sha256"])
+        indices.append(len(names) - 1)
+    return indices
+
+
+def _plain_tree(value):
+    if isinstance(value, dict):
+        return {str(k): _plain_tree(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain_tree(v) for v in value]
+    return _plain(value)
+
+
+def _open_for_resume(path: str, serial: str, height: int, width: int, simulated: bool) -> h5py.File:
+    """Open an existing session for appending, repairing the status flags a crash leaves behind."""
+    from collect.session_reader import check_session_attrs, open_h5
+
+    if not os.path.exists(path):
+        raise InputError(f"cannot resume {path}: no such file")
+    probe = open_h5(path)
+    try:
+        check_session_attrs(probe)
+        crashed = not probe.attrs.get(sf.ATTR_CLOSED, "")
+    finally:
+        probe.close()
+    if crashed:
+        _recover_crashed(path)
+    try:
+        f = h5py.File(path, "a", libver="latest")
+    except OSError as err:
+        raise InputError(f"cannot open {path} for appending: {err}") from None
+    try:
+        if str(f.attrs[sf.ATTR_SENSOR_SERIAL]) != str(serial):
+            raise InputError(
+                f"cannot resume {path}: it was recorded with sensor {f.attrs[sf.ATTR_SENSOR_SERIAL]}, "
+                f"not {serial}"
+            )
+        if f[sf.FRAMES_IR].shape[1:] != (height, width):
+            raise InputError(f"cannot resume {path}: image size {f[sf.FRAMES_IR].shape[1:]} != {(height, width)}")
+        if bool(f.attrs[sf.ATTR_SIMULATED]) != simulated:
+            raise InputError(f"cannot resume {path}: simulated={bool(f.attrs[sf.ATTR_SIMULATED])} there")
+        _truncate_to_common_length(f)
+        _truncate_streams(f)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def _completed_pose_ids(f: h5py.File) -> set[int]:
+    phase = f[sf.FRAMES_PHASE][()]
+    return {int(p) for p in np.unique(f[sf.FRAMES_POSE_ID][()][phase == sf.PHASE_RETRACT]) if p >= 0}
+
+
+def _referenced_objects(f: h5py.File) -> set[int]:
+    phase = f[sf.FRAMES_PHASE][()]
+    return {int(o) for o in np.unique(f[sf.FRAMES_OBJECT][()][phase == sf.PHASE_FREE]) if o >= 0}
+
+
+def _truncate_to_common_length(f: h5py.File) -> None:
+    """After a crash the per-frame datasets may differ by one batch; keep the frames all hold."""
+    names = list(_FRAME_DATASETS) + ([sf.SIM_TRUE_DEPTH] if sf.SIM_TRUE_DEPTH in f else [])
+    n = min(f[name].shape[0] for name in names)
+    for name in names:
+        if f[name].shape[0] != n:
+            f[name].resize(n, axis=0)
+
+
+def _truncate_streams(f: h5py.File) -> None:
+    for group in ((sf.ARM_T, sf.ARM_TCP_POSE, sf.ARM_TCP_WRENCH), (sf.PRESSURE_T, sf.PRESSURE_HPA)):
+        n = min(f[name].shape[0] for name in group)
+        for name in group:
+            if f[name].shape[0] != n:
+                f[name].resize(n, axis=0)
+
+
+def _recover_crashed(path: str) -> None:
+    """Rewrite a crashed (never closed) session into a cleanly closed copy, atomically.
+
+    HDF5 leaves status flags in the superblock of a file whose writer died; such a file opens only
+    for SWMR reading. Its content is copied through a SWMR reader into ``path.recover.tmp``, which
+    then replaces the original (``os.replace``), so the original is never half-modified.
+    """
+    tmp = path + ".recover.tmp"
+    src = h5py.File(path, "r", swmr=True)
+    try:
+        with h5py.File(tmp, "w", libver="latest") as dst:
+            for key, value in src.attrs.items():
+                dst.attrs[key] = value
+            for key in src:
+                src.copy(src[key], dst, name=key)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    finally:
+        src.close()
+    os.replace(tmp, path)

@@ -1,0 +1,231 @@
+"""SessionWriter / Session round trips on real HDF5 files: format, selection, crash safety, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from collect import session_format as sf
+from collect.errors import InputError
+from collect.session_reader import Session
+from collect.session_writer import SessionWriter
+
+H, W = 24, 32
+INTRINSICS = {"fx": 30.0, "fy": 30.0, "cx": 15.5, "cy": 11.5, "width": W, "height": H}
+OBJECT = {
+    "name": "mug",
+    "fixture_pose": [0.5, 0.0, 0.0, 0.0, 0.0, 0.0],
+    "mesh_sha256": "ab" * 32,
+    "primitive": {"type": "cylinder", "radius": 0.04, "height": 0.1},
+    "vertices": np.zeros((3, 3), np.float32),
+    "faces": np.array([[0, 1, 2]], np.int32),
+}
+
+
+def _writer(path, serial="S1", simulated=False, resume=False, objects=(OBJECT,)):
+    return SessionWriter(path, sensor_serial=serial, sensor_spec={"serial": serial}, intrinsics=INTRINSICS,
+                         camera_in_tcp=[0, 0, -0.093, 0, 0, 0], simulated=simulated, objects=list(objects),
+                         resume=resume)
+
+
+def _frame(i):
+    ir = np.full((H, W), i, np.uint16)
+    depth = np.full((H, W), 9300 + i, np.uint16)
+    depth[0, 0] = 0
+    return ir, depth
+
+
+def test_round_trip_format_and_selection(synthetic_session):
+    with h5py.File(synthetic_session, "r") as f:  # plain h5py reads a closed session
+        assert f.attrs[sf.ATTR_FORMAT] == sf.FORMAT_NAME
+        assert f.attrs[sf.ATTR_FORMAT_VERSION] == sf.FORMAT_VERSION
+        assert json.loads(f[sf.FRAMES_PHASE].attrs[sf.ATTR_PHASE_ENUM]) == sf.PHASES
+        assert f[sf.FRAMES_IR].chunks == (1, 172, 224) and f[sf.FRAMES_IR].compression == "lzf"
+        assert f[sf.SIM_TRUE_DEPTH].dtype == np.float32
+    with Session.open(synthetic_session) as s:
+        assert (s.n_frames, s.height, s.width) == (2 * (4 + 4 * 2 * 3), 172, 224)
+        assert s.object_names == ["mug", "box"] and s.simulated and s.closed_cleanly
+        assert s.sensor_serial == "SYN-0001" and s.intrinsics["width"] == 224
+        np.testing.assert_array_equal(s.seq, np.arange(s.n_frames))
+        ref = s.reference_frames("box")
+        assert len(ref) == 4 and (s.phase[ref] == sf.PHASE_FREE).all() and (s.object_index[ref] == 1).all()
+        press = s.select(object="mug", phase=["press", "hold"])
+        assert len(press) == 2 * 2 * 3 and set(s.pose_id[press]) == {0, 1}
+        assert list(s.select(pose_id=3, phase="retract")) == list(np.flatnonzero((s.pose_id == 3) & (s.phase == 4)))
+        depth, valid, true = s.depth_m(press), s.valid(press), s.true_depth(press)
+        assert depth.dtype == np.float32 and depth.shape == (12, 172, 224)
+        assert ((depth > 0) == valid).all() and not valid[:, 0, 0].any()
+        assert np.abs(depth[valid] - true[valid]).max() < 1e-3  # 0.05 mm noise, 10 um quantization
+        assert true[:, 86, 112].min() < 0.093 - 1e-3  # the dent pushes the membrane towards the camera
+        # arbitrary order with repeats, int and slice indexing agree
+        order = [press[3], press[0], press[3]]
+        np.testing.assert_array_equal(s.ir(order)[1], s.ir(int(press[0])))
+        np.testing.assert_array_equal(s.ir(slice(2, 5)), s.ir([2, 3, 4]))
+        assert s.tcp_pose(press).shape == (12, 6)
+        assert len(s.arm().t) == s.n_frames and len(s.pressure().hpa) == s.n_frames
+        assert s.phase_name(int(press[0])) in ("press", "hold")
+        with pytest.raises(InputError, match="no object 'cup'"):
+            s.select(object="cup")
+        with pytest.raises(InputError, match="unknown phase"):
+            s.select(phase="squeeze")
+
+
+def test_not_simulated_session_has_no_true_depth(tmp_path, make_synthetic_session):
+    path = make_synthetic_session(tmp_path / "real.h5", objects=("box",), poses_per_object=1, simulated=False,
+                                  height=H, width=W)
+    with Session.open(path) as s:
+        assert not s.simulated
+        with pytest.raises(InputError, match="not a simulated session"):
+            s.true_depth([0])
+
+
+CHILD = textwrap.dedent(
+    """
+    import sys, time, numpy as np
+    sys.path.insert(0, {root!r})
+    from tests.test_session_writer_reader import _writer, _frame
+    w = _writer({path!r})
+    i, reported = 0, -1
+    while True:
+        ir, depth = _frame(i % 60000)
+        w.append_frame(ir, depth, i / 45, time.time(), i, 0, -1, 0, [0, 0, 0.2, 3.14, 0, 0])
+        i += 1
+        if w.stats.frames_flushed != reported:
+            reported = w.stats.frames_flushed
+            print(reported, flush=True)
+        time.sleep(0.002)
+    """
+)
+
+
+def test_sigkill_keeps_every_flushed_frame_and_resume_continues(tmp_path):
+    path = tmp_path / "crash.h5"
+    root = str(Path(__file__).resolve().parents[1])
+    proc = subprocess.Popen([sys.executable, "-c", CHILD.format(root=root, path=str(path))],
+                            stdout=subprocess.PIPE, text=True)
+    flushed = 0
+    deadline = time.monotonic() + 30
+    while flushed < 150 and time.monotonic() < deadline:
+        flushed = int(proc.stdout.readline())
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+    assert flushed >= 150
+    with h5py.File(path, "r", swmr=True) as f:  # plain h5py (SWMR reader) opens the crashed file
+        assert f[sf.FRAMES_SEQ].shape[0] >= flushed
+    with Session.open(path) as s:
+        assert s.n_frames >= flushed and not s.closed_cleanly
+        np.testing.assert_array_equal(s.seq, np.arange(s.n_frames))
+        np.testing.assert_array_equal(s.ir(s.n_frames - 1), _frame(s.n_frames - 1)[0])
+        n_crashed = s.n_frames
+    with _writer(path, resume=True) as w:
+        assert w.n_frames == n_crashed and w.object_indices == [0]
+        w.append_frame(*_frame(7), 99.0, 99.0, n_crashed, 0, 5, sf.PHASE_RETRACT, np.zeros(6))
+    with h5py.File(path, "r") as f:  # repaired: opens without SWMR
+        assert f[sf.FRAMES_SEQ][-1] == n_crashed
+    with Session.open(path) as s:
+        assert s.n_frames == n_crashed + 1 and s.closed_cleanly
+        assert list(s.select(pose_id=5)) == [n_crashed]
+    assert sorted(os.listdir(tmp_path)) == ["crash.h5"]
+
+
+def test_flush_happens_while_recording_without_close(tmp_path):
+    path = tmp_path / "live.h5"
+    w = _writer(path)
+    for i in range(10):
+        w.append_frame(*_frame(i), i / 45, i / 45, i, 0, -1, 0, np.zeros(6))
+        w.append_arm(i / 45, np.zeros(6), np.ones(6))
+        w.append_pressure(i / 45, 1065.0)
+    deadline = time.monotonic() + 5
+    while w.stats.frames_flushed < 10 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    with h5py.File(path, "r", swmr=True) as f:
+        assert f[sf.FRAMES_IR].shape[0] == 10 and f[sf.PRESSURE_HPA].shape[0] == 10
+    w.close()
+    w.close()  # idempotent
+
+
+def test_resume_adds_new_objects_and_checks_meshes(tmp_path):
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, 0, np.zeros(6))
+    box = dict(OBJECT, name="box", mesh_sha256="cd" * 32)
+    with _writer(path, resume=True, objects=[box, OBJECT]) as w:
+        assert w.object_indices == [1, 0] and w.referenced_objects == {0}
+    with Session.open(path) as s:
+        assert s.object_names == ["mug", "box"] and s.objects[1].mesh_sha256 == "cd" * 32
+    with pytest.raises(InputError, match="another mesh"):
+        _writer(path, resume=True, objects=[dict(OBJECT, mesh_sha256="ef" * 32)])
+
+
+def test_bad_output_paths(tmp_path):
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, 0, np.zeros(6))
+    size = path.stat().st_size
+    with pytest.raises(InputError, match="already exists; use --resume"):
+        _writer(path)
+    assert path.stat().st_size == size
+    with pytest.raises(InputError, match="does not exist"):
+        _writer(tmp_path / "nowhere" / "s.h5")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="does not exist"):
+        _writer(tmp_path / "file" / "s.h5")
+    with pytest.raises(InputError, match="no such file"):
+        _writer(tmp_path / "missing.h5", resume=True)
+    with pytest.raises(InputError, match="recorded with sensor S1, not S2"):
+        _writer(path, serial="S2", resume=True)
+    with Session.open(path) as s:
+        assert s.n_frames == 1
+
+
+def _write_and_edit(path, edit):
+    with _writer(path) as w:
+        for i in range(3):
+            w.append_frame(*_frame(i), i / 45, i / 45, i, 0, -1, 0, np.zeros(6))
+    with h5py.File(path, "a") as f:
+        edit(f)
+    return path
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda f: f.attrs.__setitem__(sf.ATTR_FORMAT, "other-format"), "not a bubble-session file"),
+        (lambda f: f.attrs.__setitem__(sf.ATTR_FORMAT_VERSION, 99), "format version 99 is not supported"),
+        (lambda f: f[sf.FRAMES_T_DEVICE].__setitem__(1, np.nan), "NaN/inf in frames/t_device"),
+        (lambda f: f.__delitem__(sf.FRAMES_SEQ), "missing frames/seq"),
+    ],
+)
+def test_bad_session_files(tmp_path, edit, message):
+    path = _write_and_edit(tmp_path / "bad.h5", edit)
+    with pytest.raises(InputError, match=message):
+        Session.open(path)
+    if "version" in message:
+        with pytest.raises(InputError, match=message):
+            _writer(path, resume=True)
+
+
+def test_truncated_and_non_hdf5_files(tmp_path, synthetic_session):
+    data = synthetic_session.read_bytes()
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="truncated.h5"):
+        with Session.open(truncated) as s:
+            s.ir(np.arange(s.n_frames))
+    text = tmp_path / "notes.h5"
+    text.write_text("not hdf5")
+    with pytest.raises(InputError, match="not a readable HDF5 session"):
+        Session.open(text)
+    with pytest.raises(InputError, match="no such file"):
+        Session.open(tmp_path / "missing.h5")
