@@ -1,0 +1,176 @@
+"""Acceptance checks of a commissioning run against versioned thresholds.
+
+The thresholds live in ``calibrate/acceptance_thresholds.yaml`` (packaged). A lab tightens them
+with its own YAML of the same ``version`` holding any subset of the checks; the other checks keep
+the packaged values. Each evaluated check is a plain dict (the ``acceptance.json`` /
+``Verdict.checks`` entry)::
+
+    {"name": str, "value": float | None, "threshold": float | [lo, hi], "op": ">=" | "<=" | "in",
+     "unit": str, "passed": bool, "verdict": "pass" | "fail", "reason": str}
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from collect.errors import InputError
+
+#: Packaged thresholds, used when no ``--thresholds`` file is given.
+DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("acceptance_thresholds.yaml")
+
+
+@dataclass(frozen=True)
+class Threshold:
+    """Inclusive limits of one check; ``lo``/``hi`` are None when unbounded on that side."""
+
+    name: str
+    lo: float | None
+    hi: float | None
+    unit: str
+    describe: str
+    gate: bool  # a failure stops the run early (hardware checks before data collection)
+
+    def limit(self) -> tuple[str, float | list[float]]:
+        """``(op, threshold)`` as shown to the user: ``(">=", lo)``, ``("<=", hi)`` or ``("in", [lo, hi])``."""
+        if self.lo is not None and self.hi is not None:
+            return "in", [self.lo, self.hi]
+        if self.lo is not None:
+            return ">=", self.lo
+        return "<=", self.hi
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    version: int
+    checks: dict[str, Threshold]
+    source: str  # the file(s) they were read from
+
+    def __getitem__(self, name: str) -> Threshold:
+        return self.checks[name]
+
+
+def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) -> dict[str, Threshold]:
+    if not isinstance(raw, dict) or not raw:
+        raise InputError(f"{where}: 'checks' must be a non-empty mapping of check name -> limits")
+    out = dict(base or {})
+    for name, entry in raw.items():
+        if base is not None and name not in base:
+            raise InputError(f"{where}: unknown check {name!r} (known: {', '.join(sorted(base))})")
+        if not isinstance(entry, dict):
+            raise InputError(f"{where}: check {name!r} must be a mapping with min and/or max")
+        prior = out.get(name)
+        lo = entry.get("min", prior.lo if prior else None)
+        hi = entry.get("max", prior.hi if prior else None)
+        for key, val in (("min", lo), ("max", hi)):
+            if val is not None and (isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val)):
+                raise InputError(f"{where}: check {name!r}: {key} must be a finite number, got {val!r}")
+        if lo is None and hi is None:
+            raise InputError(f"{where}: check {name!r} needs min and/or max")
+        if lo is not None and hi is not None and lo > hi:
+            raise InputError(f"{where}: check {name!r}: min {lo} is above max {hi}")
+        out[name] = Threshold(
+            name=name,
+            lo=None if lo is None else float(lo),
+            hi=None if hi is None else float(hi),
+            unit=str(entry.get("unit", prior.unit if prior else "")),
+            describe=str(entry.get("describe", prior.describe if prior else "")),
+            gate=bool(entry.get("gate", prior.gate if prior else False)),
+        )
+    return out
+
+
+def _read_yaml(path: Path) -> dict:
+    try:
+        text = Path(path).read_text()
+    except OSError as err:
+        raise InputError(f"cannot read thresholds file {path}: {err.strerror or err}") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise InputError(f"thresholds file {path} is not valid YAML: {str(err).splitlines()[0]}") from None
+    if not isinstance(raw, dict) or "version" not in raw or "checks" not in raw:
+        raise InputError(f"thresholds file {path} must hold 'version' and 'checks'")
+    return raw
+
+
+def load_thresholds(path: Path | None = None) -> Thresholds:
+    """The packaged thresholds, overlaid with the checks of ``path`` when given.
+
+    Raises ``InputError`` for an unreadable file, bad YAML, a different ``version``, an unknown
+    check name or non-numeric / inconsistent limits.
+    """
+    base_raw = _read_yaml(DEFAULT_THRESHOLDS_PATH)
+    version = int(base_raw["version"])
+    checks = _parse_checks(base_raw["checks"], str(DEFAULT_THRESHOLDS_PATH), None)
+    if path is None:
+        return Thresholds(version, checks, str(DEFAULT_THRESHOLDS_PATH))
+    raw = _read_yaml(Path(path))
+    if raw["version"] != version:
+        raise InputError(f"thresholds file {path} has version {raw['version']!r}; this bubble expects version {version}")
+    checks = _parse_checks(raw["checks"], str(path), checks)
+    return Thresholds(version, checks, f"{DEFAULT_THRESHOLDS_PATH} + {path}")
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.4g}"
+
+
+def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str = "") -> dict:
+    """One check of ``value`` against the threshold ``name``.
+
+    ``value`` None or NaN fails ("not measured"). ``note`` is appended to the reason (e.g. what
+    a failing check implies for the sensor).
+    """
+    th = thresholds[name]
+    op, limit = th.limit()
+    unit = f" {th.unit}" if th.unit and th.unit not in ("fraction", "ratio") else ""
+    measured = value is not None and math.isfinite(float(value))
+    if not measured:
+        passed, reason = False, f"{name} was not measured"
+    else:
+        value = float(value)
+        low = th.lo is not None and value < th.lo
+        high = th.hi is not None and value > th.hi
+        passed = not (low or high)
+        if passed:
+            reason = f"{th.describe}: {_fmt(value)}{unit} within limit"
+        elif low:
+            reason = f"{th.describe}: {_fmt(value)}{unit} below minimum {_fmt(th.lo)}{unit}"
+        else:
+            reason = f"{th.describe}: {_fmt(value)}{unit} above maximum {_fmt(th.hi)}{unit}"
+    if note:
+        reason = f"{reason} ({note})"
+    return {
+        "name": name,
+        "value": float(value) if measured else None,
+        "threshold": limit,
+        "op": op,
+        "unit": th.unit,
+        "passed": bool(passed),
+        "verdict": "pass" if passed else "fail",
+        "gate": th.gate,
+        "reason": reason,
+    }
+
+
+def failed(checks: list[dict]) -> list[dict]:
+    """The checks that did not pass."""
+    return [c for c in checks if not c["passed"]]
+
+
+def accepted(checks: list[dict]) -> bool:
+    """A run is accepted when at least one check ran and all passed."""
+    return bool(checks) and not failed(checks)
+
+
+def rejection_reason(checks: list[dict], fault: str | None = None) -> str:
+    """One line saying why a run was rejected ('' when accepted)."""
+    parts = []
+    if fault:
+        parts.append(f"hardware fault: {fault}")
+    parts += [f"{c['name']}: {c['reason']}" for c in failed(checks)]
+    return "; ".join(parts)

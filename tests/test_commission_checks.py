@@ -1,0 +1,127 @@
+"""Acceptance thresholds, leak-test analysis and camera health on synthetic arrays."""
+
+import numpy as np
+import pytest
+
+from calibrate.acceptance import accepted, evaluate, load_thresholds, rejection_reason
+from calibrate.camera_health import assess_camera
+from calibrate.leak_test import analyse_leak
+from collect.errors import InputError
+
+
+def test_packaged_thresholds_load_and_gate_hardware_checks():
+    th = load_thresholds()
+    assert th.version == 1
+    assert th["heldout_a1"].lo == 0.95
+    assert th["leak_rate_hpa_per_min"].gate and not th["heldout_a1"].gate
+    assert th["inflation_pressure_hpa"].limit() == ("in", [1030.0, 1110.0])
+
+
+def test_lab_override_tightens_only_named_checks(tmp_path):
+    path = tmp_path / "lab.yaml"
+    path.write_text("version: 1\nchecks:\n  heldout_a1: {min: 0.98}\n  leak_rate_hpa_per_min: {max: 0.2}\n")
+    th = load_thresholds(path)
+    assert th["heldout_a1"].lo == 0.98
+    assert th["leak_rate_hpa_per_min"].hi == 0.2
+    assert th["dead_pixels"].hi == load_thresholds()["dead_pixels"].hi
+    assert not evaluate(th, "heldout_a1", 0.97)["passed"]
+    assert evaluate(load_thresholds(), "heldout_a1", 0.97)["passed"]
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("version: 1\nchecks:\n  no_such_check: {max: 1}\n", "unknown check"),
+        ("version: 2\nchecks:\n  heldout_a1: {min: 0.9}\n", "version"),
+        ("version: 1\nchecks:\n  heldout_a1: {min: high}\n", "finite number"),
+        ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: 1100, max: 1000}\n", "above max"),
+        ("version: 1\nchecks: [1, 2\n", "not valid YAML"),
+        ("just text\n", "must hold"),
+    ],
+)
+def test_bad_threshold_files_are_one_line_input_errors(tmp_path, text, fragment):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=fragment) as info:
+        load_thresholds(path)
+    assert "\n" not in str(info.value)
+
+
+def test_missing_threshold_file_is_input_error(tmp_path):
+    with pytest.raises(InputError, match="cannot read"):
+        load_thresholds(tmp_path / "absent.yaml")
+
+
+def test_evaluate_pass_fail_and_unmeasured():
+    th = load_thresholds()
+    ok = evaluate(th, "leak_rate_hpa_per_min", 0.1)
+    assert ok["passed"] and ok["verdict"] == "pass" and ok["op"] == "<=" and ok["threshold"] == 1.0
+    leak = evaluate(th, "leak_rate_hpa_per_min", 3.2)
+    assert not leak["passed"] and "above maximum" in leak["reason"]
+    low = evaluate(th, "inflation_pressure_hpa", 1000.0)
+    assert not low["passed"] and "below minimum" in low["reason"]
+    nan = evaluate(th, "heldout_a1", float("nan"))
+    assert not nan["passed"] and nan["value"] is None and "not measured" in nan["reason"]
+    checks = [ok, leak]
+    assert not accepted(checks) and accepted([ok]) and not accepted([])
+    assert rejection_reason(checks).startswith("leak_rate_hpa_per_min")
+
+
+def test_leak_rate_from_a_decaying_trace():
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 20.0, 0.01) + 100.0
+    leaking = 1065.0 - 3.0 / 60.0 * (t - 100.0) + rng.normal(0, 0.08, t.size)
+    res = analyse_leak(t, leaking)
+    assert res.rate_hpa_per_min == pytest.approx(3.0, abs=0.05)
+    assert res.drop_hpa == pytest.approx(1.0, abs=0.02)
+    assert res.residual_hpa == pytest.approx(0.08, rel=0.1)
+    tight = analyse_leak(t, 1065.0 + rng.normal(0, 0.08, t.size))
+    assert abs(tight.rate_hpa_per_min) < 0.05 and tight.mean_hpa == pytest.approx(1065.0, abs=0.01)
+    with_glitch = leaking.copy()
+    with_glitch[5] = np.nan
+    assert analyse_leak(t, with_glitch).rate_hpa_per_min == pytest.approx(3.0, abs=0.05)
+    with pytest.raises(InputError):
+        analyse_leak(t[:2], leaking[:2])
+
+
+def _synthetic_frames(rng, dots=True, n=8, h=96, w=128):
+    yy, xx = np.mgrid[:h, :w]
+    lit = 20000.0 * np.exp(-((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (2 * 50.0**2))
+    albedo = np.ones((h, w))
+    if dots:
+        for cy, cx in rng.uniform([4, 4], [h - 4, w - 4], size=(80, 2)):
+            albedo[(yy - cy) ** 2 + (xx - cx) ** 2 < 3] = 0.15
+    ir = (lit * albedo)[None] + rng.normal(0, 40.0, (n, h, w))
+    ir = np.clip(ir, 0, 65535).astype(np.uint16)
+    depth = np.full((n, h, w), 9000, np.uint16)
+    depth[:, :12, :12] = 0  # a corner sees the housing
+    return ir, depth
+
+
+def test_camera_health_of_a_good_camera():
+    ir, depth = _synthetic_frames(np.random.default_rng(2))
+    health = assess_camera(ir, depth)
+    assert health.dead_pixels == 0 and health.stuck_pixels == 0
+    assert health.valid_depth_coverage == pytest.approx(1 - 144 / (96 * 128))
+    assert health.dot_contrast > 0.5 and health.dot_count > 40
+    assert health.valid_count.shape == (96, 128) and health.valid_count.max() == 8
+
+
+def test_camera_health_finds_dead_and_stuck_clusters_and_missing_dots():
+    rng = np.random.default_rng(3)
+    ir, depth = _synthetic_frames(rng)
+    ir[:, 40:45, 50:56] = 0  # 30 dead pixels
+    ir[:, 20, 30] = 40000  # one stuck pixel
+    ir[:, 60:62, 70:73] = 65535  # 6 stuck saturated pixels
+    health = assess_camera(ir, depth)
+    assert health.dead_pixels == 30 and health.dead_mask[42, 52]
+    assert health.stuck_pixels == 7 and health.stuck_mask[20, 30]
+    plain_ir, plain_depth = _synthetic_frames(rng, dots=False)
+    plain = assess_camera(plain_ir, plain_depth)
+    assert plain.dot_contrast < 0.2 and plain.dot_count == 0
+
+
+def test_camera_health_rejects_too_few_frames():
+    ir, depth = _synthetic_frames(np.random.default_rng(4), n=3)
+    with pytest.raises(InputError, match="at least 4"):
+        assess_camera(ir, depth)
