@@ -1,0 +1,339 @@
+"""The bench TUI application: runs the commissioning flow in a thread worker and shows its events.
+
+Threads: the flow (``calibrate.commissioning.run_commissioning``, the same code as
+``bubble commission``) runs in a textual thread worker. Its ``on_event`` callback only puts the
+event in an ``EventInbox`` and, when the inbox was empty, posts one ``FlowEventsReady`` message
+(``post_message`` is thread-safe); the UI thread drains the whole batch at once. Bench snapshots
+(camera frames, pose, wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never
+floods the UI.
+
+Safety: the stop key (``s`` or space, a priority binding that works on every screen) sets the
+flow's ``stop_event``; the flow safe-stops the arm, retracts and closes the session file. Nothing
+moves before the operator confirms in a dialog. Quitting mid-run stops first and exits once the
+flow has returned.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from textual import on
+from textual.app import App
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.message import Message
+from textual.widgets import Footer, Header, TabbedContent, TabPane
+from textual.worker import Worker, WorkerState
+
+from calibrate.commission_events import (
+    CollectionProgress,
+    FaultRaised,
+    StepFinished,
+    StepProgress,
+    StepStarted,
+    TrainingProgress,
+    Verdict,
+)
+from calibrate.tui.inbox import EventInbox
+from calibrate.tui.widgets.acceptance_table import AcceptanceTable
+from calibrate.tui.widgets.banner import Banner
+from calibrate.tui.widgets.bench_panel import BenchPanel
+from calibrate.tui.widgets.collection_panel import CollectionPanel
+from calibrate.tui.widgets.confirm import ConfirmStart
+from calibrate.tui.widgets.registry_view import RegistryView
+from calibrate.tui.widgets.sensor_view import SensorView
+from calibrate.tui.widgets.steps_panel import StepsPanel
+from calibrate.tui.widgets.training_curve import TrainingCurve
+from collect.errors import HardwareFault, InputError
+
+#: ``flow(config, on_event=..., stop_event=...) -> CommissionResult``
+Flow = Callable[..., object]
+
+#: How long quitting waits for a stopping flow before giving up on a clean close, s.
+QUIT_WAIT_S = 60.0
+
+
+def _default_flow(config, on_event, stop_event):
+    from calibrate.commissioning import run_commissioning
+
+    return run_commissioning(config, on_event=on_event, stop_event=stop_event)
+
+
+class FlowEventsReady(Message):
+    """Posted from the flow thread when the inbox has new queued events."""
+
+
+class BenchApp(App):
+    """``bubble tui``: bench panel, sensor view, steps, training curve, acceptance, registry.
+
+    ``config``: a ``calibrate.commissioning.CommissionConfig`` (fields used here: ``run_dir``,
+    ``simulated``, ``sensor_spec``, ``registry_dir``, ``objects``, ``poses_per_object``).
+    ``flow``: the commissioning entry point (default ``run_commissioning``). ``clock``: monotonic
+    time in s for ETAs and snapshot ages (tests pass a fixed clock). ``refresh_hz``: rate of the
+    live bench/sensor refresh.
+    """
+
+    CSS_PATH = "bench.tcss"
+    TITLE = "Bubble bench"
+
+    BINDINGS = [
+        Binding("s", "stop", "STOP arm", priority=True),
+        Binding("space", "stop", "STOP arm", show=False, priority=True),
+        Binding("c", "commission", "Commission"),
+        Binding("1", "show_tab('tab-commission')", "Steps"),
+        Binding("2", "show_tab('tab-sensor')", "Sensor"),
+        Binding("3", "show_tab('tab-acceptance')", "Acceptance"),
+        Binding("4", "show_tab('tab-registry')", "Registry"),
+        Binding("r", "reload_registry", "Reload registry", show=False),
+        Binding("q", "quit", "Quit"),
+        Binding("ctrl+c", "quit", "Quit", show=False, priority=True),
+    ]
+
+    def __init__(
+        self,
+        config,
+        *,
+        flow: Flow | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        refresh_hz: float = 5.0,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self._flow = flow or _default_flow
+        self._clock = clock
+        self._refresh_hz = refresh_hz
+        self._inbox = EventInbox()
+        self._stop_event: threading.Event | None = None
+        self._flow_done = threading.Event()
+        self._flow_done.set()
+        self._worker: Worker | None = None
+        self._quit_requested = False
+        self._arm_state = "idle"
+        self._connected = False
+        self._last_snapshot_at: float | None = None
+        self._latest_images = None  # (ir, depth_m) of the latest snapshot
+        self.result = None  # the last CommissionResult
+        self.error: BaseException | None = None  # the last exception raised by the flow
+        self.sub_title = ("SIMULATED" if config.simulated else "REAL") + f" · {config.run_dir}"
+
+    # ----------------------------------------------------------------- layout
+    def compose(self):
+        yield Header()
+        yield Banner(id="banner")
+        with Horizontal(id="main"):
+            with Vertical(id="left"):
+                yield BenchPanel(self.config.simulated, id="bench")
+                yield SensorView(compact=True, id="live-sensor")
+            with TabbedContent(initial="tab-commission", id="tabs"):
+                with TabPane("Commission [1]", id="tab-commission"):
+                    with Vertical(id="commission"):
+                        yield StepsPanel(id="steps")
+                        yield CollectionPanel(
+                            tuple(self.config.objects), int(self.config.poses_per_object), id="collection"
+                        )
+                        yield TrainingCurve(id="training")
+                with TabPane("Sensor [2]", id="tab-sensor"):
+                    yield SensorView(id="sensor")
+                with TabPane("Acceptance [3]", id="tab-acceptance"):
+                    yield AcceptanceTable(id="acceptance")
+                with TabPane("Registry [4]", id="tab-registry"):
+                    yield RegistryView(self.config.registry_dir, id="registry")
+        yield Footer()
+
+    def on_mount(self) -> None:
+        self.set_interval(1.0 / self._refresh_hz, self.refresh_live)
+
+    # ------------------------------------------------------------ state query
+    @property
+    def running(self) -> bool:
+        """Whether the commissioning flow is running (including while it stops)."""
+        return not self._flow_done.is_set()
+
+    @property
+    def arm_state(self) -> str:
+        """``idle``, ``moving``, ``stopping`` or ``stopped`` (the UI's view of the arm)."""
+        return self._arm_state
+
+    # ---------------------------------------------------------------- actions
+    def action_commission(self) -> None:
+        if self.running:
+            self.notify("Commissioning is already running.", severity="warning")
+            return
+        cfg = self.config
+        details = (
+            f"mode: {'simulated bench' if cfg.simulated else 'REAL bench'}\n"
+            f"sensor: {cfg.sensor_spec or 'default'}\n"
+            f"objects: {', '.join(cfg.objects)} x {cfg.poses_per_object} poses\n"
+            f"run dir: {cfg.run_dir}"
+        )
+        self.push_screen(ConfirmStart(details), callback=self._confirmed)
+
+    def _confirmed(self, start: bool | None) -> None:
+        if start:
+            self.start_commissioning()
+
+    def start_commissioning(self) -> None:
+        """Start the flow in a thread worker (the confirmation dialog calls this)."""
+        if self.running:
+            return
+        self._reset_views()
+        self._stop_event = threading.Event()
+        self._flow_done.clear()
+        self._arm_state = "moving"
+        self.result = None
+        self.error = None
+        self._worker = self.run_worker(
+            self._run_flow, name="commissioning", thread=True, exclusive=True, exit_on_error=False
+        )
+        self._update_bench_panel(None)
+
+    def _run_flow(self):
+        try:
+            return self._flow(self.config, on_event=self._on_flow_event, stop_event=self._stop_event)
+        finally:
+            self._flow_done.set()
+
+    def action_stop(self) -> None:
+        """Stop the arm now: the flow safe-stops, retracts and closes the session file."""
+        if isinstance(self.screen, ConfirmStart):
+            self.screen.dismiss(False)
+            return
+        if not self.running:
+            self.notify("Nothing is moving.", timeout=2)
+            return
+        self._request_stop("STOP: arm stopping and retracting...")
+
+    def _request_stop(self, message: str) -> None:
+        assert self._stop_event is not None
+        self._stop_event.set()
+        self._arm_state = "stopping"
+        self.query_one(Banner).show(message, "warning")
+        self._update_bench_panel(None)
+
+    async def action_quit(self) -> None:
+        if self.running:
+            self._quit_requested = True
+            self._request_stop("Quitting: stopping the arm and closing the session file first...")
+            return
+        self.exit()
+
+    def action_show_tab(self, tab: str) -> None:
+        self.query_one(TabbedContent).active = tab
+
+    def action_reload_registry(self) -> None:
+        self.query_one(RegistryView).reload()
+
+    # ------------------------------------------------------- flow -> UI events
+    def _on_flow_event(self, event: object) -> None:
+        """Called by the flow thread for each event; never blocks."""
+        if self._inbox.put(event):
+            self.post_message(FlowEventsReady())
+
+    def feed(self, event: object) -> None:
+        """Hand one event to the UI as the flow would (any thread; tests and benchmarks)."""
+        self._on_flow_event(event)
+
+    @on(FlowEventsReady)
+    def _drain_inbox(self) -> None:
+        self.apply_events(self._inbox.drain())
+
+    def apply_events(self, events: list[object]) -> None:
+        """Show a batch of (non-snapshot) events, oldest first; redraws each panel once."""
+        now = self._clock()
+        steps = self.query_one(StepsPanel)
+        points: list[TrainingProgress] = []
+        for event in events:
+            if isinstance(event, (StepStarted, StepProgress, StepFinished)):
+                steps.apply(event, now)
+            elif isinstance(event, CollectionProgress):
+                self.query_one(CollectionPanel).apply(event)
+            elif isinstance(event, TrainingProgress):
+                points.append(event)
+            elif isinstance(event, FaultRaised):
+                self.query_one(Banner).show(f"FAULT {event.kind}: {event.message}", "fault")
+            elif isinstance(event, Verdict):
+                self.query_one(AcceptanceTable).show(event.accepted, event.checks, event.report_path)
+        self.query_one(TrainingCurve).apply(points)
+
+    def refresh_live(self) -> None:
+        """Timer: show the latest bench snapshot and refresh ETAs (a few times per second)."""
+        now = self._clock()
+        snapshot = self._inbox.take_snapshot()
+        if snapshot is not None:
+            self._connected = True
+            self._last_snapshot_at = now
+            self._latest_images = (snapshot.ir, snapshot.depth_m)
+            self.query_one("#live-sensor", SensorView).show(*self._latest_images)
+            if self.query_one(TabbedContent).active == "tab-sensor":
+                self.query_one("#sensor", SensorView).show(*self._latest_images)
+        self._update_bench_panel(snapshot)
+        self.query_one(StepsPanel).tick(now)
+
+    @on(TabbedContent.TabActivated)
+    def _tab_activated(self, event: TabbedContent.TabActivated) -> None:
+        if event.pane.id == "tab-sensor" and self._latest_images is not None:
+            self.query_one("#sensor", SensorView).show(*self._latest_images)
+
+    def _update_bench_panel(self, snapshot) -> None:
+        age = None if self._last_snapshot_at is None else self._clock() - self._last_snapshot_at
+        connected = self._connected and self.running
+        self.query_one(BenchPanel).show(snapshot, age if self.running else None, connected, self._arm_state)
+
+    def _reset_views(self) -> None:
+        self._inbox.drain()
+        self._inbox.take_snapshot()
+        self._connected = False
+        self._last_snapshot_at = None
+        self.query_one(Banner).clear()
+        self.query_one(StepsPanel).reset()
+        self.query_one(CollectionPanel).reset()
+        self.query_one(TrainingCurve).reset()
+        self.query_one(AcceptanceTable).reset()
+
+    # ------------------------------------------------------------- flow end
+    def on_worker_state_changed(self, event: Worker.StateChanged) -> None:
+        if event.worker is not self._worker or event.state not in (WorkerState.SUCCESS, WorkerState.ERROR):
+            return
+        self._drain_inbox()
+        now = self._clock()
+        banner = self.query_one(Banner)
+        if event.state == WorkerState.SUCCESS:
+            self.result = result = event.worker.result
+            if result.stopped or result.fault:
+                self.query_one(StepsPanel).interrupt(now)
+            self._arm_state = "stopped" if (result.stopped or result.fault) else "idle"
+            session = Path(result.run_dir) / "session.h5"
+            if result.stopped:
+                banner.show(f"Stopped by operator: arm retracted. Recorded data kept in {session}", "warning")
+                self.query_one(AcceptanceTable).show(None, result.checks, "", "stopped by operator")
+            elif result.fault:
+                if banner.level != "fault":
+                    banner.show(f"FAULT {result.fault}: arm stopped, run rejected.", "fault")
+                self.query_one(AcceptanceTable).show(result.accepted, result.checks, str(result.report_path))
+            else:
+                verdict = "ACCEPTED" if result.accepted else "REJECTED"
+                banner.show(f"{verdict}. Report: {result.report_path}", "info" if result.accepted else "fault")
+                self.query_one(AcceptanceTable).show(result.accepted, result.checks, str(result.report_path))
+        else:
+            self.error = err = event.worker.error
+            self.query_one(StepsPanel).interrupt(now)
+            self._arm_state = "stopped"
+            if isinstance(err, HardwareFault):
+                banner.show(f"FAULT {err.kind}: {err}", "fault")
+            elif isinstance(err, InputError):
+                banner.show(f"Input error: {err}", "fault")
+            else:
+                banner.show(f"Internal error: {type(err).__name__}: {err}", "fault")
+        self._update_bench_panel(None)
+        self.query_one(RegistryView).reload()
+        if self._quit_requested:
+            self.exit()
+
+    def on_unmount(self) -> None:
+        """Last line of defence (e.g. the terminal closed): stop the flow and wait for it."""
+        if self.running and self._stop_event is not None:
+            self._stop_event.set()
+            self._flow_done.wait(QUIT_WAIT_S)

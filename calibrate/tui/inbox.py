@@ -1,0 +1,63 @@
+"""Thread-safe hand-off of commissioning events from the flow thread to the UI thread.
+
+The flow calls ``on_event`` from its own thread, possibly very often (a ``BenchSnapshot`` per
+camera frame, a ``CollectionProgress`` per recorded frame, a ``StepProgress`` per batch). The
+UI must never fall behind, so the inbox coalesces:
+
+* ``BenchSnapshot``: only the latest one is kept, in its own slot, and the UI picks it up at its
+  own refresh rate (a few Hz) with ``take_snapshot``;
+* ``CollectionProgress`` and ``StepProgress`` (same step): a new one replaces the previous one
+  when that is still the last queued event (order with the other events is kept);
+* everything else (step boundaries, training points, faults, the verdict) is queued in order.
+
+``put`` returns True when the queue went from empty to non-empty: the producer then wakes the UI
+once (one message per batch, not per event); the UI takes the whole batch with ``drain``.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from calibrate.commission_events import BenchSnapshot, CollectionProgress, StepProgress
+
+
+def _replaces(new: object, last: object) -> bool:
+    """Whether ``new`` makes ``last`` (the last queued event) obsolete."""
+    if isinstance(new, CollectionProgress) and isinstance(last, CollectionProgress):
+        return True
+    return isinstance(new, StepProgress) and isinstance(last, StepProgress) and new.step == last.step
+
+
+class EventInbox:
+    """Coalescing, thread-safe queue of commissioning events (see module docstring)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._queue: list[object] = []
+        self._snapshot: BenchSnapshot | None = None
+        self.received = 0  # events put so far (all kinds), for diagnostics and benchmarks
+
+    def put(self, event: object) -> bool:
+        """Add one event; returns True when the UI should be woken for queued events."""
+        with self._lock:
+            self.received += 1
+            if isinstance(event, BenchSnapshot):
+                self._snapshot = event
+                return False
+            if self._queue and _replaces(event, self._queue[-1]):
+                self._queue[-1] = event
+                return False
+            self._queue.append(event)
+            return len(self._queue) == 1
+
+    def drain(self) -> list[object]:
+        """Take every queued event (oldest first), leaving the queue empty."""
+        with self._lock:
+            events, self._queue = self._queue, []
+        return events
+
+    def take_snapshot(self) -> BenchSnapshot | None:
+        """Take the latest bench snapshot, or None when none arrived since the last call."""
+        with self._lock:
+            snapshot, self._snapshot = self._snapshot, None
+        return snapshot

@@ -1,0 +1,1 @@
+"""The panels of the bench TUI; each consumes commissioning events or snapshots and never blocks."""

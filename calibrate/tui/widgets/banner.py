@@ -1,0 +1,30 @@
+"""One-line banner across the top for faults, stop requests and run outcomes."""
+
+from __future__ import annotations
+
+from textual.widgets import Static
+
+LEVELS = ("fault", "warning", "info")
+
+
+class Banner(Static):
+    """Hidden until ``show``; the level picks the colours (CSS classes ``-fault/-warning/-info``)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("", **kwargs)
+        self.level: str | None = None
+        self.display = False
+
+    def show(self, text: str, level: str) -> None:
+        if level not in LEVELS:
+            raise ValueError(f"banner level must be one of {LEVELS}, not {level!r}")
+        for name in LEVELS:
+            self.set_class(name == level, f"-{name}")
+        self.level = level
+        self.update(text)
+        self.display = True
+
+    def clear(self) -> None:
+        self.level = None
+        self.update("")
+        self.display = False

@@ -1,0 +1,89 @@
+"""Bench panel: arm, camera and pressure board state from ``BenchSnapshot`` events."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from rich.table import Table
+from rich.text import Text
+from textual.widgets import Static
+
+from calibrate.commission_events import BenchSnapshot
+
+#: A snapshot older than this (s) while the flow runs marks the bench as stale.
+STALE_AFTER_S = 2.0
+
+
+class BenchPanel(Static):
+    """Connection state, mode (sim/real), live TCP pose, wrench and bubble pressure.
+
+    ``arm_state`` is the app's view of the arm (``idle``, ``moving``, ``stopping``, ``stopped``);
+    the numbers come from the latest snapshot.
+    """
+
+    def __init__(self, simulated: bool, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.simulated = simulated
+        self.snapshot: BenchSnapshot | None = None
+        self.snapshot_age_s: float | None = None
+        self.connected = False
+        self.arm_state = "idle"
+        self.border_title = "Bench"
+
+    def on_mount(self) -> None:
+        self._redraw()
+
+    def show(self, snapshot: BenchSnapshot | None, age_s: float | None, connected: bool, arm_state: str) -> None:
+        """Update from the latest snapshot (None: keep the last one) and the app's state."""
+        if snapshot is not None:
+            self.snapshot = snapshot
+            self.simulated = snapshot.simulated
+        self.snapshot_age_s = age_s
+        self.connected = connected
+        self.arm_state = arm_state
+        self._redraw()
+
+    def _redraw(self) -> None:
+        snap = self.snapshot
+        grid = Table.grid(padding=(0, 1))
+        grid.add_column(style="bold", no_wrap=True)
+        grid.add_column(no_wrap=True)
+        grid.add_row("mode", Text("SIMULATED", style="bold cyan") if self.simulated else Text("REAL", style="bold yellow"))
+        if not self.connected:
+            link = Text("not connected", style="dim")
+        elif self.snapshot_age_s is not None and self.snapshot_age_s > STALE_AFTER_S:
+            link = Text(f"stale ({self.snapshot_age_s:.0f} s)", style="bold yellow")
+        else:
+            link = Text("connected", style="green")
+        grid.add_row("link", link)
+        arm_styles = {"moving": "bold green", "stopping": "bold red", "stopped": "yellow", "idle": "dim"}
+        grid.add_row("arm", Text(self.arm_state, style=arm_styles.get(self.arm_state, "")))
+        if snap is None:
+            grid.add_row("", Text("no data yet", style="dim"))
+            self.update(grid)
+            return
+        x, y, z, rx, ry, rz = (float(v) for v in snap.tcp_pose)
+        grid.add_row("TCP", f"x {x * 1e3:8.1f} mm")
+        grid.add_row("", f"y {y * 1e3:8.1f} mm")
+        grid.add_row("", f"z {z * 1e3:8.1f} mm")
+        grid.add_row("", f"r [{rx:+.3f} {ry:+.3f} {rz:+.3f}]")
+        fx, fy, fz, tx, ty, tz = (float(v) for v in snap.wrench)
+        force = math.sqrt(fx * fx + fy * fy + fz * fz)
+        grid.add_row("force", f"|F| {force:6.2f} N  Fz {fz:+6.2f}")
+        grid.add_row("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")
+        grid.add_row("bubble", f"{snap.pressure_hpa:8.1f} hPa")
+        grid.add_row("camera", self._camera_line(snap))
+        self.update(grid)
+
+    @staticmethod
+    def _camera_line(snap: BenchSnapshot) -> Text:
+        if snap.ir is None and snap.depth_m is None:
+            return Text("no frame", style="dim")
+        image = snap.depth_m if snap.depth_m is not None else snap.ir
+        h, w = np.shape(image)[:2]
+        line = Text(f"{w}x{h}")
+        if snap.depth_m is not None:
+            valid = float(np.count_nonzero(np.asarray(snap.depth_m) > 0)) / max(1, h * w)
+            line.append(f"  valid {valid * 100:.0f} %")
+        return line

@@ -1,0 +1,48 @@
+"""Live per-pose progress during data collection, from ``CollectionProgress`` events."""
+
+from __future__ import annotations
+
+from rich.text import Text
+from textual.containers import Vertical
+from textual.widgets import Label, ProgressBar
+
+from calibrate.commission_events import CollectionProgress
+
+_PHASE_STYLES = {"press": "bold red", "hold": "bold magenta", "approach": "yellow", "retract": "cyan", "free": "dim"}
+
+
+class CollectionPanel(Vertical):
+    """Object, pose k/K, contact phase, frames recorded, force and pressure, and a bar over all
+    contact poses of the run (``objects`` in plan order, ``poses_per_object`` each)."""
+
+    def __init__(self, objects: tuple[str, ...], poses_per_object: int, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.objects = list(objects)
+        self.poses_per_object = poses_per_object
+        self.border_title = "Collection"
+
+    def compose(self):
+        yield Label("waiting for collection", id="collection-line")
+        yield ProgressBar(total=max(1, len(self.objects) * self.poses_per_object), show_eta=False, id="collection-bar")
+
+    def reset(self) -> None:
+        self.query_one("#collection-line", Label).update("waiting for collection")
+        self.query_one("#collection-bar", ProgressBar).update(progress=0)
+
+    def apply(self, event: CollectionProgress) -> None:
+        if event.object_name not in self.objects:
+            self.objects.append(event.object_name)
+        self.poses_per_object = event.poses_per_object
+        total = max(1, len(self.objects) * event.poses_per_object)
+        done = self.objects.index(event.object_name) * event.poses_per_object + max(event.pose_index, 0)
+        line = Text()
+        line.append(f"{event.object_name}", style="bold")
+        if event.pose_index < 0:
+            line.append("  reference frames")
+        else:
+            line.append(f"  pose {event.pose_index + 1}/{event.poses_per_object}")
+        line.append("  ")
+        line.append(f"{event.phase:<8}", style=_PHASE_STYLES.get(event.phase, ""))
+        line.append(f"  frames {event.frames:5d}  |F| {event.force_n:5.2f} N  {event.pressure_hpa:7.1f} hPa")
+        self.query_one("#collection-line", Label).update(line)
+        self.query_one("#collection-bar", ProgressBar).update(total=total, progress=min(done, total))

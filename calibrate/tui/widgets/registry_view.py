@@ -1,0 +1,57 @@
+"""Sensor registry view: every commissioned sensor with its status and latest metrics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rich.text import Text
+from textual.containers import Vertical
+from textual.widgets import DataTable, Static
+
+from calibrate.sensor_registry import SensorRegistry
+from calibrate.tui.widgets.formatting import number
+from collect.errors import InputError
+
+
+class RegistryView(Vertical):
+    """Table of ``SensorRegistry.profiles()``; ``reload`` re-reads the registry directory."""
+
+    def __init__(self, registry_dir: Path | None, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.registry_dir = registry_dir
+        self.border_title = "Sensor registry"
+
+    def compose(self):
+        yield Static("", id="registry-line")
+        table = DataTable(id="registry-table", zebra_stripes=True, cursor_type="row")
+        table.add_columns("serial", "status", "last commissioned", "mode", "runs", "abs_rel", "a1", "model")
+        yield table
+
+    def on_mount(self) -> None:
+        self.reload()
+
+    def reload(self) -> None:
+        table = self.query_one("#registry-table", DataTable)
+        line = self.query_one("#registry-line", Static)
+        table.clear()
+        try:
+            registry = SensorRegistry(self.registry_dir)
+            profiles = registry.profiles()
+        except InputError as err:
+            line.update(Text(f"registry unreadable: {err}", style="bold red"))
+            return
+        line.update(Text(f"{registry.root}  ({len(profiles)} sensor{'s' if len(profiles) != 1 else ''})  r: reload"))
+        for profile in profiles:
+            data = profile.data
+            metrics = data.get("accepted_metrics") or (profile.history[-1] if profile.history else {})
+            status = profile.status
+            table.add_row(
+                profile.serial,
+                Text(status, style="bold green" if status == "accepted" else "bold red"),
+                str(data.get("last_commissioned", "-")),
+                "sim" if data.get("simulated") else "real",
+                str(len(profile.history)),
+                number(metrics.get("abs_rel")),
+                number(metrics.get("a1")),
+                "yes" if profile.model_dir is not None else "no",
+            )

@@ -1,0 +1,93 @@
+"""Live sensor view: IR amplitude and ToF depth previews drawn with half-block characters."""
+
+from __future__ import annotations
+
+import numpy as np
+from rich.segment import Segment
+from textual.containers import Horizontal, Vertical
+from textual.geometry import Size
+from textual.strip import Strip
+from textual.widget import Widget
+from textual.widgets import Static
+
+from calibrate.tui.halfblock import DEPTH, GREY, Colormap, Scaled, fit_cells, halfblock_rows, scale_image
+
+
+class HalfBlockImage(Widget):
+    """One image scaled to fit the widget (square pixels, centred), redrawn when it changes."""
+
+    DEFAULT_CSS = """
+    HalfBlockImage { width: 1fr; height: 1fr; }
+    """
+
+    def __init__(self, colormap: Colormap, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.colormap = colormap
+        self.scaled: Scaled | None = None
+        self._strips: list[Strip] = []
+        self._strips_for: tuple[int, int] | None = None
+
+    def set_image(self, scaled: Scaled | None) -> None:
+        """Show an image mapped to colour indices (see ``halfblock.scale_image``)."""
+        self.scaled = scaled
+        self._strips_for = None
+        self.refresh()
+
+    def _build(self, size: Size) -> None:
+        self._strips = []
+        self._strips_for = (size.width, size.height)
+        if self.scaled is None:
+            return
+        cols, rows = fit_cells(self.scaled.index.shape, size.width, size.height)
+        pad = (size.width - cols) // 2
+        style = self.rich_style
+        left = [Segment(" " * pad, style)] if pad else []
+        for segments in halfblock_rows(self.scaled.index, cols, rows, self.colormap):
+            self._strips.append(Strip(left + segments, pad + cols))
+
+    def render_line(self, y: int) -> Strip:
+        size = self.size
+        if self._strips_for != (size.width, size.height):
+            self._build(size)
+        if y < len(self._strips):
+            return self._strips[y].extend_cell_length(size.width, self.rich_style)
+        return Strip.blank(size.width, self.rich_style)
+
+
+class SensorView(Vertical):
+    """IR and depth with their scales, fed with the latest snapshot's images: side by side, or
+    stacked when ``compact`` (the always-visible preview under the bench panel)."""
+
+    def __init__(self, compact: bool = False, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.border_title = "Live sensor" if compact else "Sensor"
+        self.set_class(compact, "-compact")
+
+    def compose(self):
+        with Horizontal(id="sensor-images"):
+            with Vertical(classes="sensor-pane"):
+                yield Static("IR amplitude: no frame yet", id="ir-caption", classes="caption")
+                yield HalfBlockImage(GREY, id="ir-image")
+            with Vertical(classes="sensor-pane"):
+                yield Static("ToF depth: no frame yet", id="depth-caption", classes="caption")
+                yield HalfBlockImage(DEPTH, id="depth-image")
+        yield Static(self._legend(), id="sensor-legend")
+
+    @staticmethod
+    def _legend() -> str:
+        return "[#db3907]near[/] → [#3e7df5]far[/]  [on #460046]  [/] no data"
+
+    def show(self, ir: np.ndarray | None, depth_m: np.ndarray | None) -> None:
+        """Draw new images: ``ir`` (H,W) uint16 amplitude, ``depth_m`` (H,W) float32 m, 0 = invalid."""
+        if ir is not None:
+            scaled = scale_image(np.asarray(ir, dtype=np.float32))
+            self.query_one("#ir-image", HalfBlockImage).set_image(scaled)
+            self.query_one("#ir-caption", Static).update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}")
+        if depth_m is not None:
+            depth = np.asarray(depth_m, dtype=np.float32)
+            scaled = scale_image(depth, valid=depth > 0)
+            self.query_one("#depth-image", HalfBlockImage).set_image(scaled)
+            self.query_one("#depth-caption", Static).update(
+                f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm, "
+                f"{scaled.invalid_fraction * 100:.0f} % no data"
+            )

@@ -1,0 +1,119 @@
+"""Live fine-tuning curve (training loss and validation a1) drawn with block characters."""
+
+from __future__ import annotations
+
+import numpy as np
+from rich.text import Text
+from textual.containers import Vertical
+from textual.widget import Widget
+from textual.widgets import Label
+
+from calibrate.commission_events import TrainingProgress
+from calibrate.tui.widgets.formatting import duration
+
+_LEVELS = " ▁▂▃▄▅▆▇█"
+#: Width of the y-axis labels, cells.
+_AXIS = 9
+
+
+def column_values(values: list[float], width: int) -> np.ndarray:
+    """One value per chart column: the points themselves while they fit, else means of
+    ``width`` equal buckets over the whole history (the curve is compressed, never cropped)."""
+    data = np.asarray(values, dtype=np.float64)
+    if len(data) <= width:
+        return data
+    edges = np.linspace(0, len(data), width + 1).astype(np.int64)
+    return np.array([data[a:b].mean() for a, b in zip(edges[:-1], edges[1:])])
+
+
+def bar_chart(values: list[float], width: int, height: int) -> tuple[list[str], float, float]:
+    """Rows (top first) of a ``width`` x ``height`` cell bar chart of ``values``, with the value
+    range (lo, hi) it spans; each cell holds eighths of a bar."""
+    if width <= 0 or height <= 0 or not values:
+        return [" " * max(width, 0)] * max(height, 0), 0.0, 0.0
+    cols = column_values(values, width)
+    lo, hi = float(cols.min()), float(cols.max())
+    span = hi - lo if hi > lo else 1.0
+    eighths = np.round((cols - lo) / span * (height * 8 - 1)).astype(np.int64) + 1
+    rows = []
+    for r in range(height):
+        level = np.clip(eighths - (height - 1 - r) * 8, 0, 8)
+        rows.append("".join(_LEVELS[k] for k in level).ljust(width))
+    return rows, lo, hi
+
+
+class CurvePlot(Widget):
+    """A titled bar chart of one series with its latest value and y-range labels."""
+
+    DEFAULT_CSS = """
+    CurvePlot { height: 1fr; min-height: 3; }
+    """
+
+    def __init__(self, title: str, fmt: str, style: str, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.title = title
+        self.fmt = fmt
+        self.chart_style = style
+        self.values: list[float] = []
+
+    def set_values(self, values: list[float]) -> None:
+        self.values = list(values)
+        self.refresh()
+
+    def render(self) -> Text:
+        width, height = self.size.width, self.size.height
+        text = Text(no_wrap=True, overflow="crop")
+        text.append(f"{self.title}", style="bold")
+        if self.values:
+            text.append(f"  {self.fmt.format(self.values[-1])}", style=self.chart_style)
+        else:
+            text.append("  (no data yet)", style="dim")
+        chart_h = max(height - 1, 0)
+        rows, lo, hi = bar_chart(self.values, max(width - _AXIS, 0), chart_h)
+        for r, row in enumerate(rows):
+            label = ""
+            if self.values and r == 0:
+                label = self.fmt.format(hi)
+            elif self.values and r == chart_h - 1:
+                label = self.fmt.format(lo)
+            text.append("\n")
+            text.append(f"{label:>{_AXIS - 1}} ", style="dim")
+            text.append(row, style=self.chart_style)
+        return text
+
+
+class TrainingCurve(Vertical):
+    """Loss and a1 charts plus step / elapsed / ETA, from ``TrainingProgress`` events."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.border_title = "Fine-tuning"
+        self.loss: list[float] = []
+        self.a1: list[float] = []
+        self.last: TrainingProgress | None = None
+
+    def compose(self):
+        yield Label("waiting for fine-tuning", id="training-line")
+        yield CurvePlot("loss (m)", "{:.5f}", "bold yellow", id="loss-plot")
+        yield CurvePlot("val δ<1.05", "{:.3f}", "bold green", id="a1-plot")
+
+    def reset(self) -> None:
+        self.loss, self.a1, self.last = [], [], None
+        self.query_one("#training-line", Label).update("waiting for fine-tuning")
+        self.query_one("#loss-plot", CurvePlot).set_values([])
+        self.query_one("#a1-plot", CurvePlot).set_values([])
+
+    def apply(self, points: list[TrainingProgress]) -> None:
+        """Append a batch of training points and redraw once."""
+        if not points:
+            return
+        for point in points:
+            self.loss.append(float(point.loss))
+            if point.a1 is not None:
+                self.a1.append(float(point.a1))
+        self.last = points[-1]
+        self.query_one("#training-line", Label).update(
+            f"step {self.last.step}  elapsed {duration(self.last.elapsed_s)}  ETA {duration(self.last.eta_s)}"
+        )
+        self.query_one("#loss-plot", CurvePlot).set_values(self.loss)
+        self.query_one("#a1-plot", CurvePlot).set_values(self.a1)
