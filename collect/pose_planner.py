@@ -1,0 +1,231 @@
+"""Random contact poses on the fixture-plate objects: where and how the arm presses the bubble.
+
+For each object, ``plan_collection`` draws K contact poses (seeded, reproducible):
+
+* a contact point on the object's upper surface (``obj.top_surface_points``: upward-facing cells
+  near the top of the object's height field, real meshes included);
+* a pressing axis (TCP +z) tilted from straight down by up to ``max_tilt_deg`` towards a random
+  direction, and a random yaw of the sensor about that axis;
+* a target press force drawn in ``press_force_n`` (the press stops at that force, or at the arm's
+  maximum press depth), which is safe on any shape, flat or pointed.
+
+The motion of one pose (``collect.collection`` runs it): travel to ``above_pose`` (the pressing
+axis through the contact point, ``clearance_m`` above the object's top), approach along the axis
+until contact (guarded by the contact force, at most ``approach_travel_m``), press to the target
+force, hold ``hold_s``, retract to ``above_pose``. Before an object's first pose the arm rests at
+``reference_pose`` (untilted, ``reference_clearance_m`` above the object) for ``reference_s`` to
+record no-contact reference frames. Moves between objects go through ``travel_z``.
+
+Every pose is checked against the arm's ``SafetyLimits`` (workspace box, tilt, force limit,
+speeds) at plan time: a mesh that cannot be reached safely raises ``InputError`` before the arm
+moves. Poses are ``(6,) [x, y, z, rx, ry, rz]`` m + rotation vector of the TCP (the membrane
+apex) in the base frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from collect.arm import move_duration_s
+from collect.errors import InputError
+from collect.safety import SafetyLimits
+
+#: TCP orientation pressing straight down (TCP +z along base -z), yaw 0.
+DOWN = Rotation.from_rotvec([np.pi, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class PlanSettings:
+    """Knobs of the collection plan. Distances m, speeds m/s, accelerations m/s^2, times s, forces N.
+
+    The defaults fit 4 objects x 8 poses into under 60 s of arm time (see ``estimated_duration_s``).
+    """
+
+    poses_per_object: int = 8
+    seed: int = 0
+    max_tilt_deg: float = 15.0
+    press_force_n: tuple[float, float] = (2.0, 8.0)
+    contact_force_n: float = 0.4  # force that ends the guarded approach
+    clearance_m: float = 0.008  # above-pose height over the object's top
+    approach_margin_m: float = 0.008  # extra guarded travel past the planned contact point
+    max_press_depth_m: float = 0.015  # deepest press past first contact (the arm's press cap)
+    reference_clearance_m: float = 0.02
+    travel_clearance_m: float = 0.03  # travel height over the tallest object between objects
+    travel_speed: float = 0.25
+    approach_speed: float = 0.05
+    press_speed: float = 0.02
+    retract_speed: float = 0.1
+    accel: float = 1.0
+    hold_s: float = 0.4
+    reference_s: float = 0.5
+
+    def __post_init__(self):
+        if not 1 <= int(self.poses_per_object) <= 1000:
+            raise InputError(f"poses per object must be 1..1000, got {self.poses_per_object}")
+        lo, hi = self.press_force_n
+        if not 0 < lo <= hi:
+            raise InputError(f"press force range must satisfy 0 < min <= max, got {self.press_force_n}")
+        if not 0 <= self.max_tilt_deg <= 45:
+            raise InputError(f"max tilt must be 0..45 deg, got {self.max_tilt_deg}")
+
+
+@dataclass(frozen=True)
+class ContactPose:
+    """One planned press. Points (3,) m and poses (6,) m + rotvec in the base frame."""
+
+    pose_id: int  # session-wide contact pose index (object_index * poses_per_object + k)
+    object_index: int  # index into ``CollectionPlan.objects``
+    object_name: str
+    contact_point: np.ndarray  # (3,) planned first-contact point on the object surface
+    surface_normal: np.ndarray  # (3,) unit, at the contact point
+    tilt_deg: float  # angle of the pressing axis from straight down
+    yaw_deg: float  # rotation of the sensor about the pressing axis
+    press_force_n: float  # target force of the press
+    above_pose: np.ndarray  # (6,) start and end of the press, clear above the object
+    approach_travel_m: float  # guarded approach length along the pressing axis from above_pose
+
+
+@dataclass(frozen=True)
+class ObjectStop:
+    """Per-object waypoints: ``reference_pose`` (6,) for the no-contact frames, ``travel_pose`` (6,)
+    at the travel height above it."""
+
+    object_index: int
+    name: str
+    reference_pose: np.ndarray
+    travel_pose: np.ndarray
+
+
+@dataclass(frozen=True)
+class CollectionPlan:
+    """Everything ``run_collection`` needs: objects (in session order), stops, poses, settings."""
+
+    objects: list  # placed bench objects (name, mesh, fixture_pose, primitive, mesh_sha256, ...)
+    stops: list[ObjectStop]
+    poses: list[ContactPose]
+    settings: PlanSettings = field(default_factory=PlanSettings)
+
+    def poses_of(self, object_index: int) -> list[ContactPose]:
+        return [p for p in self.poses if p.object_index == object_index]
+
+    def describe(self) -> dict:
+        """JSON-serializable summary stored in the session (``collection_plan`` attribute)."""
+        settings = asdict(self.settings)
+        settings["press_force_n"] = list(settings["press_force_n"])
+        return {
+            "objects": [o.name for o in self.objects],
+            "mesh_sha256": [o.mesh_sha256 for o in self.objects],
+            "settings": settings,
+        }
+
+    def estimated_duration_s(self) -> float:
+        """Planned arm time (s) of the whole run: moves at their speed caps plus holds.
+
+        Approaches and presses are counted to their planned ends (contact at the planned point,
+        press depth ``press_force_n / 1.5 N/mm``, a conservative membrane stiffness)."""
+        s = self.settings
+        total = 0.0
+        position = None
+        for stop in self.stops:
+            if position is not None:
+                total += _move_s(position, stop.travel_pose, s.travel_speed, s.accel)
+            total += _move_s(stop.travel_pose, stop.reference_pose, s.travel_speed, s.accel) + s.reference_s
+            position = stop.reference_pose
+            for pose in self.poses_of(stop.object_index):
+                total += _move_s(position, pose.above_pose, s.travel_speed, s.accel)
+                reach = pose.approach_travel_m - s.approach_margin_m
+                press = min(pose.press_force_n / 1500.0, s.max_press_depth_m)
+                total += move_duration_s(reach, s.approach_speed, s.accel)
+                total += move_duration_s(press, s.press_speed, s.accel) + s.hold_s
+                total += move_duration_s(reach + press, s.retract_speed, s.accel)
+                position = pose.above_pose
+            total += _move_s(position, stop.travel_pose, s.travel_speed, s.accel)
+            position = stop.travel_pose
+        return total
+
+
+def _move_s(a: np.ndarray, b: np.ndarray, speed: float, accel: float) -> float:
+    return move_duration_s(float(np.linalg.norm(np.asarray(b)[:3] - np.asarray(a)[:3])), speed, accel)
+
+
+def pressing_rotation(tilt_deg: float, tilt_direction_rad: float, yaw_rad: float) -> Rotation:
+    """TCP orientation whose +z is straight down tilted by ``tilt_deg`` towards the horizontal
+    direction ``tilt_direction_rad`` (from base +x), after a yaw of ``yaw_rad`` about the vertical."""
+    tilt_axis = np.array([-np.sin(tilt_direction_rad), np.cos(tilt_direction_rad), 0.0])
+    tilt = Rotation.from_rotvec(tilt_axis * np.radians(tilt_deg))
+    return tilt * Rotation.from_rotvec([0.0, 0.0, yaw_rad]) * DOWN
+
+
+def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings = PlanSettings()) -> CollectionPlan:
+    """Plan reference stops and ``settings.poses_per_object`` contact poses for each placed object.
+
+    ``objects``: bench objects already mounted on the fixture plate (``hw_mocks.objects.fixture_plate``),
+    with ``name``, ``top_surface_points(n, rng)``, ``top_point()``, ``bounds_base()``.
+    Raises ``InputError`` (``SafetyViolation``) when an object cannot be reached safely.
+    """
+    if not objects:
+        raise InputError("no objects to collect on: give --objects and/or --object-mesh")
+    names = [o.name for o in objects]
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise InputError(f"object names must be unique, got {', '.join(duplicates)} twice")
+    s = settings
+    limits.check_force(s.contact_force_n)
+    limits.check_force(s.press_force_n[1])
+    for speed in (s.travel_speed, s.approach_speed, s.press_speed, s.retract_speed):
+        limits.check_motion(speed, s.accel)
+    if s.max_tilt_deg > limits.max_tilt_deg:
+        raise InputError(f"plan tilt {s.max_tilt_deg} deg exceeds the arm's limit {limits.max_tilt_deg} deg")
+    travel_z = max(float(o.bounds_base()[1, 2]) for o in objects) + s.travel_clearance_m
+    rng = np.random.default_rng(s.seed)
+    stops, poses = [], []
+    for index, obj in enumerate(objects):
+        top_z = float(obj.bounds_base()[1, 2])
+        centre = obj.top_point()
+        reference = np.concatenate([[centre[0], centre[1], top_z + s.reference_clearance_m], DOWN.as_rotvec()])
+        travel = reference.copy()
+        travel[2] = max(travel_z, reference[2])
+        for pose in (reference, travel):
+            _check_reachable(limits, obj.name, pose)
+        stops.append(ObjectStop(index, obj.name, reference, travel))
+        points, normals = obj.top_surface_points(s.poses_per_object, rng)
+        for k in range(s.poses_per_object):
+            tilt = float(rng.uniform(0.0, s.max_tilt_deg))
+            yaw = float(rng.uniform(-np.pi, np.pi))
+            rot = pressing_rotation(tilt, rng.uniform(0, 2 * np.pi), yaw)
+            axis = rot.apply([0.0, 0.0, 1.0])  # pressing direction, points down
+            # above_pose on the pressing axis through the contact point, clearance over the top
+            back = (top_z + s.clearance_m - points[k, 2]) / -axis[2]
+            above = np.concatenate([points[k] - axis * back, rot.as_rotvec()])
+            approach = back + s.approach_margin_m
+            # targets the arm is sent to: the guarded approach's end and the deepest press
+            approach_end, deepest = above.copy(), above.copy()
+            approach_end[:3] += axis * approach
+            deepest[:3] += axis * (back + s.max_press_depth_m)
+            for pose in (above, approach_end, deepest):
+                _check_reachable(limits, obj.name, pose)
+            poses.append(
+                ContactPose(
+                    pose_id=index * s.poses_per_object + k,
+                    object_index=index,
+                    object_name=obj.name,
+                    contact_point=points[k].copy(),
+                    surface_normal=normals[k].copy(),
+                    tilt_deg=tilt,
+                    yaw_deg=float(np.degrees(yaw)),
+                    press_force_n=float(rng.uniform(*s.press_force_n)),
+                    above_pose=above,
+                    approach_travel_m=float(approach),
+                )
+            )
+    return CollectionPlan(list(objects), stops, poses, s)
+
+
+def _check_reachable(limits: SafetyLimits, name: str, pose: np.ndarray) -> None:
+    try:
+        limits.check_pose(pose)
+    except InputError as err:
+        raise type(err)(f"object '{name}' cannot be reached safely: {err}") from None
