@@ -1,0 +1,366 @@
+"""Arm driver: the pressing motions of the bench over ur_rtde-shaped interfaces.
+
+``Arm`` drives any pair of objects with the ur_rtde method names and argument orders it uses:
+``rtde_control.RTDEControlInterface`` / ``rtde_receive.RTDEReceiveInterface`` for a real UR
+e-Series, or ``hw_mocks.fake_rtde.FakeRTDEControl`` / ``FakeRTDEReceive`` for the twin.
+
+Calls made (the twin implements exactly these, a test checks them against the installed ur_rtde):
+control ``moveL(pose, speed, acceleration, asynchronous)``, ``stopL(a, asynchronous)``,
+``zeroFtSensor()``, ``disconnect()``; receive ``getActualTCPPose()``, ``getActualTCPForce()``,
+``getActualTCPSpeed()``, ``isProtectiveStopped()``, ``getSafetyMode()``, ``isConnected()``,
+``disconnect()``.
+
+Poses are ``[x, y, z, rx, ry, rz]`` (m + rotation vector) of the TCP (the membrane apex) in the
+base frame; wrenches ``[Fx, Fy, Fz, Tx, Ty, Tz]`` (N, N m) on the sensor in the base frame.
+The pressing axis is the TCP +z axis.
+
+A monitor thread samples pose and wrench at ``state_hz`` (125-500 Hz) on the bench clock, keeps
+the arm stream for the recorder (``drain_states``), and watches two things in every sample:
+the robot's protective stop and the measured force against ``SafetyLimits.force_limit_n``.
+Over the limit it sends ``stopL`` at once and records ``HardwareFault('force-spike')`` when the
+force jumped past the limit within one sample (by more than half the limit: a collision or a
+sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running motion raises
+it. ``retract`` is allowed after a force fault (the force check is suspended while moving away)
+but not after a protective stop, which only the operator can clear on the teach pendant.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from collect.errors import HardwareFault, InputError
+from collect.safety import SafetyLimits, tool_z_axis
+
+#: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
+STOP_DECEL_M_S2 = 4.0
+#: A move counts as finished when the TCP is this close to the target (m, rad) and slower than this (m/s).
+ARRIVAL_TOL_M = 2e-4
+ARRIVAL_TOL_RAD = 2e-3
+ARRIVAL_SPEED_M_S = 2e-3
+#: Extra seconds allowed beyond the planned duration of a move before ``arm-timeout``.
+MOVE_TIMEOUT_MARGIN_S = 2.0
+
+
+@dataclass(frozen=True)
+class ArmState:
+    """One sample of the arm: ``t`` s on the bench clock, ``tcp_pose`` (6,) m + rotvec, ``tcp_wrench`` (6,) N, N m."""
+
+    t: float
+    tcp_pose: np.ndarray
+    tcp_wrench: np.ndarray
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    """Speeds (m/s), acceleration (m/s^2) and distances (m) of the pressing motions."""
+
+    travel_speed: float = 0.1
+    approach_speed: float = 0.02
+    press_speed: float = 0.01
+    accel: float = 0.5
+    contact_force_n: float = 0.5
+    max_contact_travel_m: float = 0.05
+    max_press_depth_m: float = 0.015
+    retract_m: float = 0.03
+
+
+def move_duration_s(distance_m: float, speed: float, accel: float) -> float:
+    """Duration (s) of a trapezoidal move over ``distance_m`` with the given speed cap and acceleration."""
+    if distance_m <= 0:
+        return 0.0
+    if distance_m < speed * speed / accel:  # triangular profile
+        return 2.0 * np.sqrt(distance_m / accel)
+    return distance_m / speed + speed / accel
+
+
+def _rotation_gap_rad(a, b) -> float:
+    return float((Rotation.from_rotvec(a[3:6]).inv() * Rotation.from_rotvec(b[3:6])).magnitude())
+
+
+class Arm:
+    """Pressing motions with safety checks over ur_rtde-shaped ``control`` / ``receive`` objects.
+
+    clock: seconds on the bench clock (``time.monotonic`` for real hardware, the simulated clock
+    for the twin); every ``ArmState.t`` is on it. ``state_hz``: monitor sampling rate.
+    """
+
+    def __init__(self, control, receive, limits: SafetyLimits, *, settings: MotionSettings = MotionSettings(),
+                 clock: Callable[[], float] = time.monotonic, state_hz: float = 125.0):
+        if not 1.0 <= state_hz <= 500.0:
+            raise InputError(f"arm: state rate {state_hz} Hz is outside 1..500 Hz")
+        limits.check_motion(settings.travel_speed, settings.accel)
+        limits.check_force(settings.contact_force_n)
+        self._ctl = control
+        self._rcv = receive
+        self.limits = limits
+        self.settings = settings
+        self.clock = clock
+        self._period = 1.0 / state_hz
+        self._ctl_lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._latest: ArmState | None = None
+        self._stream: list[ArmState] = []
+        self._fault: HardwareFault | None = None
+        self._force_check = True
+        self._retract_pose: np.ndarray | None = None
+        self._stop_evt = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Start the monitor thread (idempotent); blocks until the first sample is in."""
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._monitor, name="arm-monitor", daemon=True)
+        self._thread.start()
+        self._next_sample(timeout_s=2.0)
+
+    def close(self) -> None:
+        """Stop the monitor and disconnect both interfaces."""
+        self._stop_evt.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        for iface in (self._ctl, self._rcv):
+            iface.disconnect()
+
+    # ------------------------------------------------------------------ monitoring
+    def _read(self) -> ArmState:
+        pose = np.asarray(self._rcv.getActualTCPPose(), dtype=np.float64)
+        wrench = np.asarray(self._rcv.getActualTCPForce(), dtype=np.float64)
+        return ArmState(self.clock(), pose, wrench)
+
+    def _monitor(self) -> None:
+        next_t = time.monotonic()
+        prev_force = 0.0
+        while not self._stop_evt.is_set():
+            if not self._rcv.isConnected():
+                self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
+                return
+            sample = self._read()
+            force = float(np.linalg.norm(sample.tcp_wrench[:3]))
+            if self._rcv.isProtectiveStopped():
+                mode = self._rcv.getSafetyMode()
+                self._set_fault(HardwareFault(
+                    "protective-stop",
+                    f"arm: robot is in protective stop (safety mode {mode}); clear it on the teach pendant"))
+            elif self._force_check and self._fault is None and force > self.limits.force_limit_n:
+                self.stop()
+                jumped = force - prev_force > 0.5 * self.limits.force_limit_n
+                kind = "force-spike" if jumped else "force-limit"
+                self._set_fault(HardwareFault(
+                    kind, f"arm: measured force {force:.1f} N exceeds the limit {self.limits.force_limit_n:.1f} N "
+                          f"({'sudden jump' if jumped else 'ramped up'}); arm stopped"))
+            prev_force = force
+            with self._cond:
+                self._latest = sample
+                self._stream.append(sample)
+                self._cond.notify_all()
+            next_t += self._period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop_evt.wait(delay)
+            else:
+                next_t = time.monotonic()
+
+    def _set_fault(self, fault: HardwareFault) -> None:
+        with self._cond:
+            if self._fault is None:
+                self._fault = fault
+            self._cond.notify_all()
+
+    def _next_sample(self, timeout_s: float = 1.0) -> ArmState:
+        with self._cond:
+            seen = self._latest
+            if not self._cond.wait_for(lambda: self._latest is not seen, timeout=timeout_s):
+                raise HardwareFault("arm-timeout", f"arm: no state sample from the robot within {timeout_s} s")
+            return self._latest
+
+    @property
+    def running(self) -> bool:
+        """Whether the monitor thread runs."""
+        return self._thread is not None
+
+    @property
+    def fault(self) -> HardwareFault | None:
+        """The first fault the monitor recorded (sticky), or None."""
+        return self._fault
+
+    def check(self) -> None:
+        """Raise the recorded fault, if any."""
+        if self._fault is not None:
+            raise self._fault
+
+    def state(self) -> ArmState:
+        """Latest sample ``(t, tcp_pose, tcp_wrench)`` (read directly when the monitor is not running)."""
+        if self._thread is None:
+            return self._read()
+        with self._cond:
+            return self._latest
+
+    def drain_states(self) -> list[ArmState]:
+        """Every sample since the previous call (the arm stream for the recorder)."""
+        with self._cond:
+            out, self._stream = self._stream, []
+        return out
+
+    # ------------------------------------------------------------------ motions
+    def stop(self) -> None:
+        """Decelerate the TCP to rest (stopL); safe to call at any time."""
+        with self._ctl_lock:
+            self._ctl.stopL(STOP_DECEL_M_S2, False)
+
+    def _send_move(self, target: np.ndarray, speed: float, accel: float, check_faults: bool) -> None:
+        if check_faults:
+            self.check()
+        with self._ctl_lock:
+            accepted = self._ctl.moveL(target.tolist(), speed, accel, True)
+        if not accepted:
+            if check_faults:
+                self.check()
+            raise HardwareFault("arm-refused", f"arm: robot refused moveL to {np.round(target, 4).tolist()}")
+
+    def _run_move(self, target, speed: float, accel: float, *, guard: Callable[[ArmState], bool] | None = None,
+                  ignore_faults: bool = False) -> tuple[ArmState, bool]:
+        """Validate, send and supervise one linear move.
+
+        ``guard(sample) -> True`` stops the move early (guarded move). Returns the final sample and
+        whether the guard fired. Raises the monitor's fault (unless ``ignore_faults``) and
+        ``HardwareFault('arm-timeout')`` when the move takes far longer than planned.
+        """
+        target = self.limits.check_move(target, speed, accel)
+        self.start()
+        start = self.state()
+        distance = float(np.linalg.norm(target[:3] - start.tcp_pose[:3]))
+        budget = move_duration_s(distance, speed, accel) + MOVE_TIMEOUT_MARGIN_S
+        self._send_move(target, speed, accel, check_faults=not ignore_faults)
+        t_end = time.monotonic() + budget
+        while True:
+            sample = self._next_sample()
+            if not ignore_faults and self._fault is not None:
+                self.stop()
+                raise self._fault
+            if guard is not None and guard(sample):
+                self.stop()
+                return self._settle(), True
+            if (np.linalg.norm(sample.tcp_pose[:3] - target[:3]) < ARRIVAL_TOL_M
+                    and _rotation_gap_rad(sample.tcp_pose, target) < ARRIVAL_TOL_RAD
+                    and np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S):
+                return sample, False
+            if time.monotonic() > t_end:
+                self.stop()
+                raise HardwareFault("arm-timeout", f"arm: move did not finish within {budget:.1f} s")
+
+    def _settle(self) -> ArmState:
+        """Wait until the TCP is at rest after a stop; returns the sample at rest."""
+        t_end = time.monotonic() + 1.0
+        while True:
+            sample = self._next_sample()
+            if np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S or time.monotonic() > t_end:
+                return sample
+
+    def move_to(self, pose, speed: float | None = None, accel: float | None = None) -> ArmState:
+        """Linear move of the TCP to ``pose`` (6,); returns the sample on arrival."""
+        sample, _ = self._run_move(pose, speed or self.settings.travel_speed, accel or self.settings.accel)
+        return sample
+
+    def _press_force(self, sample: ArmState, axis: np.ndarray) -> float:
+        """Contact force (N) opposing motion along the unit ``axis`` (3,)."""
+        return float(-np.dot(sample.tcp_wrench[:3], axis))
+
+    def move_until_contact(self, direction=None, speed: float | None = None, force_threshold_n: float | None = None,
+                           max_travel_m: float | None = None) -> ArmState | None:
+        """Guarded linear move along ``direction`` (3,) in the base frame (default: the pressing axis).
+
+        Zeroes the force sensor first (the membrane must be free), remembers the start pose as the
+        retract pose, and stops as soon as the contact force reaches ``force_threshold_n``.
+        Returns the sample at contact, or None when nothing was touched within ``max_travel_m``.
+        """
+        s = self.settings
+        speed = speed or s.approach_speed
+        threshold = force_threshold_n or s.contact_force_n
+        travel = max_travel_m or s.max_contact_travel_m
+        self.limits.check_force(threshold)
+        start = self.state()
+        axis = tool_z_axis(start.tcp_pose) if direction is None else np.asarray(direction, dtype=float)
+        norm = np.linalg.norm(axis)
+        if axis.shape != (3,) or not norm > 0:
+            raise InputError(f"arm: contact direction must be a non-zero 3-vector, got {direction!r}")
+        axis = axis / norm
+        target = start.tcp_pose.copy()
+        target[:3] += axis * travel
+        self.limits.check_move(target, speed, s.accel)
+        with self._ctl_lock:
+            self._ctl.zeroFtSensor()
+        self._retract_pose = start.tcp_pose.copy()
+        sample, touched = self._run_move(target, speed, s.accel,
+                                         guard=lambda smp: self._press_force(smp, axis) >= threshold)
+        return sample if touched else None
+
+    def press(self, depth_m: float | None = None, force_n: float | None = None, speed: float | None = None) -> ArmState:
+        """Press along the pressing axis from the current pose, by ``depth_m`` or until ``force_n``.
+
+        Exactly one of ``depth_m`` (m, at most ``settings.max_press_depth_m``) and ``force_n``
+        (N, at most the force limit) is given. Returns the sample at the end of the press.
+        """
+        if (depth_m is None) == (force_n is None):
+            raise InputError("arm: press needs exactly one of depth_m and force_n")
+        s = self.settings
+        start = self.state()
+        axis = tool_z_axis(start.tcp_pose)
+        target = start.tcp_pose.copy()
+        guard = None
+        if depth_m is not None:
+            if not (np.isfinite(depth_m) and 0 < depth_m <= s.max_press_depth_m):
+                raise InputError(f"arm: press depth {depth_m} m is outside (0, {s.max_press_depth_m}] m")
+            target[:3] += axis * depth_m
+        else:
+            self.limits.check_force(force_n)
+            target[:3] += axis * s.max_press_depth_m
+            guard = lambda smp: self._press_force(smp, axis) >= force_n  # noqa: E731
+        sample, _ = self._run_move(target, speed or s.press_speed, s.accel, guard=guard)
+        return sample
+
+    def hold(self, seconds: float) -> ArmState:
+        """Stay in place for ``seconds`` (bench clock) while the monitor watches force and safety."""
+        if not (np.isfinite(seconds) and seconds >= 0):
+            raise InputError(f"arm: hold time {seconds} s must be >= 0")
+        t_end = self.clock() + seconds
+        while True:
+            sample = self._next_sample()
+            self.check()
+            if sample.t >= t_end:
+                return sample
+
+    def retract(self, speed: float | None = None) -> ArmState:
+        """Move away from the object, to the pose where the last contact move began.
+
+        Without a remembered pose it backs off ``settings.retract_m`` against the pressing axis if
+        the contact force is above ``settings.contact_force_n``, and stays put otherwise. Works after a force fault (the force check is suspended while moving away); raises
+        ``HardwareFault('protective-stop')`` when the robot is in protective stop.
+        """
+        if self._rcv.isProtectiveStopped():
+            raise HardwareFault("protective-stop",
+                                "arm: cannot retract, robot is in protective stop; clear it on the teach pendant")
+        now = self.state()
+        if self._retract_pose is not None:
+            target = self._retract_pose
+        elif self._press_force(now, tool_z_axis(now.tcp_pose)) <= self.settings.contact_force_n:
+            return now
+        else:
+            target = now.tcp_pose.copy()
+            target[:3] -= tool_z_axis(now.tcp_pose) * self.settings.retract_m
+        self._force_check = False
+        try:
+            sample, _ = self._run_move(target, speed or self.settings.approach_speed * 2, self.settings.accel,
+                                       ignore_faults=True)
+        finally:
+            self._force_check = True
+        self._retract_pose = None
+        return sample

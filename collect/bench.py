@@ -1,0 +1,259 @@
+"""The bench: arm + ToF camera + pressure board, real or simulated, chosen by configuration.
+
+This is the one module that knows real from simulated hardware. A ``BenchConfig`` is a dataclass
+registered under a type name (like lerobot's robot configs): ``'ur'`` (a UR arm over ur_rtde,
+an OAK ToF camera over depthai, the pressure board on a serial port) or ``'sim'`` (the twins of
+``hw_mocks`` on one ``SimBench``). ``open_bench(config)`` opens every device and yields a
+``Bench``; whatever happens inside the ``with`` block, the arm is stopped and retracted
+(``safe_stop``) and every device closed on the way out.
+
+Objects: both types place the named objects with ``hw_mocks.objects.fixture_plate`` (the plate
+layout is geometry shared by the real fixture and the simulation); a real bench adds
+``plate_pose``, where its plate origin sits in the robot base frame.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from collect.arm import Arm, MotionSettings
+from collect.camera import ToFCamera
+from collect.errors import HardwareFault, InputError
+from collect.pressure_board import PressureBoard
+from collect.safety import SafetyLimits
+
+log = logging.getLogger(__name__)
+
+DEFAULT_OBJECTS = ("mug", "wine_glass", "box", "fingers")
+
+
+@dataclass
+class BenchConfig:
+    """Settings common to every bench; subclasses register under ``type`` with ``BenchConfig.register``.
+
+    objects: built-in object names or mesh paths, placed on the fixture plate in this order.
+    limits: safety limits (None: the type's default). motion: speeds of the pressing motions.
+    state_hz: arm state sampling rate (125-500 Hz).
+    """
+
+    _registry: ClassVar[dict[str, type["BenchConfig"]]] = {}
+    type: ClassVar[str] = ""
+
+    objects: tuple[str, ...] = DEFAULT_OBJECTS
+    limits: SafetyLimits | None = None
+    motion: MotionSettings = field(default_factory=MotionSettings)
+    state_hz: float = 125.0
+
+    @classmethod
+    def register(cls, name: str) -> Callable[[type], type]:
+        """Class decorator registering a config type under ``name``."""
+
+        def wrap(sub: type) -> type:
+            sub.type = name
+            cls._registry[name] = sub
+            return sub
+
+        return wrap
+
+    @classmethod
+    def types(cls) -> tuple[str, ...]:
+        return tuple(cls._registry)
+
+    @classmethod
+    def create(cls, type_name: str, **kwargs) -> "BenchConfig":
+        """The config of registered type ``type_name`` with ``kwargs``; ``InputError`` for unknown types/fields."""
+        if type_name not in cls._registry:
+            raise InputError(f"unknown bench type '{type_name}' (one of {', '.join(cls._registry)})")
+        try:
+            return cls._registry[type_name](**kwargs)
+        except TypeError as err:
+            raise InputError(f"bench '{type_name}': {err}") from None
+
+    def open(self) -> "Bench":
+        """Open every device of this bench (overridden per type)."""
+        raise NotImplementedError(f"bench type '{self.type}' cannot be opened")
+
+
+def _placed_objects(names, plate_pose=None) -> list:
+    from hw_mocks.objects import fixture_plate, load_object
+    from hw_mocks.transforms import matrix_to_pose, pose_to_matrix
+
+    placed = fixture_plate([load_object(n) for n in names])
+    if plate_pose is None:
+        return placed
+    plate = pose_to_matrix(plate_pose)
+    return [o.placed(matrix_to_pose(plate @ o.object_to_base())) for o in placed]
+
+
+def workspace_limits(objects, base: SafetyLimits = SafetyLimits()) -> SafetyLimits:
+    """``base`` limits with the workspace box fitted around ``objects``: 150 mm around their
+    footprints, from 5 mm above the plate (the membrane apex never reaches the plate) to 250 mm
+    above the tallest."""
+    lo = np.min([o.bounds_base()[0] for o in objects], axis=0)
+    hi = np.max([o.bounds_base()[1] for o in objects], axis=0)
+    plate_z = min(o.fixture_pose[2] for o in objects)
+    return SafetyLimits(
+        workspace_min=(float(lo[0] - 0.15), float(lo[1] - 0.15), float(plate_z + 0.005)),
+        workspace_max=(float(hi[0] + 0.15), float(hi[1] + 0.15), float(hi[2] + 0.25)),
+        max_speed_m_s=base.max_speed_m_s, max_accel_m_s2=base.max_accel_m_s2,
+        force_limit_n=base.force_limit_n, max_tilt_deg=base.max_tilt_deg)
+
+
+@BenchConfig.register("ur")
+@dataclass
+class URBenchConfig(BenchConfig):
+    """A real bench. robot_ip: UR controller; rtde_hz: RTDE frequency (500 on e-Series);
+    camera_id: depthai device id (None = first found); camera_fps; tof_profile;
+    serial_port: the pressure board's device (e.g. /dev/ttyACM0); plate_pose (6,): the fixture
+    plate origin in the base frame; home_pose (6,): safe TCP pose above the plate."""
+
+    robot_ip: str = ""
+    rtde_hz: float = 500.0
+    camera_id: str | None = None
+    camera_fps: float = 45.0
+    tof_profile: str = "LOW_RANGE"
+    serial_port: str = "/dev/ttyACM0"
+    plate_pose: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    home_pose: tuple[float, ...] | None = None
+
+    def open(self) -> "Bench":
+        if not self.robot_ip:
+            raise InputError("bench 'ur': robot_ip is required")
+        if self.home_pose is None:
+            raise InputError("bench 'ur': home_pose (a safe TCP pose above the plate) is required")
+        import rtde_control
+        import rtde_receive
+
+        from collect.camera import DepthaiToFCamera
+
+        objects = _placed_objects(self.objects, self.plate_pose)
+        limits = self.limits or workspace_limits(objects)
+        home = limits.check_pose(self.home_pose)
+        try:
+            receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.rtde_hz)
+            control = rtde_control.RTDEControlInterface(self.robot_ip, self.rtde_hz)
+        except RuntimeError as err:
+            raise HardwareFault("arm-disconnected", f"arm: cannot connect to {self.robot_ip}: {err}") from err
+        return Bench(arm=Arm(control, receive, limits, settings=self.motion, state_hz=self.state_hz),
+                     camera=DepthaiToFCamera(self.camera_id, self.camera_fps, self.tof_profile),
+                     pressure=PressureBoard(self.serial_port), objects=objects, home_pose=home, simulated=False)
+
+
+@BenchConfig.register("sim")
+@dataclass
+class SimBenchConfig(BenchConfig):
+    """The simulated bench. sensor: a SensorSpec, a spec YAML path, or None (``draw_sensor(seed)``);
+    seed: scene/noise seed; faults: ``KIND@SECONDS`` strings or ``SimFault``s; speed: clock factor."""
+
+    sensor: object = None
+    seed: int = 0
+    faults: tuple = ()
+    speed: float = 1.0
+
+    def open(self) -> "Bench":
+        from hw_mocks.fake_camera import SimToFCamera
+        from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive
+        from hw_mocks.pressure_firmware import PressureFirmware
+        from hw_mocks.sensor_spec import SensorSpec, draw_sensor
+        from hw_mocks.sim_bench import SimBench, SimFault, parse_sim_fault
+
+        if self.sensor is None:
+            spec = draw_sensor(self.seed)
+        elif isinstance(self.sensor, SensorSpec):
+            spec = self.sensor
+        else:
+            spec = SensorSpec.from_yaml(Path(self.sensor))
+        faults = [f if isinstance(f, SimFault) else parse_sim_fault(f) for f in self.faults]
+        objects = _placed_objects(self.objects)
+        limits = self.limits or workspace_limits(objects)
+        scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed)
+        firmware = PressureFirmware(scene, seed=self.seed)
+        firmware.start()
+        arm = Arm(FakeRTDEControl(scene.arm), FakeRTDEReceive(scene.arm), limits, settings=self.motion,
+                  clock=scene.clock, state_hz=self.state_hz)
+        return Bench(arm=arm, camera=SimToFCamera(scene, self.seed), pressure=PressureBoard(firmware.port, clock=scene.clock),
+                     objects=objects, home_pose=scene.home_pose, simulated=True, sim=scene, firmware=firmware)
+
+
+class Bench:
+    """Open devices of one bench.
+
+    arm: ``collect.arm.Arm``; camera: ``ToFCamera``; pressure: ``PressureBoard``;
+    objects: placed ``BenchObject``s; home_pose (6,); simulated: bool; sim: the ``SimBench``
+    (simulated only); clock: the bench clock (s) shared by every timestamp.
+    After ``start()``: intrinsics (dict), sensor_serial (the pressure board's ``ID?``).
+    """
+
+    def __init__(self, *, arm: Arm, camera: ToFCamera, pressure: PressureBoard, objects, home_pose,
+                 simulated: bool, sim=None, firmware=None):
+        self.arm = arm
+        self.camera = camera
+        self.pressure = pressure
+        self.objects = objects
+        self.home_pose = np.asarray(home_pose, dtype=float)
+        self.simulated = simulated
+        self.sim = sim
+        self._firmware = firmware
+        self.clock = arm.clock
+        self.intrinsics: dict = {}
+        self.sensor_serial = ""
+        self.limits = arm.limits
+
+    def start(self) -> None:
+        """Open the pressure board, start the camera and the arm monitor; read serial and intrinsics."""
+        self.pressure.open()
+        self.sensor_serial = self.pressure.identify()
+        self.camera.start()
+        self.intrinsics = self.camera.intrinsics()
+        self.arm.start()
+
+    def check(self) -> None:
+        """Raise the first pending device fault (arm monitor, pressure board)."""
+        self.arm.check()
+        self.pressure.check()
+
+    def safe_stop(self) -> bool:
+        """Stop the arm and retract it from the object; True when it retracted.
+
+        Used on every fault and on Ctrl-C. A robot in protective stop cannot move: the failure to
+        retract is logged (the operator clears the stop on the pendant) and False returned.
+        """
+        try:
+            self.arm.stop()
+            self.arm.retract()
+            return True
+        except HardwareFault as err:
+            log.error("bench: arm stopped but not retracted: %s", err)
+            return False
+
+    def close(self) -> None:
+        """Close every device (after ``safe_stop``)."""
+        for closer in (self.camera.stop, self.pressure.close, self.arm.close):
+            try:
+                closer()
+            except Exception as err:  # closing must reach every device
+                log.error("bench: error while closing: %s", err)
+        if self._firmware is not None:
+            self._firmware.stop()
+
+
+@contextlib.contextmanager
+def open_bench(config: BenchConfig) -> Iterator[Bench]:
+    """Open and start the bench of ``config``; on exit (normal, fault, Ctrl-C) stop, retract and close."""
+    bench = config.open()
+    try:
+        bench.start()
+        yield bench
+    finally:
+        try:
+            if bench.arm.running:
+                bench.safe_stop()
+        finally:
+            bench.close()

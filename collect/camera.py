@@ -1,0 +1,209 @@
+"""ToF camera inside the bubble: IR amplitude + depth frames with device timestamps.
+
+``ToFCamera`` is the interface the recorder uses. ``QueueToFCamera`` implements it over two
+depthai message queues (depth and amplitude ``dai.ImgFrame`` messages, paired by sequence
+number); ``DepthaiToFCamera`` feeds it from an OAK ToF device through a depthai v3 pipeline
+(``dai.node.ToF``), and the twin ``hw_mocks.fake_camera.SimToFCamera`` from the simulator through
+``dai.MessageQueue`` objects on the host, so real and simulated frames go through the same
+unpacking code.
+
+Units: ``CameraFrame.depth`` is ``(H,W) uint16`` in ``DEPTH_UNIT_M`` (10 um), 0 = invalid;
+``ir`` is ``(H,W) uint16`` amplitude. The OAK ToF node reports depth in millimetres, converted
+here (values beyond the uint16 range become 0 = invalid).
+Timestamps: ``t_device`` s on the camera's monotonic clock, ``t_host`` s on the bench clock
+(depthai's host-synchronized timestamp is on ``time.monotonic``, the real bench clock).
+
+Stall detection: ``get_frame`` raises ``HardwareFault('camera-stall')`` when no complete frame
+arrives within ``stall_timeout_s`` (0.5 s by default).
+"""
+
+from __future__ import annotations
+
+import datetime
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from collect.errors import HardwareFault, InputError
+from collect.session_format import DEPTH_UNIT_M
+
+#: Unit of the depth frames the OAK ToF node outputs.
+DEPTHAI_TOF_DEPTH_UNIT_M = 1e-3
+STALL_TIMEOUT_S = 0.5
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """One ToF frame.
+
+    ir (H,W) uint16 amplitude; depth (H,W) uint16 in DEPTH_UNIT_M, 0 = invalid; t_device s
+    (camera clock); t_host s (bench clock); seq camera sequence number; true_depth (H,W) float32 m,
+    the simulator's true membrane depth (simulated cameras only, else None).
+    """
+
+    ir: np.ndarray
+    depth: np.ndarray
+    t_device: float
+    t_host: float
+    seq: int
+    true_depth: np.ndarray | None = None
+
+
+def depth_to_session_units(depth: np.ndarray, unit_m: float) -> np.ndarray:
+    """Convert a uint16 depth image in ``unit_m`` to uint16 ``DEPTH_UNIT_M``; out of range -> 0."""
+    if unit_m == DEPTH_UNIT_M:
+        return np.ascontiguousarray(depth, dtype=np.uint16)
+    scaled = np.rint(depth.astype(np.float64) * (unit_m / DEPTH_UNIT_M))
+    scaled[scaled > np.iinfo(np.uint16).max] = 0
+    return scaled.astype(np.uint16)
+
+
+def unpack_frames(depth_msg, amplitude_msg, depth_unit_m: float) -> CameraFrame:
+    """Build a ``CameraFrame`` from a pair of ``dai.ImgFrame`` messages with the same sequence number."""
+    depth = depth_msg.getFrame()
+    ir = amplitude_msg.getFrame()
+    if depth.shape != ir.shape or depth.ndim != 2:
+        raise HardwareFault("camera-format", f"camera: depth {depth.shape} and amplitude {ir.shape} frames differ")
+    return CameraFrame(
+        ir=np.ascontiguousarray(ir, dtype=np.uint16),
+        depth=depth_to_session_units(depth, depth_unit_m),
+        t_device=depth_msg.getTimestampDevice().total_seconds(),
+        t_host=depth_msg.getTimestamp().total_seconds(),
+        seq=int(depth_msg.getSequenceNum()),
+    )
+
+
+class ToFCamera(ABC):
+    """A ToF camera: ``start()``, ``get_frame()``, ``stop()``; ``serial`` and ``intrinsics()``."""
+
+    serial: str
+
+    @abstractmethod
+    def start(self) -> None:
+        """Start streaming."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Stop streaming and release the device."""
+
+    @abstractmethod
+    def get_frame(self, timeout_s: float | None = None) -> CameraFrame:
+        """Next frame in sequence order; ``HardwareFault('camera-stall')`` after ``timeout_s`` of silence."""
+
+    @abstractmethod
+    def intrinsics(self) -> dict:
+        """``dict(fx, fy, cx, cy, width, height)`` in pixels (+ ``distortion`` list when known)."""
+
+
+class QueueToFCamera(ToFCamera):
+    """A ToF camera reading depth and amplitude ``dai.ImgFrame`` messages from two queues.
+
+    Queues are anything with depthai's ``MessageQueue.get(timedelta)`` (returns None on timeout).
+    Counters: ``frames`` delivered, ``dropped`` (gaps in the sequence numbers), ``unpaired``
+    (messages discarded because their partner never came).
+    """
+
+    def __init__(self, depth_unit_m: float, stall_timeout_s: float = STALL_TIMEOUT_S):
+        self.depth_unit_m = depth_unit_m
+        self.stall_timeout_s = stall_timeout_s
+        self._depth_q = None
+        self._amp_q = None
+        self._last_seq: int | None = None
+        self._last_t_device = -np.inf
+        self.frames = 0
+        self.dropped = 0
+        self.unpaired = 0
+
+    def _attach(self, depth_queue, amplitude_queue) -> None:
+        self._depth_q, self._amp_q = depth_queue, amplitude_queue
+        self._last_seq = None
+
+    def _get(self, queue, deadline: float, timeout_s: float):
+        remaining = deadline - time.monotonic()
+        msg = queue.get(datetime.timedelta(seconds=max(remaining, 0.0))) if remaining > 0 else queue.tryGet()
+        if msg is None:
+            raise HardwareFault("camera-stall", f"camera: no frame for {timeout_s:.2f} s")
+        return msg
+
+    def get_frame(self, timeout_s: float | None = None) -> CameraFrame:
+        if self._depth_q is None:
+            raise HardwareFault("camera-not-started", "camera: get_frame() before start()")
+        timeout_s = self.stall_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        depth_msg = self._get(self._depth_q, deadline, timeout_s)
+        amp_msg = self._get(self._amp_q, deadline, timeout_s)
+        while depth_msg.getSequenceNum() != amp_msg.getSequenceNum():
+            self.unpaired += 1
+            if depth_msg.getSequenceNum() < amp_msg.getSequenceNum():
+                depth_msg = self._get(self._depth_q, deadline, timeout_s)
+            else:
+                amp_msg = self._get(self._amp_q, deadline, timeout_s)
+        frame = unpack_frames(depth_msg, amp_msg, self.depth_unit_m)
+        if self._last_seq is not None:
+            if frame.seq <= self._last_seq or frame.t_device <= self._last_t_device:
+                raise HardwareFault("camera-clock", f"camera: frame {frame.seq} at {frame.t_device:.6f} s is not "
+                                                    f"after frame {self._last_seq} at {self._last_t_device:.6f} s")
+            self.dropped += frame.seq - self._last_seq - 1
+        self._last_seq, self._last_t_device = frame.seq, frame.t_device
+        self.frames += 1
+        return frame
+
+
+class DepthaiToFCamera(QueueToFCamera):
+    """An OAK ToF camera (depthai v3, ``dai.node.ToF``): depth + amplitude outputs.
+
+    device_id: depthai device id (MxId / IP / name); None = first device found. fps: requested
+    frame rate. profile: ``dai.ToFConfig.Profile`` name (LOW_RANGE suits the ~55-100 mm bubble).
+    """
+
+    def __init__(self, device_id: str | None = None, fps: float = 45.0, profile: str = "LOW_RANGE",
+                 stall_timeout_s: float = STALL_TIMEOUT_S):
+        super().__init__(DEPTHAI_TOF_DEPTH_UNIT_M, stall_timeout_s)
+        self.device_id = device_id
+        self.fps = fps
+        self.profile = profile
+        self.serial = device_id or ""
+        self._pipeline = None
+        self._intrinsics: dict | None = None
+
+    def start(self) -> None:
+        import depthai as dai
+
+        if self.profile not in dai.ToFConfig.Profile.__members__:
+            raise InputError(f"camera: unknown ToF profile '{self.profile}' "
+                             f"(one of {', '.join(dai.ToFConfig.Profile.__members__)})")
+        try:
+            device = dai.Device(dai.DeviceInfo(self.device_id)) if self.device_id else dai.Device()
+        except RuntimeError as err:
+            raise HardwareFault("camera-missing", f"camera: cannot open the OAK ToF device: {err}") from err
+        tof_cams = [c for c in device.getConnectedCameraFeatures() if dai.CameraSensorType.TOF in c.supportedTypes]
+        if not tof_cams:
+            device.close()
+            raise HardwareFault("camera-missing", f"camera: device {device.getDeviceId()} has no ToF sensor")
+        cam = tof_cams[0]
+        calib = device.readCalibration()
+        k = np.asarray(calib.getCameraIntrinsics(cam.socket, cam.width, cam.height), dtype=float)
+        self._intrinsics = {
+            "fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
+            "width": int(cam.width), "height": int(cam.height),
+            "distortion": [float(v) for v in calib.getDistortionCoefficients(cam.socket)],
+        }
+        self.serial = device.getDeviceId()
+        pipeline = dai.Pipeline(device)
+        tof = pipeline.create(dai.node.ToF).build(cam.socket, dai.ToFConfig.Profile.__members__[self.profile], self.fps)
+        self._attach(tof.depth.createOutputQueue(maxSize=8, blocking=False),
+                     tof.amplitude.createOutputQueue(maxSize=8, blocking=False))
+        pipeline.start()
+        self._pipeline = pipeline
+
+    def stop(self) -> None:
+        if self._pipeline is not None:
+            self._pipeline.stop()
+            self._pipeline = None
+
+    def intrinsics(self) -> dict:
+        if self._intrinsics is None:
+            raise HardwareFault("camera-not-started", "camera: intrinsics() before start()")
+        return dict(self._intrinsics)

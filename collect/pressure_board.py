@@ -1,0 +1,264 @@
+"""Bubble pressure board: line protocol over USB serial (pyserial), 115200 baud, ~100 Hz.
+
+Protocol (full description in docs/hardware.md). Every board line is ASCII,
+``<body>*<CS>\\r\\n``, where CS is two upper-case hex digits of the XOR of the body's bytes:
+
+* ``P,<seq>,<hpa>``   reading: seq 0..65535 (wraps), absolute pressure in hPa, streamed at 100 Hz
+* ``ID,<serial>``     reply to ``ID?`` (the serial of the bubble sensor the board lives in)
+* ``VER,<version>``   reply to ``VER?``
+* ``OK,<command>``    reply to an accepted ``LED 0|1`` / ``STREAM 0|1``
+* ``ERR,<reason>``    reply to a bad command
+
+Host commands are plain ASCII lines ending in ``\\n``: ``ID?``, ``VER?``, ``LED 0|1``, ``STREAM 0|1``.
+
+``PressureBoard`` reads in a background thread. Garbage bytes, partial or over-long lines and
+bad checksums are counted (``stats``) and skipped, never fatal; a burst of them is logged once
+with a recovery line. ``check()`` raises ``HardwareFault('serial-unplug')`` once the port
+vanished (read error), and ``HardwareFault('serial-timeout')`` when no valid reading came for
+``stale_timeout_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import serial
+
+from collect.errors import HardwareFault
+
+log = logging.getLogger(__name__)
+
+BAUDRATE = 115200
+MAX_LINE_BYTES = 96
+SEQ_MODULO = 65536
+STALE_TIMEOUT_S = 1.0
+
+
+def checksum(body: bytes) -> str:
+    """Two-hex-digit XOR checksum of ``body``."""
+    value = 0
+    for byte in body:
+        value ^= byte
+    return f"{value:02X}"
+
+
+def encode_line(body: str) -> bytes:
+    """A board line ``<body>*<CS>\\r\\n`` as bytes."""
+    raw = body.encode("ascii")
+    return raw + b"*" + checksum(raw).encode("ascii") + b"\r\n"
+
+
+def decode_line(line: bytes) -> list[str] | None:
+    """Fields of one board line (without its line end), or None when malformed or the checksum is wrong."""
+    body, star, cs = line.rpartition(b"*")
+    if not star or len(cs) != 2:
+        return None
+    try:
+        text = body.decode("ascii")
+    except UnicodeDecodeError:
+        return None
+    if not text.isprintable() or cs.decode("ascii", "replace").upper() != checksum(body):
+        return None
+    return text.split(",")
+
+
+@dataclass(frozen=True)
+class PressureReading:
+    """One reading: ``t`` s on the bench clock (host receive time), board ``seq``, ``hpa`` absolute pressure."""
+
+    t: float
+    seq: int
+    hpa: float
+
+
+class PressureBoard:
+    """Driver of the pressure board on ``port`` (a device path, e.g. /dev/ttyACM0 or a pty slave)."""
+
+    def __init__(self, port: str, *, clock: Callable[[], float] = time.monotonic,
+                 stale_timeout_s: float = STALE_TIMEOUT_S, baudrate: int = BAUDRATE):
+        self.port = port
+        self.baudrate = baudrate
+        self.stale_timeout_s = stale_timeout_s
+        self._clock = clock
+        self._serial: serial.Serial | None = None
+        self._thread: threading.Thread | None = None
+        self._stop_evt = threading.Event()
+        self._lock = threading.Condition()
+        self._latest: PressureReading | None = None
+        self._readings: list[PressureReading] = []
+        self._replies: list[list[str]] = []
+        self._fault: HardwareFault | None = None
+        self._last_valid = 0.0
+        self._bad_run = 0
+        self.stats = {"readings": 0, "replies": 0, "bad_checksum": 0, "malformed": 0, "overlong": 0, "seq_gaps": 0}
+
+    # ------------------------------------------------------------------ lifecycle
+    def open(self) -> None:
+        """Open the port and start the reader thread."""
+        try:
+            self._serial = serial.Serial(self.port, self.baudrate, timeout=0.05)
+        except (serial.SerialException, OSError) as err:
+            raise HardwareFault("serial-missing", f"pressure board: cannot open {self.port}: {err}") from err
+        self._serial.reset_input_buffer()
+        self._last_valid = time.monotonic()
+        self._thread = threading.Thread(target=self._reader, name="pressure-reader", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop the reader and close the port."""
+        self._stop_evt.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+        if self._serial is not None:
+            self._serial.close()
+            self._serial = None
+
+    # ------------------------------------------------------------------ reader thread
+    def _reader(self) -> None:
+        buffer = b""
+        while not self._stop_evt.is_set():
+            try:
+                chunk = self._serial.read(max(1, self._serial.in_waiting))
+            except (serial.SerialException, OSError, TypeError) as err:
+                self._set_fault(HardwareFault("serial-unplug", f"pressure board: {self.port} vanished ({err})"))
+                return
+            if not chunk:
+                continue
+            t = self._clock()
+            buffer += chunk
+            *lines, buffer = buffer.split(b"\n")
+            if len(buffer) > MAX_LINE_BYTES:
+                self.stats["overlong"] += 1
+                self._bad()
+                buffer = b""
+            for line in lines:
+                self._handle(line.rstrip(b"\r"), t)
+
+    def _handle(self, line: bytes, t: float) -> None:
+        if not line:
+            return
+        if len(line) > MAX_LINE_BYTES:
+            self.stats["overlong"] += 1
+            self._bad()
+            return
+        fields = decode_line(line)
+        if fields is None:
+            self.stats["bad_checksum" if b"*" in line and line.isascii() else "malformed"] += 1
+            self._bad()
+            return
+        if fields[0] == "P" and len(fields) == 3:
+            try:
+                seq, hpa = int(fields[1]), float(fields[2])
+            except ValueError:
+                self.stats["malformed"] += 1
+                self._bad()
+                return
+            self._good()
+            with self._lock:
+                if self._latest is not None:
+                    self.stats["seq_gaps"] += (seq - self._latest.seq - 1) % SEQ_MODULO
+                reading = PressureReading(t, seq, hpa)
+                self._latest = reading
+                self._readings.append(reading)
+                self.stats["readings"] += 1
+                self._lock.notify_all()
+        elif fields[0] in ("ID", "VER", "OK", "ERR"):
+            self._good()
+            with self._lock:
+                self._replies.append(fields)
+                self.stats["replies"] += 1
+                self._lock.notify_all()
+        else:
+            self.stats["malformed"] += 1
+            self._bad()
+
+    def _bad(self) -> None:
+        if self._bad_run == 0:
+            log.warning("pressure board: corrupt data on %s, skipping", self.port)
+        self._bad_run += 1
+
+    def _good(self) -> None:
+        self._last_valid = time.monotonic()
+        if self._bad_run:
+            log.warning("pressure board: recovered after %d corrupt lines", self._bad_run)
+            self._bad_run = 0
+
+    def _set_fault(self, fault: HardwareFault) -> None:
+        with self._lock:
+            if self._fault is None:
+                self._fault = fault
+            self._lock.notify_all()
+
+    # ------------------------------------------------------------------ API
+    def check(self) -> None:
+        """Raise the fault of the board: unplugged, or no valid reading for ``stale_timeout_s``."""
+        if self._fault is None and self._thread is not None and time.monotonic() - self._last_valid > self.stale_timeout_s:
+            self._set_fault(HardwareFault(
+                "serial-timeout", f"pressure board: no valid reading for {self.stale_timeout_s:.1f} s on {self.port}"))
+        if self._fault is not None:
+            raise self._fault
+
+    def latest(self) -> PressureReading | None:
+        """Most recent reading, or None before the first one."""
+        with self._lock:
+            return self._latest
+
+    def drain(self) -> list[PressureReading]:
+        """Every reading since the previous call (the pressure stream for the recorder)."""
+        with self._lock:
+            out, self._readings = self._readings, []
+        return out
+
+    def wait_reading(self, timeout_s: float = 1.0) -> PressureReading:
+        """Block until a new reading arrives; raises the board's fault or ``serial-timeout``."""
+        with self._lock:
+            seen = self._latest
+            self._lock.wait_for(lambda: self._latest is not seen or self._fault is not None, timeout=timeout_s)
+            fresh = self._latest is not seen
+        self.check()
+        if not fresh:
+            raise HardwareFault("serial-timeout", f"pressure board: no reading within {timeout_s:.1f} s")
+        return self._latest
+
+    def command(self, text: str, reply: str, timeout_s: float = 1.0) -> list[str]:
+        """Send one command line and return the fields of its reply (first field ``reply`` or ``ERR``)."""
+        self.check()
+        with self._lock:
+            self._replies.clear()
+        try:
+            self._serial.write(text.encode("ascii") + b"\n")
+        except (serial.SerialException, OSError) as err:
+            self._set_fault(HardwareFault("serial-unplug", f"pressure board: {self.port} vanished ({err})"))
+            raise self._fault from err
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                for fields in self._replies:
+                    if fields[0] in (reply, "ERR"):
+                        self._replies.remove(fields)
+                        if fields[0] == "ERR":
+                            raise HardwareFault("serial-protocol", f"pressure board: '{text}' failed: {','.join(fields[1:])}")
+                        return fields
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._fault is not None:
+                    break
+                self._lock.wait(remaining)
+        self.check()
+        raise HardwareFault("serial-timeout", f"pressure board: no reply to '{text}' within {timeout_s:.1f} s")
+
+    def identify(self) -> str:
+        """Serial number of the bubble sensor the board is built into (``ID?``)."""
+        return ",".join(self.command("ID?", "ID")[1:])
+
+    def firmware_version(self) -> str:
+        """Firmware version string (``VER?``)."""
+        return ",".join(self.command("VER?", "VER")[1:])
+
+    def set_led(self, on: bool) -> None:
+        """Switch the board's status LED (``LED 0|1``)."""
+        self.command(f"LED {int(bool(on))}", "OK")

@@ -1,0 +1,99 @@
+"""Safety limits of the bench arm, checked before any motion command reaches the robot.
+
+Two kinds of violation, two exception types:
+
+* ``SafetyViolation`` (a subclass of ``InputError``): a *requested* motion breaks a limit
+  (target outside the workspace box, speed/acceleration above the caps, tool tilted too far,
+  press force above the force limit). Requests come from the user's configuration through the
+  pose planner, so the command line reports them like any bad input (one line, exit 2), and
+  nothing is sent to the robot.
+* ``HardwareFault('force-limit' | 'force-spike', ...)``: the *measured* force exceeded the
+  limit while moving (see ``collect.arm.Arm``); the arm stops and retracts.
+
+Poses are ``[x, y, z, rx, ry, rz]`` (m + rotation vector) in the robot base frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from collect.errors import InputError
+
+
+class SafetyViolation(InputError):
+    """A motion request that breaks a ``SafetyLimits`` limit; never sent to the robot."""
+
+
+def tool_z_axis(pose) -> np.ndarray:
+    """Unit z axis of the TCP frame of ``pose`` (6,) expressed in the base frame, (3,)."""
+    return Rotation.from_rotvec(np.asarray(pose, dtype=float)[3:6]).apply([0.0, 0.0, 1.0])
+
+
+def tilt_deg(pose) -> float:
+    """Angle in degrees between the TCP pressing axis (+z) and straight down (base -z)."""
+    cos = float(np.clip(-tool_z_axis(pose)[2], -1.0, 1.0))
+    return float(np.degrees(np.arccos(cos)))
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """Limits every arm motion must respect.
+
+    workspace_min/max: corners (3,) m of the axis-aligned box in the base frame that the TCP
+    may occupy (the membrane apex). A linear move stays inside if both ends do (the box is convex).
+    max_speed_m_s, max_accel_m_s2: caps on the TCP speed and acceleration of any move.
+    force_limit_n: largest contact force (N) a press may request or the arm may measure.
+    max_tilt_deg: largest angle between the pressing axis and base -z.
+    """
+
+    workspace_min: tuple[float, float, float] = (-0.6, -0.6, 0.0)
+    workspace_max: tuple[float, float, float] = (0.6, 0.6, 0.6)
+    max_speed_m_s: float = 0.25
+    max_accel_m_s2: float = 1.0
+    force_limit_n: float = 25.0
+    max_tilt_deg: float = 30.0
+
+    def __post_init__(self):
+        lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+            raise InputError(f"safety: workspace box min {self.workspace_min} must be below max {self.workspace_max}")
+        for name in ("max_speed_m_s", "max_accel_m_s2", "force_limit_n", "max_tilt_deg"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"safety: {name} must be a positive number, got {value}")
+
+    def check_pose(self, pose) -> np.ndarray:
+        """Validate a target pose; returns it as (6,) float64 or raises ``SafetyViolation``."""
+        p = np.asarray(pose, dtype=float)
+        if p.shape != (6,) or not np.all(np.isfinite(p)):
+            raise SafetyViolation(f"safety: pose must be 6 finite numbers [x,y,z,rx,ry,rz], got {pose!r}")
+        lo, hi = np.asarray(self.workspace_min), np.asarray(self.workspace_max)
+        if np.any(p[:3] < lo) or np.any(p[:3] > hi):
+            raise SafetyViolation(
+                f"safety: target position {np.round(p[:3], 4).tolist()} m is outside the workspace box "
+                f"{list(self.workspace_min)}..{list(self.workspace_max)}"
+            )
+        tilt = tilt_deg(p)
+        if tilt > self.max_tilt_deg:
+            raise SafetyViolation(f"safety: tool tilt {tilt:.1f} deg exceeds the limit {self.max_tilt_deg:.1f} deg")
+        return p
+
+    def check_motion(self, speed_m_s: float, accel_m_s2: float) -> None:
+        """Validate the speed (m/s) and acceleration (m/s^2) of a move."""
+        if not (np.isfinite(speed_m_s) and 0 < speed_m_s <= self.max_speed_m_s):
+            raise SafetyViolation(f"safety: speed {speed_m_s} m/s is outside (0, {self.max_speed_m_s}] m/s")
+        if not (np.isfinite(accel_m_s2) and 0 < accel_m_s2 <= self.max_accel_m_s2):
+            raise SafetyViolation(f"safety: acceleration {accel_m_s2} m/s^2 is outside (0, {self.max_accel_m_s2}] m/s^2")
+
+    def check_force(self, force_n: float) -> None:
+        """Validate a requested contact force or force threshold (N)."""
+        if not (np.isfinite(force_n) and 0 < force_n <= self.force_limit_n):
+            raise SafetyViolation(f"safety: force {force_n} N is outside (0, {self.force_limit_n}] N")
+
+    def check_move(self, target_pose, speed_m_s: float, accel_m_s2: float) -> np.ndarray:
+        """Validate a whole linear move (target pose, speed, acceleration); returns the pose (6,)."""
+        self.check_motion(speed_m_s, accel_m_s2)
+        return self.check_pose(target_pose)

@@ -1,0 +1,135 @@
+"""Twin of the OAK ToF camera: frames rendered by the bubble simulator, delivered as depthai messages.
+
+``SimCameraDevice`` plays the device: a thread renders frame ``k`` at simulated time
+``k / spec.fps`` (the TCP pose of that instant, the shared membrane solution, fresh sensor noise),
+packs depth and amplitude into ``dai.ImgFrame`` messages (RAW16, device timestamp, host-synced
+timestamp, sequence number) and sends them into two non-blocking ``dai.MessageQueue`` objects,
+which drop the oldest message when full, as a device's output queues do.
+``SimToFCamera`` is ``collect.camera.QueueToFCamera`` over those queues: the recorder gets its
+frames through the same unpacking code as from a real OAK, plus the simulator's true depth.
+
+The simulated sensor reports depth directly in ``DEPTH_UNIT_M`` (10 um), not in the OAK's
+millimetres, so that the simulated depth noise (~0.05 mm) is not lost to rounding.
+Device clock: simulated time plus a per-device boot offset; host timestamps: simulated time.
+Faults: ``camera-stall`` stops the frames for good.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import datetime
+import threading
+
+import numpy as np
+
+from collect.camera import CameraFrame, QueueToFCamera, STALL_TIMEOUT_S
+from collect.session_format import DEPTH_UNIT_M
+
+QUEUE_SIZE = 8
+#: How many recent frames' true depth the device keeps for the camera to attach.
+TRUE_DEPTH_KEEP = 32
+
+
+def _img_frame(image: np.ndarray, seq: int, t_device: float, t_host: float):
+    import depthai as dai
+
+    msg = dai.ImgFrame()
+    msg.setType(dai.ImgFrame.Type.RAW16)
+    msg.setWidth(image.shape[1])
+    msg.setHeight(image.shape[0])
+    msg.setData(np.ascontiguousarray(image, dtype=np.uint16).view(np.uint8).reshape(-1))
+    msg.setSequenceNum(seq)
+    msg.setTimestampDevice(datetime.timedelta(seconds=t_device))
+    msg.setTimestamp(datetime.timedelta(seconds=t_host))
+    return msg
+
+
+class SimCameraDevice:
+    """The simulated ToF device of ``scene`` (a ``SimBench``): renders at ``scene.spec.fps``."""
+
+    def __init__(self, scene, seed: int = 0, queue_size: int = QUEUE_SIZE):
+        import depthai as dai
+
+        self.scene = scene
+        self.fps = float(scene.spec.fps)
+        self._rng = np.random.default_rng(seed)
+        self.boot_offset_s = 1.0 + float(self._rng.uniform(0.0, 100.0))
+        self.depth_queue = dai.MessageQueue("depth", queue_size, False)
+        self.amplitude_queue = dai.MessageQueue("amplitude", queue_size, False)
+        self._true_depth: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.frames_sent = 0
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    def true_depth(self, seq: int) -> np.ndarray | None:
+        """True membrane depth ``(H,W) float32 m`` of a recent frame, or None once forgotten."""
+        with self._lock:
+            return self._true_depth.get(seq)
+
+    def render(self, seq: int, t: float) -> tuple:
+        """Depth and amplitude messages of frame ``seq`` at simulated time ``t``, and its true depth."""
+        scene = self.scene
+        state = scene.membrane(scene.tcp_pose(t), t, 0.0)
+        ir, depth = scene.sim.render(state, self._rng)
+        t_device = t + self.boot_offset_s
+        return (_img_frame(depth, seq, t_device, t), _img_frame(ir, seq, t_device, t),
+                np.asarray(state.true_depth, dtype=np.float32))
+
+    def _run(self) -> None:
+        clock = self.scene.clock
+        period = 1.0 / self.fps
+        # Frames start on the next multiple of the frame period (the sensor free-runs from boot).
+        seq = int(np.ceil(clock.now() / period))
+        while not self._stop.is_set():
+            t = seq * period
+            if not clock.sleep_until(t, self._stop):
+                return
+            if self.scene.fault_active("camera-stall", t):
+                self._stop.wait(0.05)
+                continue
+            depth_msg, amp_msg, true_depth = self.render(seq, t)
+            with self._lock:
+                self._true_depth[seq] = true_depth
+                while len(self._true_depth) > TRUE_DEPTH_KEEP:
+                    self._true_depth.popitem(last=False)
+            self.depth_queue.send(depth_msg)
+            self.amplitude_queue.send(amp_msg)
+            self.frames_sent += 1
+            seq += 1
+
+
+class SimToFCamera(QueueToFCamera):
+    """``ToFCamera`` of the simulated bench: serial and intrinsics from the sensor spec."""
+
+    def __init__(self, scene, seed: int = 0, stall_timeout_s: float = STALL_TIMEOUT_S):
+        super().__init__(DEPTH_UNIT_M, stall_timeout_s)
+        self.scene = scene
+        self.serial = f"SIM-TOF-{scene.spec.serial}"
+        self.device = SimCameraDevice(scene, seed)
+
+    def start(self) -> None:
+        self._attach(self.device.depth_queue, self.device.amplitude_queue)
+        self.device.start()
+
+    def stop(self) -> None:
+        self.device.stop()
+
+    def intrinsics(self) -> dict:
+        return self.scene.spec.intrinsics()
+
+    def get_frame(self, timeout_s: float | None = None) -> CameraFrame:
+        frame = super().get_frame(timeout_s)
+        return dataclasses.replace(frame, true_depth=self.device.true_depth(frame.seq))

@@ -1,0 +1,284 @@
+"""Twin of a UR e-Series arm behind ur_rtde: ``FakeRTDEControl`` and ``FakeRTDEReceive``.
+
+They implement the ur_rtde methods that ``collect.arm.Arm`` calls, with the same names,
+argument orders and defaults as ``rtde_control.RTDEControlInterface`` /
+``rtde_receive.RTDEReceiveInterface`` (``tests/test_drivers_arm.py`` checks this against the
+installed ur_rtde). Only the constructors differ: they take the simulated controller
+(``SimURController``) instead of a robot IP.
+
+The simulated controller moves the TCP along analytic trapezoidal profiles on the simulated
+clock (position linear, orientation slerped, speed and acceleration bounded as requested),
+so there is no control thread: every RTDE call evaluates the state at the current simulated time.
+The wrench comes from the shared bubble scene (``SimBench.wrench``: the latest membrane solution,
+re-solved when the pose moved, plus an injected force spike), minus the offset stored by
+``zeroFtSensor``. The controller enters protective stop when the raw force exceeds
+``protective_force_n`` or when the fault schedule injects ``protective-stop``; it then holds the
+TCP still and refuses motion (``moveL`` returns False), as a real UR does until the operator
+unlocks it on the pendant.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+#: UR safety modes (``getSafetyMode``).
+SAFETY_MODE_NORMAL = 1
+SAFETY_MODE_PROTECTIVE_STOP = 3
+#: Path length (m) that one radian of pure reorientation counts as.
+ROTATION_PATH_M_PER_RAD = 0.1
+
+
+class _Profile:
+    """1-D trapezoidal motion over ``distance`` m from speed ``v0`` to rest, cruise ``vmax``, accel ``a``."""
+
+    def __init__(self, distance: float, v0: float, vmax: float, a: float):
+        self.distance = distance
+        self.v0 = v0 if distance > 0 else 0.0
+        self.a = a
+        if distance <= 0:
+            self.a_dec, self.vp, self.t1, self.t2, self.t3 = a, 0.0, 0.0, 0.0, 0.0
+        elif v0 * v0 / (2 * a) >= distance:  # must brake at once (harder if needed) and stop at the end
+            self.a_dec = v0 * v0 / (2 * distance)
+            self.vp, self.t1, self.t2 = v0, 0.0, 0.0
+            self.t3 = v0 / self.a_dec
+        else:
+            self.a_dec = a
+            vp = min(max(vmax, v0), np.sqrt((2 * a * distance + v0 * v0) / 2))
+            self.vp = vp
+            self.t1 = (vp - v0) / a
+            d1 = (vp * vp - v0 * v0) / (2 * a)
+            d3 = vp * vp / (2 * a)
+            self.t2 = (distance - d1 - d3) / vp if vp > 0 else 0.0
+            self.t3 = vp / a
+        self.duration = self.t1 + self.t2 + self.t3
+
+    def at(self, t: float) -> tuple[float, float]:
+        """Distance (m) travelled and speed (m/s) at ``t`` s after the start."""
+        if t <= 0:
+            return 0.0, self.v0
+        if t >= self.duration:
+            return self.distance, 0.0
+        if t < self.t1:
+            return self.v0 * t + 0.5 * self.a * t * t, self.v0 + self.a * t
+        d1 = self.v0 * self.t1 + 0.5 * self.a * self.t1 ** 2
+        if t < self.t1 + self.t2:
+            return d1 + self.vp * (t - self.t1), self.vp
+        tau = t - self.t1 - self.t2
+        d2 = self.vp * self.t2
+        return d1 + d2 + self.vp * tau - 0.5 * self.a_dec * tau * tau, self.vp - self.a_dec * tau
+
+
+class _LinearMove:
+    """A linear TCP move from ``start`` to ``end`` (6,) following a ``_Profile`` from ``t0`` (s, sim clock).
+
+    ``s_from`` is where along the path (m) the profile starts: a stop re-plans the rest of the
+    path from the current point.
+    """
+
+    def __init__(self, start: np.ndarray, end: np.ndarray, t0: float, speed: float, accel: float,
+                 s_from: float = 0.0, v0: float = 0.0, s_to: float | None = None):
+        self.start, self.end = start, end
+        rots = Rotation.from_rotvec(np.stack([start[3:6], end[3:6]]))
+        self._slerp = Slerp([0.0, 1.0], rots)
+        self.length = max(float(np.linalg.norm(end[:3] - start[:3])),
+                          float((rots[0].inv() * rots[1]).magnitude()) * ROTATION_PATH_M_PER_RAD)
+        self.t0, self.s_from = t0, s_from
+        s_to = self.length if s_to is None else s_to
+        self.profile = _Profile(max(s_to - s_from, 0.0), v0, speed, accel)
+
+    def state(self, t: float) -> tuple[np.ndarray, float, np.ndarray]:
+        """Pose (6,), path position (m) and TCP velocity (6,) at time ``t``."""
+        ds, v = self.profile.at(t - self.t0)
+        s = self.s_from + ds
+        u = s / self.length if self.length > 0 else 1.0
+        pose = np.empty(6)
+        pose[:3] = self.start[:3] + (self.end[:3] - self.start[:3]) * u
+        pose[3:6] = self._slerp([min(max(u, 0.0), 1.0)]).as_rotvec()[0]
+        velocity = np.zeros(6)
+        if self.length > 0:
+            velocity[:3] = (self.end[:3] - self.start[:3]) / self.length * v
+        return pose, s, velocity
+
+    def done(self, t: float) -> bool:
+        return t - self.t0 >= self.profile.duration
+
+    def stopping(self, t: float, decel: float) -> "_LinearMove":
+        """The same path from time ``t``, braking at ``decel`` m/s^2 to rest."""
+        _, s, _ = self.state(t)
+        v = self.profile.at(t - self.t0)[1]
+        s_to = min(s + v * v / (2 * decel), self.length)
+        return _LinearMove(self.start, self.end, t, max(v, 1e-9), decel, s_from=s, v0=v, s_to=s_to)
+
+
+class SimURController:
+    """The simulated UR controller shared by ``FakeRTDEControl`` and ``FakeRTDEReceive``.
+
+    scene: the ``hw_mocks.sim_bench.SimBench`` (clock ``now()``, ``wrench(pose, t)``,
+    ``fault_active(kind, t)``). initial_pose (6,) m + rotvec. protective_force_n: raw force (N)
+    above which the controller protective-stops on its own.
+    """
+
+    def __init__(self, scene, initial_pose, protective_force_n: float = 150.0):
+        self.scene = scene
+        self.protective_force_n = protective_force_n
+        self._lock = threading.RLock()
+        pose = np.asarray(initial_pose, dtype=np.float64)
+        self._move = _LinearMove(pose, pose, scene.now(), 1.0, 1.0)
+        self._ft_offset = np.zeros(6)
+        self._protective = False
+
+    def pose_at(self, t: float) -> np.ndarray:
+        """TCP pose (6,) at simulated time ``t`` along the current move (for the camera twin)."""
+        with self._lock:
+            return self._move.state(t)[0]
+
+    def _update(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Advance to now: returns (t, pose (6,), velocity (6,), raw wrench (6,)); applies safety."""
+        with self._lock:
+            t = self.scene.now()
+            pose, _, velocity = self._move.state(t)
+            wrench = np.asarray(self.scene.wrench(pose, t), dtype=np.float64)
+            if not self._protective and (self.scene.fault_active("protective-stop", t)
+                                         or np.linalg.norm(wrench[:3]) > self.protective_force_n):
+                self._protective = True
+                self._move = _LinearMove(pose, pose, t, 1.0, 1.0)
+                velocity = np.zeros(6)
+            return t, pose, velocity, wrench
+
+    # control side
+    def move_linear(self, pose, speed: float, accel: float) -> bool:
+        with self._lock:
+            t, current, _, _ = self._update()
+            if self._protective:
+                return False
+            self._move = _LinearMove(current, np.asarray(pose, dtype=np.float64), t, speed, accel)
+            return True
+
+    def wait_move(self) -> None:
+        """Block (real time) until the current move has finished or a protective stop ended it."""
+        while True:
+            t, *_ = self._update()
+            with self._lock:
+                if self._move.done(t):
+                    return
+            time.sleep(0.002)
+
+    def stop_linear(self, decel: float) -> None:
+        with self._lock:
+            t, *_ = self._update()
+            if not self._move.done(t):
+                self._move = self._move.stopping(t, decel)
+
+    def zero_ft(self) -> None:
+        with self._lock:
+            self._ft_offset = self._update()[3].copy()
+
+    def trigger_protective_stop(self) -> None:
+        with self._lock:
+            t, pose, _, _ = self._update()
+            self._protective = True
+            self._move = _LinearMove(pose, pose, t, 1.0, 1.0)
+
+    # receive side
+    def tcp_pose(self) -> list[float]:
+        return self._update()[1].tolist()
+
+    def tcp_speed(self) -> list[float]:
+        return self._update()[2].tolist()
+
+    def tcp_force(self) -> list[float]:
+        return (self._update()[3] - self._ft_offset).tolist()
+
+    def protective_stopped(self) -> bool:
+        self._update()
+        return self._protective
+
+    def steady(self) -> bool:
+        t, *_ = self._update()
+        with self._lock:
+            return self._move.done(t)
+
+
+class FakeRTDEControl:
+    """``rtde_control.RTDEControlInterface`` twin over a ``SimURController``."""
+
+    def __init__(self, controller: SimURController):
+        self._c = controller
+        self._connected = True
+
+    def moveL(self, pose: list[float], speed: float = 0.25, acceleration: float = 1.2,
+              asynchronous: bool = False) -> bool:
+        if not self._connected or not self._c.move_linear(pose, speed, acceleration):
+            return False
+        if not asynchronous:
+            self._c.wait_move()
+        return True
+
+    def stopL(self, a: float = 10.0, asynchronous: bool = False) -> None:
+        self._c.stop_linear(a)
+        if not asynchronous:
+            self._c.wait_move()
+
+    def zeroFtSensor(self) -> bool:
+        self._c.zero_ft()
+        return True
+
+    def triggerProtectiveStop(self) -> bool:
+        self._c.trigger_protective_stop()
+        return True
+
+    def isSteady(self) -> bool:
+        return self._c.steady()
+
+    def isConnected(self) -> bool:
+        return self._connected
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    def reconnect(self) -> bool:
+        self._connected = True
+        return True
+
+
+class FakeRTDEReceive:
+    """``rtde_receive.RTDEReceiveInterface`` twin over a ``SimURController``."""
+
+    def __init__(self, controller: SimURController):
+        self._c = controller
+        self._connected = True
+
+    def getActualTCPPose(self) -> list[float]:
+        return self._c.tcp_pose()
+
+    def getActualTCPSpeed(self) -> list[float]:
+        return self._c.tcp_speed()
+
+    def getActualTCPForce(self) -> list[float]:
+        return self._c.tcp_force()
+
+    def getTimestamp(self) -> float:
+        return float(self._c.scene.now())
+
+    def isProtectiveStopped(self) -> bool:
+        return self._c.protective_stopped()
+
+    def isEmergencyStopped(self) -> bool:
+        return False
+
+    def getSafetyMode(self) -> int:
+        return SAFETY_MODE_PROTECTIVE_STOP if self._c.protective_stopped() else SAFETY_MODE_NORMAL
+
+    def isConnected(self) -> bool:
+        return self._connected
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    def reconnect(self) -> bool:
+        self._connected = True
+        return True

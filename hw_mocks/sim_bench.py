@@ -1,0 +1,200 @@
+"""The simulated bench shared by the three twins: clock, bubble scene, arm controller, faults.
+
+``SimBench`` owns
+* a ``SimClock`` (real time by default, ``speed`` times faster for tests);
+* the ``BubbleSim`` scene (one sensor, the objects on the fixture plate);
+* the simulated UR controller (``hw_mocks.fake_rtde.SimURController``) whose TCP trajectory
+  places the bubble in the scene;
+* the membrane state cache, so that the twins share one physics solution;
+* the fault schedule (``--sim-fault KIND@SECONDS``).
+
+Physics budget: a solve + render costs up to ~10 ms, so the twins never solve per arm tick. The
+camera twin solves + renders once per frame (45 fps) at the TCP pose of the frame's timestamp;
+the arm (125-500 Hz state reads) and the pressure firmware (100 Hz) take the latest solution and
+re-solve only when it is older than ``ARM_MAX_AGE_S`` / ``PRESSURE_MAX_AGE_S`` and the pose moved,
+or older than ``REST_REFRESH_S`` (slow effects such as a leak). With the camera streaming, the
+arm's wrench therefore lags the pose by at most one frame (22 ms: 0.2 mm at a 10 mm/s press).
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from collect.errors import InputError
+
+#: Fault kinds ``--sim-fault`` accepts.
+FAULT_KINDS = ("camera-stall", "serial-garbage", "serial-unplug", "protective-stop", "force-spike")
+#: How long each fault lasts once injected (s of simulated time); None = until the end.
+FAULT_DURATION_S = {
+    "camera-stall": None,
+    "serial-garbage": 0.3,
+    "serial-unplug": None,
+    "protective-stop": None,
+    "force-spike": 0.25,
+}
+#: Force (N, base +z, i.e. pushing the sensor up) that ``force-spike`` adds to the wrench.
+FORCE_SPIKE_N = 80.0
+#: Cache policy of the shared membrane solution (s of simulated time), see the module doc.
+ARM_MAX_AGE_S = 0.02
+PRESSURE_MAX_AGE_S = 0.05
+REST_REFRESH_S = 0.25
+#: Pose change (m, rad) below which a cached solution still counts as "at this pose".
+POSE_TOL_M = 2e-5
+POSE_TOL_RAD = 2e-4
+
+
+@dataclass(frozen=True)
+class SimFault:
+    """A scheduled fault: ``kind`` (one of ``FAULT_KINDS``) starting at ``at_s`` s of simulated time."""
+
+    kind: str
+    at_s: float
+
+    @property
+    def duration_s(self) -> float | None:
+        return FAULT_DURATION_S[self.kind]
+
+    def active(self, t: float) -> bool:
+        """Whether the fault is in effect at simulated time ``t``."""
+        return t >= self.at_s and (self.duration_s is None or t < self.at_s + self.duration_s)
+
+    def __str__(self) -> str:
+        return f"{self.kind}@{self.at_s:g}"
+
+
+_FAULT_RE = re.compile(r"^\s*([a-z-]+)\s*@\s*([0-9]*\.?[0-9]+)\s*$")
+
+
+def parse_sim_fault(text: str) -> SimFault:
+    """Parse ``KIND@SECONDS`` (e.g. ``camera-stall@12.5``); raises ``InputError`` for anything else."""
+    match = _FAULT_RE.match(str(text))
+    if not match:
+        raise InputError(f"--sim-fault '{text}': expected KIND@SECONDS, e.g. camera-stall@12.5")
+    kind, seconds = match.group(1), float(match.group(2))
+    if kind not in FAULT_KINDS:
+        raise InputError(f"--sim-fault '{text}': unknown fault '{kind}' (one of {', '.join(FAULT_KINDS)})")
+    return SimFault(kind, seconds)
+
+
+class SimClock:
+    """Simulated time in seconds since creation, running ``speed`` times faster than real time."""
+
+    def __init__(self, speed: float = 1.0):
+        if not (np.isfinite(speed) and 0.1 <= speed <= 100.0):
+            raise InputError(f"simulation speed {speed} must be within 0.1..100")
+        self.speed = float(speed)
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return (time.monotonic() - self._t0) * self.speed
+
+    def __call__(self) -> float:
+        return self.now()
+
+    def real_seconds(self, sim_seconds: float) -> float:
+        """Real duration (s) of ``sim_seconds`` of simulated time."""
+        return sim_seconds / self.speed
+
+    def sleep_until(self, t_sim: float, stop: threading.Event | None = None) -> bool:
+        """Sleep until simulated time ``t_sim``; returns False when ``stop`` was set meanwhile."""
+        delay = (t_sim - self.now()) / self.speed
+        if delay <= 0:
+            return not (stop is not None and stop.is_set())
+        if stop is None:
+            time.sleep(delay)
+            return True
+        return not stop.wait(delay)
+
+
+@dataclass
+class _Cached:
+    pose: np.ndarray
+    t: float
+    state: object
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(np.all(np.abs(a[:3] - b[:3]) < POSE_TOL_M) and np.all(np.abs(a[3:] - b[3:]) < POSE_TOL_RAD))
+
+
+class SimBench:
+    """One simulated bench: ``spec`` (SensorSpec), ``objects`` (placed BenchObjects), ``seed``,
+    ``faults`` (SimFault list), ``speed`` (clock factor), ``home_pose`` (6,) initial TCP pose
+    (default: above the middle of the plate), ``protective_force_n`` (N) of the simulated robot.
+    """
+
+    def __init__(self, spec, objects, *, seed: int = 0, faults=(), speed: float = 1.0, home_pose=None,
+                 protective_force_n: float = 150.0):
+        from hw_mocks.bubble_sim import BubbleSim
+        from hw_mocks.fake_rtde import SimURController
+
+        self.spec = spec
+        self.objects = list(objects)
+        self.seed = int(seed)
+        self.faults = list(faults)
+        self.clock = SimClock(speed)
+        self.sim = BubbleSim(spec, self.objects, seed)
+        self.home_pose = np.asarray(default_home_pose(self.objects) if home_pose is None else home_pose, dtype=float)
+        self._lock = threading.Lock()
+        self._cache: _Cached | None = None
+        self.arm = SimURController(self, self.home_pose, protective_force_n)
+
+    def now(self) -> float:
+        """Simulated time (s)."""
+        return self.clock.now()
+
+    def fault_active(self, kind: str, t: float | None = None) -> bool:
+        """Whether a scheduled fault of ``kind`` is in effect at ``t`` (default: now)."""
+        t = self.now() if t is None else t
+        return any(f.kind == kind and f.active(t) for f in self.faults)
+
+    def tcp_pose(self, t: float | None = None) -> np.ndarray:
+        """TCP pose (6,) of the simulated arm at simulated time ``t`` (default: now)."""
+        return self.arm.pose_at(self.now() if t is None else t)
+
+    def membrane(self, pose, t: float, max_age_s: float = 0.0):
+        """The bubble's ``MembraneState`` with the TCP at ``pose`` (6,) at time ``t``, shared by the twins.
+
+        Reuses the cached solution when it is at the same pose and younger than ``REST_REFRESH_S``,
+        or younger than ``max_age_s`` at any pose; otherwise solves (serialized: the solver warm-starts).
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        with self._lock:
+            c = self._cache
+            if c is not None:
+                age = t - c.t
+                if age < max_age_s or (age < REST_REFRESH_S and _same_pose(c.pose, pose)):
+                    return c.state
+            state = self.sim.solve(pose, t)
+            if c is None or t >= c.t:
+                self._cache = _Cached(pose.copy(), t, state)
+            return state
+
+    def wrench(self, pose, t: float) -> np.ndarray:
+        """Wrench (6,) N, N m on the sensor in the base frame at ``pose``, time ``t``, with any force spike."""
+        w = np.array(self.membrane(pose, t, ARM_MAX_AGE_S).wrench, dtype=np.float64)
+        if self.fault_active("force-spike", t):
+            w[2] += FORCE_SPIKE_N
+        return w
+
+    def pressure_hpa(self, t: float) -> float:
+        """Absolute bubble pressure (hPa) at time ``t`` with the TCP where the arm has it."""
+        return float(self.membrane(self.tcp_pose(t), t, PRESSURE_MAX_AGE_S).pressure_hpa)
+
+
+def default_home_pose(objects) -> np.ndarray:
+    """TCP pose above the middle of the placed ``objects``, 80 mm over the tallest, pressing axis down."""
+    from hw_mocks.objects import PLATE_X, PLATE_Z
+
+    if objects:
+        lo = np.min([o.bounds_base()[0] for o in objects], axis=0)
+        hi = np.max([o.bounds_base()[1] for o in objects], axis=0)
+        xy, top = 0.5 * (lo[:2] + hi[:2]), hi[2]
+    else:
+        xy, top = np.array([PLATE_X, 0.0]), PLATE_Z
+    return np.array([xy[0], xy[1], top + 0.08, np.pi, 0.0, 0.0])
