@@ -29,6 +29,7 @@ from typing import Protocol
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from collect.errors import InputError
 
@@ -46,14 +47,26 @@ class Shape(Protocol):
 
 @dataclass(frozen=True)
 class Cylinder:
-    """Solid capped cylinder: axis along object z through ``center``; ``radius``, ``height`` m."""
+    """Solid capped cylinder: ``radius``, ``height`` m, centred on ``center`` (object frame, m),
+    its axis along the unit vector ``axis`` (object frame)."""
 
     radius: float
     height: float
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def _basis(self) -> np.ndarray:
+        """``(3,3)`` orthonormal columns ``[e1, e2, axis]``: cylinder frame -> object frame."""
+        a = np.asarray(self.axis, dtype=np.float64)
+        a = a / np.linalg.norm(a)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = np.cross(helper, a)
+        e1 /= np.linalg.norm(e1)
+        return np.stack([e1, np.cross(a, e1), a], axis=1)
 
     def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = np.asarray(points, dtype=np.float64) - np.asarray(self.center)
+        basis = self._basis()
+        p = (np.asarray(points, dtype=np.float64) - np.asarray(self.center)) @ basis
         r = np.hypot(p[:, 0], p[:, 1])
         safe_r = np.where(r > 1e-12, r, 1.0)
         radial = np.stack([p[:, 0] / safe_r, p[:, 1] / safe_r, np.zeros_like(r)], axis=1)
@@ -74,7 +87,7 @@ class Cylinder:
         w_z = np.where(outside, b / safe_d, (~inside_side).astype(np.float64))
         grad = radial * w_r[:, None]
         grad[:, 2] += w_z * sign_z
-        return phi, grad
+        return phi, grad @ basis.T
 
 
 @dataclass(frozen=True)
@@ -171,21 +184,23 @@ def shape_from_object(primitive: dict | None, vertices: np.ndarray | None = None
                       faces: np.ndarray | None = None) -> Shape:
     """The shape to fit for an object described in a session file.
 
-    ``primitive`` ``{"type": "cylinder", "radius": m, "height": m, "center": [x,y,z] m}``
-    (``center`` defaults to ``[0, 0, height/2]``: the base on the fixture at the origin) gives a
-    ``Cylinder``; any other type with a mesh gives a ``GridSDF`` of the mesh.
+    ``primitive`` ``{"type": "cylinder", "radius": m, "height": m, "center": [x,y,z] m,
+    "axis": [ax,ay,az]}`` (``center`` defaults to ``[0, 0, height/2]``, ``axis`` to ``[0, 0, 1]``:
+    upright, base at the origin) gives a ``Cylinder``; any other type with a mesh gives a
+    ``GridSDF`` of the mesh.
     """
     kind = (primitive or {}).get("type")
     if kind == "cylinder":
         try:
             radius = float(primitive["radius"])
             height = float(primitive["height"])
+            center = tuple(float(c) for c in primitive.get("center", (0.0, 0.0, 0.5 * height)))
+            axis = tuple(float(c) for c in primitive.get("axis", (0.0, 0.0, 1.0)))
         except (KeyError, TypeError, ValueError) as err:
-            raise InputError(f"cylinder primitive needs numeric radius and height: {primitive}") from err
-        center = tuple(float(c) for c in primitive.get("center", (0.0, 0.0, 0.5 * height)))
-        if not (radius > 0.0 and height > 0.0) or len(center) != 3:
+            raise InputError(f"cylinder primitive needs numeric radius, height, center, axis: {primitive}") from err
+        if not (radius > 0.0 and height > 0.0) or len(center) != 3 or len(axis) != 3 or not any(axis):
             raise InputError(f"bad cylinder primitive: {primitive}")
-        return Cylinder(radius=radius, height=height, center=center)
+        return Cylinder(radius=radius, height=height, center=center, axis=axis)
     if vertices is not None and faces is not None and len(faces):
         return GridSDF.from_mesh(vertices, faces)
     raise InputError(f"object shape {kind!r} has no signed-distance model and no mesh")
@@ -207,8 +222,6 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
     """Rotation matrix ``(3,3)`` -> unit quaternion ``(4,) [w,x,y,z]`` with ``w >= 0``."""
-    from scipy.spatial.transform import Rotation
-
     x, y, z, w = Rotation.from_matrix(rot).as_quat()
     q = np.array([w, x, y, z])
     return q if w >= 0 else -q
@@ -246,6 +259,36 @@ def position_error(a: Pose, b: Pose) -> float:
 def orientation_error(a: Pose, b: Pose) -> float:
     """``e_theta = 1 - |q1 . q2|`` (Huynh 2009, metric 3; 0 = same orientation, at most 1)."""
     return float(1.0 - min(1.0, abs(float(np.dot(a.quaternion, b.quaternion)))))
+
+
+def align_symmetry(shape: Shape, pose: Pose, reference: Pose) -> Pose:
+    """The pose equivalent to ``pose`` under the shape's symmetry that is closest to ``reference``.
+
+    A cylinder looks the same after a spin about its axis and a shift along it, so no point cloud
+    can tell those apart; comparing with a true pose is only meaningful modulo them. For a
+    ``Cylinder`` this returns ``pose`` spun about and slid along its axis to best match
+    ``reference``; other shapes are returned unchanged.
+    """
+    if not isinstance(shape, Cylinder):
+        return pose
+    basis = shape._basis()
+    axis = basis[:, 2]
+    center = np.asarray(shape.center, dtype=np.float64)
+    rot = quat_to_matrix(pose.quaternion)
+    # spin: twist of the relative rotation about the axis (swing-twist decomposition)
+    q_rel = matrix_to_quat(rot.T @ quat_to_matrix(reference.quaternion))
+    spin = 2.0 * np.arctan2(q_rel[1:] @ axis, q_rel[0])
+    spin_rot = Rotation.from_rotvec(spin * axis).as_matrix()
+    sym = np.eye(4)  # spin about the axis through the centre, in the object frame
+    sym[:3, :3] = spin_rot
+    sym[:3, 3] = center - spin_rot @ center
+    moved = pose.matrix() @ sym
+    # slide: move the centre along the (camera-frame) axis toward the reference's centre
+    axis_cam = moved[:3, :3] @ axis
+    center_ref = quat_to_matrix(reference.quaternion) @ center + reference.position
+    center_cam = moved[:3, :3] @ center + moved[:3, 3]
+    moved[:3, 3] += axis_cam * (axis_cam @ (center_ref - center_cam))
+    return Pose.from_matrix(moved)
 
 
 # ----------------------------------------------------------------------------------------------

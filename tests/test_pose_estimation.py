@@ -10,6 +10,7 @@ from calibrate.pose_estimation import (
     GridSDF,
     Pose,
     ProximityPoseEstimator,
+    align_symmetry,
     matrix_to_quat,
     orientation_error,
     point_residuals,
@@ -175,3 +176,41 @@ def test_shape_from_object_cylinder_and_errors():
         shape_from_object({"type": "cylinder", "radius": -1, "height": 0.1})
     with pytest.raises(InputError):
         shape_from_object({"type": "torus"})
+
+
+def test_tilted_axis_cylinder_matches_canonical_and_jacobian():
+    lying = Cylinder(radius=0.041, height=0.095, center=(0.0, 0.0, 0.08), axis=(1.0, 0.0, 0.0))
+    upright = Cylinder(radius=0.041, height=0.095)
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(-0.08, 0.08, (200, 3))
+    # lying cylinder = upright one turned +z -> +x, then raised to its centre
+    to_upright = Rotation.from_rotvec([0, -np.pi / 2, 0]).as_matrix()  # maps +x to +z
+    phi_l, grad_l = lying.signed_distance(pts + [0, 0, 0.08])
+    phi_u, grad_u = upright.signed_distance(pts @ to_upright.T)
+    np.testing.assert_allclose(phi_l, phi_u, atol=1e-12)
+    np.testing.assert_allclose(grad_l @ to_upright.T, grad_u, atol=1e-12)
+    theta = _pose([0.1, 0.2, -0.1], [0.0, 0.0, 0.05]).theta()
+    _, jac = point_residuals(theta, pts, lying)
+    eps = 1e-7
+    numeric = np.stack([(point_residuals(theta + eps * e, pts, lying, False)[0]
+                         - point_residuals(theta - eps * e, pts, lying, False)[0]) / (2 * eps)
+                        for e in np.eye(7)], axis=1)
+    np.testing.assert_allclose(jac, numeric, atol=1e-6)
+
+
+def test_align_symmetry_removes_spin_and_slide_only():
+    true = _pose([0.3, -0.2, 0.5], [0.01, -0.02, 0.09])
+    center, axis = np.array(CYL.center), np.array([0.0, 0.0, 1.0])
+    sym = np.eye(4)
+    spin = Rotation.from_rotvec(0.4 * axis).as_matrix()
+    sym[:3, :3] = spin
+    sym[:3, 3] = center - spin @ center + 0.007 * axis
+    equivalent = Pose.from_matrix(true.matrix() @ sym)
+    assert position_error(equivalent, true) > 5e-3
+    aligned = align_symmetry(CYL, equivalent, true)
+    assert position_error(aligned, true) < 1e-12 and orientation_error(aligned, true) < 1e-12
+    # an observable offset (radial) survives the alignment
+    off = Pose(equivalent.position + quat_to_matrix(true.quaternion) @ [0.002, 0, 0], equivalent.quaternion)
+    assert abs(position_error(align_symmetry(CYL, off, true), true) - 0.002) < 1e-9
+    grid_like = object()
+    assert align_symmetry(grid_like, off, true) is off

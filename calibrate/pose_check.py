@@ -1,0 +1,332 @@
+"""The downstream pose check (the paper's Sec. V) over a recorded session.
+
+For every ``hold`` frame of the chosen object (the mug by default) the object's pose in the
+camera frame is estimated twice - from the depth predicted by the model from the IR image and
+from the measured ToF depth - and the two are compared:
+``e_x = ||p1 - p2||`` (mm) and ``e_theta = 1 - |q1 . q2|``, modulo the shape's symmetry (see
+below). On simulated sessions both (and a
+third fit on the true membrane depth) are also compared with the true object pose known from the
+bench (fixture pose and arm pose), modulo the shape's symmetry (a cylinder's spin about and
+shift along its axis, which no contact patch on its side can see; see ``align_symmetry``).
+
+Each depth source gets its own contact patch against its own no-contact reference (the median of
+that source over the object's ``free`` frames before its first press). Every fit starts from a
+prior near the bench pose: the bench pose perturbed by a fixed, seeded offset per contact pose
+(``prior_error_mm``, ``prior_error_deg``; the paper's "sufficiently close initial condition");
+the following frames of the same contact pose are warm-started from the previous frame's fit of
+the same source. Frames that cannot be used are counted by reason, never raised; a run without
+one usable frame raises ``InputError``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calibrate.contact_patch import CONTACT_THRESHOLD_M, N_POINTS, contact_points, reference_depth
+from calibrate.pose_estimation import (
+    MIN_POINTS,
+    Cylinder,
+    Pose,
+    ProximityPoseEstimator,
+    align_symmetry,
+    orientation_error,
+    position_error,
+    shape_from_object,
+)
+from collect.errors import InputError
+
+#: Depth sources, in report order. ``true`` exists in simulated sessions only.
+SOURCES = ("predicted", "measured", "true")
+
+#: Frames per network call when predicting depth for the session.
+PREDICT_BATCH = 16
+
+#: Skip reasons (keys of ``PoseCheckResult.skipped``).
+SKIP_NO_CONTACT = "no_contact"  # no pixel pushed in beyond the threshold, in some source
+SKIP_TOO_FEW_POINTS = "too_few_points"  # a patch with fewer than MIN_POINTS points
+SKIP_NON_FINITE = "non_finite_prediction"  # the network returned NaN/inf for the frame
+SKIP_FIT_FAILED = "fit_failed"  # the solver did not converge
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Median, mean and (population) variance of an error over the used frames."""
+
+    median: float
+    mean: float
+    variance: float
+
+    @classmethod
+    def of(cls, values) -> "ErrorStats":
+        v = np.asarray(values, dtype=np.float64)
+        return cls(float(np.median(v)), float(np.mean(v)), float(np.var(v)))
+
+
+@dataclass
+class FramePoses:
+    """Per used frame: the errors and the fitted poses (``[x,y,z m, qw,qx,qy,qz]`` camera frame)."""
+
+    frame: int
+    pose_id: int
+    e_x_mm: float  # predicted vs measured, modulo the shape's symmetry
+    e_theta: float
+    n_points: dict[str, int]  # per source
+    rms_mm: dict[str, float]  # per source, RMS signed distance of the points at the fit
+    poses: dict[str, list[float]]  # per source (+ "bench": the true pose from fixture and arm)
+    #: simulated only: source -> {e_x_mm, e_theta} vs the true pose, modulo the shape's symmetry
+    vs_true: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+@dataclass
+class PoseCheckResult:
+    """Outcome of ``run_pose_check``. ``to_dict()`` is the ``bubble pose --json`` document."""
+
+    session: str
+    object_name: str
+    shape: str  # "cylinder" or "mesh_sdf"
+    n_hold_frames: int  # hold frames of the object in the session
+    n_used: int  # frames with a pose from both predicted and measured depth
+    skipped: dict[str, int]  # reason -> frames
+    e_x_mm: ErrorStats  # predicted vs measured
+    e_theta: ErrorStats
+    hz: float  # pose estimates (contact patch + fit) per second, one core
+    vs_true: dict[str, dict[str, ErrorStats]]  # simulated only: source -> {"e_x_mm", "e_theta"}
+    frames: list[FramePoses]
+    settings: dict
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def write_json(self, path: str | Path) -> None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    def summary(self) -> str:
+        """Two or three lines for the terminal."""
+        lines = [
+            f"pose check on {self.object_name!r}: {self.n_used}/{self.n_hold_frames} hold frames used"
+            + (f" (skipped: {', '.join(f'{k} {v}' for k, v in self.skipped.items() if v)})"
+               if any(self.skipped.values()) else ""),
+            f"predicted vs measured depth: e_x median {self.e_x_mm.median:.3f} mm (mean "
+            f"{self.e_x_mm.mean:.3f}), e_theta median {self.e_theta.median:.2e} (mean "
+            f"{self.e_theta.mean:.2e}); {self.hz:.0f} pose estimates/s",
+        ]
+        if self.vs_true:
+            lines.append("vs true pose: " + "; ".join(
+                f"{src} e_x {st['e_x_mm'].median:.3f} mm, e_theta {st['e_theta'].median:.2e}"
+                for src, st in self.vs_true.items()))
+        return "\n".join(lines)
+
+
+def ur_pose_matrix(pose) -> np.ndarray:
+    """UR pose ``(6,) [x,y,z m, rotation vector rad]`` -> homogeneous transform ``(4,4)``."""
+    p = np.asarray(pose, dtype=np.float64).reshape(6)
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(p[3:]).as_matrix()
+    out[:3, 3] = p[:3]
+    return out
+
+
+def bench_pose(tcp_pose, camera_in_tcp, fixture_pose) -> Pose:
+    """True object pose in the camera frame: ``inv(T_base_tcp T_tcp_cam) T_base_object``.
+
+    All three arguments are UR poses ``(6,)``: TCP in base, camera in TCP, object in base.
+    """
+    base_cam = ur_pose_matrix(tcp_pose) @ ur_pose_matrix(camera_in_tcp)
+    return Pose.from_matrix(np.linalg.inv(base_cam) @ ur_pose_matrix(fixture_pose))
+
+
+def perturbed_prior(pose: Pose, rng: np.random.Generator, error_mm: float, error_deg: float) -> Pose:
+    """``pose`` moved by ``error_mm`` and turned by ``error_deg`` about random directions."""
+    shift = rng.normal(size=3)
+    axis = rng.normal(size=3)
+    turn = Rotation.from_rotvec(np.radians(error_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    transform = pose.matrix()
+    transform[:3, :3] = turn @ transform[:3, :3]
+    transform[:3, 3] += 1e-3 * error_mm * shift / np.linalg.norm(shift)
+    return Pose.from_matrix(transform)
+
+
+def _errors(pose: Pose, reference: Pose) -> dict[str, float]:
+    return {"e_x_mm": 1e3 * position_error(pose, reference), "e_theta": orientation_error(pose, reference)}
+
+
+def _load_estimator(model):
+    if hasattr(model, "predict_batch"):
+        return model
+    from trainer.inference import DepthEstimator
+
+    return DepthEstimator.load(model)
+
+
+def _predict(estimator, session, idx: np.ndarray) -> np.ndarray:
+    """Predicted depth ``(n,H,W) float32 m`` for the IR frames ``idx``, in batches."""
+    out = [estimator.predict_batch(session.ir(idx[i:i + PREDICT_BATCH]))
+           for i in range(0, len(idx), PREDICT_BATCH)]
+    return np.concatenate(out) if out else np.zeros((0, session.height, session.width), np.float32)
+
+
+def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
+                   threshold_m: float = CONTACT_THRESHOLD_M, n_points: int = N_POINTS,
+                   prior_error_mm: float = 2.0, prior_error_deg: float = 2.0, seed: int = 0,
+                   plots_dir: str | Path | None = None) -> PoseCheckResult:
+    """Run the pose check over every hold frame of ``object_name`` in the session.
+
+    ``model``: a model directory (or ``"base"``), or a loaded estimator with
+    ``predict_batch(ir (N,H,W) uint16) -> (N,H,W) float32 m`` (``trainer.inference.DepthEstimator``).
+    ``plots_dir``: if given, histograms like the paper's Fig. 7 are written there
+    (``pose_errors.png``, and ``pose_vs_true.png`` for simulated sessions).
+    Raises ``InputError`` for a bad session, an unknown object, a missing no-contact reference,
+    or when no frame is usable.
+    """
+    from collect.session_reader import Session
+
+    estimator = _load_estimator(model)
+    with Session.open(session_path) as session:
+        obj = session.objects[session.object_id(object_name)]
+        shape = shape_from_object(obj.primitive, obj.vertices, obj.faces)
+        fitter = ProximityPoseEstimator(shape)
+        ref_idx = session.reference_frames(object_name)
+        if len(ref_idx) == 0:
+            raise InputError(f"{session.path}: no no-contact (free) frames of {object_name!r} to "
+                             "take the contact reference from")
+        hold_idx = session.select(object=object_name, phase="hold")
+        if len(hold_idx) == 0:
+            raise InputError(f"{session.path}: no hold frames of {object_name!r}")
+        sources = [s for s in SOURCES if s != "true" or session.simulated]
+        depth = {"predicted": _predict(estimator, session, hold_idx),
+                 "measured": session.depth_m(hold_idx)}
+        ref_pred = _predict(estimator, session, ref_idx)
+        references = {"predicted": reference_depth(np.where(np.isfinite(ref_pred), ref_pred, 0.0)),
+                      "measured": reference_depth(session.depth_m(ref_idx))}
+        if session.simulated:
+            depth["true"] = session.true_depth(hold_idx)
+            references["true"] = reference_depth(session.true_depth(ref_idx))
+        tcp = session.tcp_pose(hold_idx)
+        pose_ids = session.pose_id[hold_idx]
+        camera_in_tcp = session.camera_in_tcp
+        intrinsics = session.intrinsics
+        session_name = str(session.path)
+        simulated = session.simulated
+
+    skipped = {SKIP_NO_CONTACT: 0, SKIP_TOO_FEW_POINTS: 0, SKIP_NON_FINITE: 0, SKIP_FIT_FAILED: 0}
+    frames: list[FramePoses] = []
+    warm: dict[str, Pose] = {}
+    prior = None
+    last_pose_id = None
+    fit_seconds = 0.0
+    n_fits = 0
+    for k, frame in enumerate(hold_idx):
+        truth = bench_pose(tcp[k], camera_in_tcp, obj.fixture_pose)
+        if pose_ids[k] != last_pose_id or prior is None:
+            rng = np.random.default_rng([seed, int(pose_ids[k]) + 1])
+            prior = perturbed_prior(truth, rng, prior_error_mm, prior_error_deg)
+            warm = {}
+            last_pose_id = pose_ids[k]
+        if not np.all(np.isfinite(depth["predicted"][k])):
+            skipped[SKIP_NON_FINITE] += 1
+            continue
+        fits = {}
+        reason = None
+        for src in sources:
+            start = time.perf_counter()
+            points = contact_points(depth[src][k], references[src], intrinsics, threshold_m, n_points)
+            if len(points) == 0:
+                reason = SKIP_NO_CONTACT
+                break
+            if len(points) < MIN_POINTS:
+                reason = SKIP_TOO_FEW_POINTS
+                break
+            fit = fitter.fit(points, prior, start=warm.get(src))
+            fit_seconds += time.perf_counter() - start
+            n_fits += 1
+            if not fit.success:
+                reason = SKIP_FIT_FAILED
+                break
+            fits[src] = fit
+        if reason is not None:
+            skipped[reason] += 1
+            continue
+        warm = {src: fit.pose for src, fit in fits.items()}
+        pred, meas = fits["predicted"].pose, fits["measured"].pose
+        frames.append(FramePoses(
+            frame=int(frame), pose_id=int(pose_ids[k]),
+            **_errors(align_symmetry(shape, pred, meas), meas),
+            n_points={s: f.n_points for s, f in fits.items()},
+            rms_mm={s: 1e3 * f.rms_m for s, f in fits.items()},
+            poses={**{s: f.pose.theta().tolist() for s, f in fits.items()}, "bench": truth.theta().tolist()},
+            vs_true={s: _errors(align_symmetry(shape, f.pose, truth), truth)
+                     for s, f in fits.items()} if simulated else {},
+        ))
+    if not frames:
+        reasons = ", ".join(f"{k} {v}" for k, v in skipped.items() if v) or "none"
+        raise InputError(f"{session_name}: no usable hold frame of {object_name!r} for the pose check "
+                         f"({len(hold_idx)} hold frames; skipped: {reasons})")
+    vs_true = {}
+    if simulated:
+        vs_true = {s: {"e_x_mm": ErrorStats.of([f.vs_true[s]["e_x_mm"] for f in frames]),
+                       "e_theta": ErrorStats.of([f.vs_true[s]["e_theta"] for f in frames])}
+                   for s in sources}
+    result = PoseCheckResult(
+        session=session_name, object_name=object_name,
+        shape="cylinder" if isinstance(shape, Cylinder) else "mesh_sdf",
+        n_hold_frames=int(len(hold_idx)), n_used=len(frames), skipped=skipped,
+        e_x_mm=ErrorStats.of([f.e_x_mm for f in frames]),
+        e_theta=ErrorStats.of([f.e_theta for f in frames]),
+        hz=n_fits / fit_seconds if fit_seconds > 0 else 0.0,
+        vs_true=vs_true, frames=frames,
+        settings={"threshold_m": threshold_m, "n_points": n_points, "prior_error_mm": prior_error_mm,
+                  "prior_error_deg": prior_error_deg, "seed": seed,
+                  "prior_weight": fitter.prior_weight},
+    )
+    if plots_dir is not None:
+        write_histograms(result, plots_dir)
+    return result
+
+
+def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Path]:
+    """Histograms of the errors (the paper's Fig. 7) as PNG files in ``plots_dir``; returns their paths.
+
+    ``pose_errors.png``: e_x (mm) and e_theta, predicted vs measured depth.
+    ``pose_vs_true.png`` (simulated sessions): the same errors of each source vs the true pose.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plots_dir = Path(plots_dir)
+    plots_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for ax, key, label in ((axes[0], "e_x_mm", "position error $e_x$ (mm)"),
+                           (axes[1], "e_theta", r"orientation error $e_\theta = 1-|q_1 \cdot q_2|$")):
+        ax.hist([getattr(f, key) for f in result.frames], bins=20, color="tab:blue")
+        ax.set_xlabel(label)
+        ax.set_ylabel("frames")
+    fig.suptitle(f"{result.object_name}: pose from predicted vs measured depth ({result.n_used} frames)")
+    fig.tight_layout()
+    written.append(plots_dir / "pose_errors.png")
+    fig.savefig(written[-1], dpi=100)
+    plt.close(fig)
+    if result.vs_true:
+        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+        for ax, key, label in ((axes[0], "e_x_mm", "position error vs true pose (mm)"),
+                               (axes[1], "e_theta", "orientation error vs true pose")):
+            values = {src: [f.vs_true[src][key] for f in result.frames] for src in result.vs_true}
+            ax.hist(list(values.values()), bins=20, label=list(values), histtype="step", linewidth=1.5)
+            ax.set_xlabel(label)
+            ax.set_ylabel("frames")
+            ax.legend()
+        fig.suptitle(f"{result.object_name}: each depth source vs the true pose")
+        fig.tight_layout()
+        written.append(plots_dir / "pose_vs_true.png")
+        fig.savefig(written[-1], dpi=100)
+        plt.close(fig)
+    return written

@@ -1,0 +1,37 @@
+"""``bubble pose``: the downstream pose check (paper Sec. V) of a model on a session file."""
+
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "pose",
+        help="pose of the mug from predicted vs measured depth (the paper's downstream check)",
+        description="Estimate the object's pose from the contact patch of every hold frame, once from the "
+                    "model's predicted depth and once from the measured ToF depth, and compare them "
+                    "(e_x = ||p1-p2|| mm, e_theta = 1-|q1.q2|); simulated sessions are also compared "
+                    "with the true pose.",
+    )
+    p.add_argument("--model", required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
+    p.add_argument("--data", required=True, metavar="S.h5", help="session file")
+    p.add_argument("--object", default="mug", help="object to estimate (default: mug)")
+    p.add_argument("--json", metavar="OUT.json", help="write the results (e_x_mm, e_theta, hz, per frame) here")
+    p.add_argument("--plots", metavar="DIR", help="write error histograms (PNG) here")
+    p.add_argument("--threshold-mm", type=float, default=1.5, help="contact: depth below the reference by more than this (mm)")
+    p.add_argument("--points", type=int, default=1500, help="points per contact patch (default 1500)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the prior's perturbation")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from calibrate.pose_check import run_pose_check
+    from collect.errors import InputError
+
+    if not args.threshold_mm > 0 or args.points < 1:
+        raise InputError("--threshold-mm must be > 0 and --points >= 1")
+    result = run_pose_check(args.model, args.data, args.object, threshold_m=1e-3 * args.threshold_mm,
+                            n_points=args.points, seed=args.seed, plots_dir=args.plots)
+    print(result.summary())
+    if args.json:
+        result.write_json(args.json)
+    return 0

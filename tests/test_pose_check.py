@@ -1,0 +1,141 @@
+"""The pose check over a session: a geometric session (membrane wrapped on a lying cylinder)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from calibrate.pose_check import SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, run_pose_check
+from calibrate.pose_estimation import quat_to_matrix
+from collect import session_format as sf
+from collect.errors import InputError
+from collect.session_writer import SessionWriter
+
+H, W = 120, 160
+INTR = {"fx": 110.0, "fy": 110.0, "cx": 79.5, "cy": 59.5, "width": W, "height": H}
+CAMERA_IN_TCP = [0.0, 0.0, -0.093, 0.0, 0.0, 0.0]
+RADIUS, LENGTH, AXIS_Z = 0.041, 0.095, 0.0825
+MUG = {"type": "cylinder", "radius": RADIUS, "height": LENGTH, "center": [0.0, 0.0, AXIS_Z], "axis": [1.0, 0.0, 0.0]}
+FIXTURE = [0.5, 0.1, 0.02, 0.0, 0.0, 0.3]
+
+
+def _rest_depth() -> np.ndarray:
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    r2 = ((u - INTR["cx"]) / (W / 2)) ** 2 + ((v - INTR["cy"]) / (H / 2)) ** 2
+    return 0.093 + 0.02 * r2
+
+
+def _cylinder_depth(pose) -> np.ndarray:
+    """z-depth of the first hit of each pixel ray on the cylinder's side, inf where missed."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    d = np.stack([(u - INTR["cx"]) / INTR["fx"], (v - INTR["cy"]) / INTR["fy"], np.ones_like(u)], -1)
+    rot = quat_to_matrix(pose.quaternion)
+    axis = rot @ np.array(MUG["axis"])
+    c = rot @ np.array(MUG["center"]) + pose.position
+    d_perp = d - (d @ axis)[..., None] * axis
+    c_perp = c - (c @ axis) * axis
+    a = np.sum(d_perp**2, -1)
+    b = -2 * d_perp @ c_perp
+    cc = c_perp @ c_perp - RADIUS**2
+    disc = b * b - 4 * a * cc
+    s = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+    along = (s[..., None] * d - c) @ axis
+    return np.where((disc >= 0) & (np.abs(along) <= LENGTH / 2), s, np.inf)
+
+
+def write_cylinder_session(path, n_poses=3, hold_frames=3, tof_noise_m=1e-4, press_m=0.005, seed=0,
+                           simulated=True, mug_primitive=MUG):
+    """Per pose: a tilted/turned press of the bubble onto the top of a lying cylinder.
+
+    True depth = min(rest dome, cylinder surface); ToF = truth + noise, 0 outside the field of
+    view; IR = the true depth in 10 um units (what ``DecodingEstimator`` reads back)."""
+    rng = np.random.default_rng(seed)
+    rest = _rest_depth()
+    fov = (((np.mgrid[0:H, 0:W][1] - INTR["cx"]) / (W / 2)) ** 2
+           + ((np.mgrid[0:H, 0:W][0] - INTR["cy"]) / (H / 2)) ** 2) < 1.3
+    obj = {"name": "mug", "fixture_pose": FIXTURE, "mesh_sha256": "0" * 64, "primitive": mug_primitive,
+           "vertices": np.zeros((0, 3), np.float32), "faces": np.zeros((0, 3), np.int32)}
+    writer = SessionWriter(path, sensor_serial="CYL-1", sensor_spec={"serial": "CYL-1"}, intrinsics=INTR,
+                           camera_in_tcp=CAMERA_IN_TCP, simulated=simulated, objects=[obj])
+    seq = 0
+    fixture = np.array(FIXTURE)
+    top = fixture[:3] + [0, 0, AXIS_Z + RADIUS]
+
+    def emit(true, pose_id, phase, tcp):
+        nonlocal seq
+        tof = np.where(fov, np.round((true + rng.normal(0, tof_noise_m, true.shape)) / sf.DEPTH_UNIT_M), 0)
+        ir = np.round(true / sf.DEPTH_UNIT_M).astype(np.uint16)
+        writer.append_frame(ir, tof.astype(np.uint16), seq / 30, 100 + seq / 30, seq, 0, pose_id, phase, tcp,
+                            true_depth=true.astype(np.float32) if simulated else None)
+        writer.append_arm(100 + seq / 30, tcp, np.zeros(6))
+        writer.append_pressure(100 + seq / 30, 1065.0)
+        seq += 1
+
+    above = np.concatenate([top + [0, 0, 0.05], [np.pi, 0, 0]])
+    for _ in range(4):
+        emit(rest, -1, sf.PHASE_FREE, above)
+    from scipy.spatial.transform import Rotation
+
+    for pose_id in range(n_poses):
+        yaw, tilt = rng.uniform(-0.6, 0.6), rng.uniform(-0.08, 0.08, 2)
+        rotvec = (Rotation.from_rotvec([0, 0, yaw]) * Rotation.from_rotvec([tilt[0], tilt[1], 0])
+                  * Rotation.from_rotvec([np.pi, 0, 0])).as_rotvec()
+        shift = rng.uniform(-0.01, 0.01, 2)
+        tcp = np.concatenate([top + [shift[0] * np.cos(0.3), shift[0] * np.sin(0.3), -press_m], rotvec])
+        true = np.minimum(rest, _cylinder_depth(bench_pose(tcp, CAMERA_IN_TCP, fixture)))
+        for _ in range(hold_frames):
+            emit(true, pose_id, sf.PHASE_HOLD, tcp)
+        emit(rest, pose_id, sf.PHASE_RETRACT, above)
+    writer.close()
+    return path
+
+
+class DecodingEstimator:
+    """Test double of ``DepthEstimator``: reads the depth back from the IR image, plus noise."""
+
+    def __init__(self, noise_m=5e-5, nan=False):
+        self.rng = np.random.default_rng(7)
+        self.noise_m = noise_m
+        self.nan = nan
+
+    def predict_batch(self, ir):
+        depth = ir.astype(np.float32) * np.float32(sf.DEPTH_UNIT_M)
+        depth = depth + self.rng.normal(0, self.noise_m, depth.shape).astype(np.float32)
+        if self.nan:
+            depth[:, 0, 0] = np.nan
+        return depth
+
+
+def test_pose_check_on_a_geometric_session(tmp_path):
+    path = write_cylinder_session(tmp_path / "cyl.h5")
+    result = run_pose_check(DecodingEstimator(), path, "mug", plots_dir=tmp_path / "plots")
+    assert result.n_hold_frames == 9 and result.n_used == 9
+    assert result.shape == "cylinder"
+    assert sum(result.skipped.values()) == 0
+    # predicted (5e-5 m noise) vs measured (1e-4 m noise): both near the same pose
+    assert result.e_x_mm.median < 0.3 and result.e_theta.median < 1e-4
+    assert result.hz > 5
+    # vs the true pose (modulo the cylinder's symmetry) all three sources are close
+    for src in ("predicted", "measured", "true"):
+        assert result.vs_true[src]["e_x_mm"].median < 0.3, src
+        assert result.vs_true[src]["e_theta"].median < 1e-4, src
+    assert result.vs_true["true"]["e_x_mm"].median < 0.05  # noiseless: the fit is exact
+    assert (tmp_path / "plots" / "pose_errors.png").stat().st_size > 1000
+    assert (tmp_path / "plots" / "pose_vs_true.png").stat().st_size > 1000
+    doc = json.loads(json.dumps(result.to_dict()))
+    assert set(doc["e_x_mm"]) == {"median", "mean", "variance"} and doc["hz"] > 0
+    assert len(doc["frames"]) == 9 and len(doc["frames"][0]["poses"]["bench"]) == 7
+
+
+def test_pose_check_counts_skipped_frames_and_fails_with_no_usable_frame(tmp_path):
+    path = write_cylinder_session(tmp_path / "cyl.h5", n_poses=2, hold_frames=2, simulated=False)
+    with pytest.raises(InputError, match="no usable hold frame.*non_finite_prediction 4"):
+        run_pose_check(DecodingEstimator(nan=True), path, "mug")
+    # the bubble held 5 cm above the mug: no contact in any frame
+    shallow = write_cylinder_session(tmp_path / "shallow.h5", n_poses=2, hold_frames=2, press_m=-0.05)
+    with pytest.raises(InputError, match=f"{SKIP_NO_CONTACT} 4"):
+        run_pose_check(DecodingEstimator(), shallow, "mug")
+    with pytest.raises(InputError, match="no object 'cup'"):
+        run_pose_check(DecodingEstimator(), path, "cup")
+    result = run_pose_check(DecodingEstimator(), path, "mug")
+    assert result.n_used == 4 and not result.vs_true and result.skipped[SKIP_NON_FINITE] == 0

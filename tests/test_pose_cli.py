@@ -1,0 +1,55 @@
+"""``bubble pose``: JSON and plots written, exit 0; bad input -> one line, exit 2."""
+
+import json
+
+import pytest
+
+import calibrate.cli as cli
+from test_pose_check import H, W, DecodingEstimator, write_cylinder_session
+
+
+@pytest.fixture(autouse=True)
+def only_pose_command(monkeypatch):
+    # the pose command alone (other packages' commands are tested by their owners)
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("calibrate.pose_cli",))
+
+
+def test_pose_command_writes_json_and_plots(tmp_path, monkeypatch, capsys):
+    import trainer.inference
+
+    session = write_cylinder_session(tmp_path / "s.h5", n_poses=2, hold_frames=2)
+    monkeypatch.setattr(trainer.inference.DepthEstimator, "load", classmethod(lambda cls, d: DecodingEstimator()))
+    out = tmp_path / "pose.json"
+    code = cli.main(["pose", "--model", str(tmp_path / "m"), "--data", str(session), "--object", "mug",
+                     "--json", str(out), "--plots", str(tmp_path / "plots")])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["n_used"] == 4 and doc["object_name"] == "mug"
+    for key in ("e_x_mm", "e_theta"):
+        assert set(doc[key]) == {"median", "mean", "variance"}
+    assert doc["hz"] > 0 and set(doc["vs_true"]) == {"predicted", "measured", "true"}
+    assert (tmp_path / "plots" / "pose_errors.png").is_file()
+    assert "predicted vs measured depth: e_x median" in capsys.readouterr().out
+
+
+def _untrained_model(model_dir):
+    from trainer.model_dir import ModelMetadata, save_model
+    from trainer.networks import build_network
+    from trainer.preprocessing import InputGeometry, IRNormalization
+
+    net = build_network("resnet", 0.25, 0.05, 0.15)
+    meta = ModelMetadata(arch="resnet", width=0.25, min_depth=0.05, max_depth=0.15,
+                         geometry=InputGeometry(H, W, 128, 160), normalization=IRNormalization(8.0, 1.0))
+    return save_model(model_dir, net, meta)
+
+
+def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
+    session = write_cylinder_session(tmp_path / "s.h5", n_poses=1, hold_frames=2)
+    assert cli.main(["pose", "--model", str(tmp_path / "m"), "--data", str(tmp_path / "missing.h5")]) == 2
+    model = _untrained_model(tmp_path / "m")
+    assert cli.main(["pose", "--model", str(model), "--data", str(session), "--object", "cup"]) == 2
+    # an untrained network sees no contact: no usable frame
+    assert cli.main(["pose", "--model", str(model), "--data", str(session)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("bubble: error: ") for line in err)
+    assert "no object 'cup'" in err[1] and "no usable hold frame" in err[2]
