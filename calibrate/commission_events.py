@@ -46,6 +46,7 @@ class StepFinished:
     ok: bool
     summary: str = ""
     resumed: bool = False  # True when the step's result was taken from a previous run
+    skipped: bool = False  # True when the step did not run (a failed hardware check before it, or nothing to do)
 
 
 @dataclass
