@@ -19,6 +19,7 @@ from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, Hardwar
 #: Modules providing ``register(subparsers)``, in the order their commands are listed.
 COMMAND_MODULES = (
     "hw_mocks.cli",
+    "collect.cli",
     "calibrate.pose_cli",
 )
 

@@ -300,6 +300,17 @@ class Session:
         _check_finite(self.path, sf.PRESSURE_HPA, stream.hpa)
         return stream
 
+    def storage_bytes(self) -> dict[str, int]:
+        """Bytes each dataset occupies in the file (after compression), by dataset path."""
+        sizes: dict[str, int] = {}
+
+        def visit(name, item):
+            if isinstance(item, h5py.Dataset):
+                sizes[name] = int(item.id.get_storage_size())
+
+        self._f.visititems(visit)
+        return sizes
+
     def collection_plan(self) -> dict | None:
         """The pose-plan settings stored by ``bubble collect`` (None if the file has none)."""
         text = _text(self._f.attrs.get(sf.ATTR_COLLECTION_PLAN, ""))

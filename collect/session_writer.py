@@ -221,6 +221,19 @@ class SessionWriter:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def set_collection_plan(self, plan: dict) -> None:
+        """Store the pose-plan settings (root attr ``collection_plan``, JSON). On a resumed session
+        the plan must equal the stored one (else InputError), so that pose ids keep their meaning."""
+        text = json.dumps(plan, sort_keys=True)
+        stored = self._file.attrs.get(sf.ATTR_COLLECTION_PLAN, "")
+        stored = stored.decode() if isinstance(stored, bytes) else str(stored)
+        if stored and stored != text:
+            raise InputError(
+                f"cannot resume {self.path}: it was recorded with another plan (objects, poses per object, seed "
+                f"or settings differ): {stored}"
+            )
+        self._file.attrs[sf.ATTR_COLLECTION_PLAN] = text
+
     @property
     def n_frames(self) -> int:
         """Frames in the session including queued ones (resumed frames + appended since open)."""
@@ -337,12 +350,27 @@ def _append_rows(dataset: h5py.Dataset, values: np.ndarray) -> None:
     dataset[n:] = values
 
 
-def _create(path: str) -> h5py.File:
+def check_output_path(path, resume: bool) -> None:
+    """Raise InputError unless ``path`` can be recorded to: a new file in an existing, writable
+    directory, or (``resume``) an existing file. Cheap; call it before opening any device."""
+    path = os.fspath(path)
+    if resume:
+        if not os.path.isfile(path):
+            raise InputError(f"cannot resume {path}: no such file")
+        if not os.access(path, os.R_OK | os.W_OK):
+            raise InputError(f"cannot resume {path}: the file is not writable")
+        return
     if os.path.exists(path):
         raise InputError(f"{path} already exists; use --resume to append to it or choose another output")
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
         raise InputError(f"cannot create {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot create {path}: directory {parent} is not writable")
+
+
+def _create(path: str) -> h5py.File:
+    check_output_path(path, resume=False)
     try:
         return h5py.File(path, "w-", libver="latest")
     except OSError as err:
@@ -456,8 +484,7 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
     """Open an existing session for appending, repairing the status flags a crash leaves behind."""
     from collect.session_reader import check_session_attrs, open_h5
 
-    if not os.path.exists(path):
-        raise InputError(f"cannot resume {path}: no such file")
+    check_output_path(path, resume=True)
     probe = open_h5(path)
     try:
         check_session_attrs(probe)

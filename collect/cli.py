@@ -1,0 +1,131 @@
+"""``bubble collect`` (record a calibration session) and ``bubble info`` (summarize a session file)."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+
+from collect.errors import InputError
+
+DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "collect",
+        help="press the bubble on objects in random poses and record IR + depth to HDF5",
+        description="Press the sensor on the fixture-plate objects in K random poses each and record "
+        "IR, depth, arm pose, wrench and pressure into one HDF5 session (docs/session_format.md).",
+    )
+    p.add_argument("--sim", action="store_true", help="use the simulated bench (default: the real 'ur' bench of --bench)")
+    p.add_argument("--bench", metavar="BENCH.yaml", help="real bench settings (robot_ip, home_pose, serial_port, ...)")
+    p.add_argument("--sensor", metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
+    p.add_argument("--objects", help=f"comma-separated built-in objects (default: {DEFAULT_OBJECTS})")
+    p.add_argument("--object-mesh", nargs="+", action="extend", default=[], metavar="PATH",
+                   help="mesh files (STL/OBJ/PLY, m, +z up) on the plate; alone, only the meshes are used")
+    p.add_argument("--poses-per-object", type=int, default=8, metavar="K", help="contact poses per object (default 8)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="pose plan (and simulation) seed (default 0)")
+    p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS",
+                   help="inject a fault into the simulated bench at a simulated time (repeatable)")
+    p.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
+                   help="simulated clock speed factor (default 1 = real time)")
+    p.add_argument("--resume", action="store_true", help="append to an existing session, skipping completed poses")
+    p.add_argument("--quiet", action="store_true", help="no live progress display")
+    p.add_argument("--out", required=True, metavar="FILE.h5", help="session file to write")
+    p.set_defaults(func=run_collect)
+
+    p = subparsers.add_parser("info", help="summarize a recorded session file",
+                              description="Print what a session holds: sensor, frames per object and phase, "
+                              "duration, frame rate, dropped frames, storage sizes.")
+    p.add_argument("file", metavar="FILE.h5")
+    p.set_defaults(func=run_info)
+
+
+def object_list(objects: str | None, meshes: list[str]) -> tuple[str, ...]:
+    """Object names / mesh paths from ``--objects`` and ``--object-mesh`` (meshes alone: only meshes)."""
+    if objects is None:
+        objects = "" if meshes else DEFAULT_OBJECTS
+    names = tuple(n.strip() for n in objects.split(",") if n.strip())
+    result = names + tuple(meshes)
+    if not result:
+        raise InputError("--objects is empty: name at least one object or give --object-mesh")
+    return result
+
+
+def bench_config(args: argparse.Namespace):
+    """The ``BenchConfig`` of the command line: 'sim' with --sim, else the real bench of --bench."""
+    from collect.bench import BenchConfig
+
+    objects = object_list(args.objects, args.object_mesh)
+    if args.sim:
+        if args.bench is not None:
+            raise InputError("--bench describes real hardware; drop it or --sim")
+        return BenchConfig.create("sim", objects=objects, sensor=args.sensor, seed=args.seed,
+                                  faults=tuple(args.sim_fault), speed=args.sim_speed)
+    if args.sensor is not None or args.sim_fault or args.sim_speed != 1.0:
+        raise InputError("--sensor, --sim-fault and --sim-speed need --sim (they describe the simulated bench)")
+    if args.bench is None:
+        raise InputError("the real bench needs --bench BENCH.yaml (type: ur, robot_ip, home_pose, ...); or use --sim")
+    config = BenchConfig.from_yaml(args.bench)
+    config.objects = objects
+    return config
+
+
+def run_collect(args: argparse.Namespace) -> int:
+    from collect.bench import open_bench
+    from collect.collection import run_collection, session_metadata
+    from collect.pose_planner import PlanSettings, plan_collection
+    from collect.session_writer import SessionWriter, check_output_path
+
+    check_output_path(args.out, args.resume)
+    config = bench_config(args)
+    settings = PlanSettings(poses_per_object=args.poses_per_object, seed=args.seed,
+                            max_press_depth_m=config.motion.max_press_depth_m)
+    display = _ProgressDisplay(enabled=not args.quiet)
+    with open_bench(config) as bench:
+        plan = plan_collection(bench.objects, bench.limits, settings)
+        with SessionWriter(args.out, **session_metadata(bench, plan.objects), resume=args.resume) as writer:
+            writer.set_collection_plan(plan.describe())
+            with display:
+                result = run_collection(bench, plan, writer, display.update, threading.Event())
+            frames = writer.n_frames
+    skipped = f", {len(result.poses_without_contact)} without contact" if result.poses_without_contact else ""
+    print(f"recorded {result.frames} frames ({len(result.poses_done)} poses{skipped}, {result.dropped} dropped) "
+          f"in {result.duration_s:.1f} s of bench time; {args.out} holds {frames} frames")
+    return 0
+
+
+class _ProgressDisplay:
+    """Live one-line status (rich) fed by ``run_collection``'s progress callback (any thread)."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self._live = None
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.console import Console
+            from rich.live import Live
+
+            self._live = Live("starting...", console=Console(stderr=True), refresh_per_second=8, transient=False)
+            self._live.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._live is not None:
+            self._live.__exit__(*exc)
+
+    def update(self, *, object_name, pose_index, poses_per_object, phase, frames, force_n, pressure_hpa) -> None:
+        if self._live is None:
+            return
+        pose = f"pose {pose_index + 1}/{poses_per_object}" if pose_index >= 0 else "reference"
+        where = f"{object_name} {pose}" if object_name else "travel"
+        self._live.update(f"[bold]{where}[/] {phase:<8} frames {frames:>6}  force {force_n:5.1f} N  "
+                          f"pressure {pressure_hpa:7.1f} hPa")
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from collect.session_info import describe_session
+
+    print(describe_session(args.file))
+    return 0

@@ -1,0 +1,278 @@
+"""The collection run loop shared by ``bubble collect``, ``bubble commission`` and the TUI.
+
+``run_collection(bench, plan, writer, progress_callback, stop_event)`` drives the arm through a
+``CollectionPlan`` while a recorder thread streams the bench into a ``SessionWriter``:
+
+* main thread (the caller's): for each object, travel above it, rest at its reference pose for
+  the no-contact frames (phase ``free``, pose id -1, the object's index), then for each contact
+  pose: ``approach`` (travel to the pose's above-pose, guarded move until contact), ``press`` (to
+  the target force), ``hold``, ``retract`` (back to the above-pose). Moves between objects are
+  phase ``free`` with object -1.
+* recorder thread: takes every camera frame, stamps it with the current object / pose / phase and
+  the arm's latest TCP pose, and queues it to the writer together with the arm state samples and
+  pressure readings that arrived meanwhile. It also reports progress (<= 10 Hz and on every phase
+  change) and watches the camera (stall) and the pressure board (unplug, timeout).
+
+Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInterrupt`` or any
+other error, the loop calls ``bench.safe_stop()`` (stop the arm, retract when possible), stops the
+recorder thread (every frame taken so far is queued to the writer) and re-raises. The caller owns
+the writer and closes it (``with SessionWriter(...)``), which keeps every frame. A set
+``stop_event`` ends the run the same way but returns normally with ``result.stopped = True``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from collect import session_format as sf
+from collect.errors import HardwareFault
+from collect.pose_planner import CollectionPlan
+from collect.session_writer import SessionWriter
+
+log = logging.getLogger(__name__)
+
+#: Progress reports per second (at most), besides one on every phase change.
+PROGRESS_HZ = 10.0
+#: How long the recorder waits for a frame before the camera counts as stalled (s).
+FRAME_TIMEOUT_S = 0.5
+
+_PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
+
+
+#: Camera pose in the TCP frame of a sensor with no spec on record: 93 mm behind the apex, looking
+#: along TCP +z ([x,y,z,rx,ry,rz] m + rotation vector, docs/architecture.md).
+NOMINAL_CAMERA_IN_TCP = (0.0, 0.0, -0.093, 0.0, 0.0, 0.0)
+
+
+def object_records(objects) -> list[dict]:
+    """The ``SessionWriter`` object dicts of placed bench objects (name, fixture pose, mesh, primitive)."""
+    return [
+        {
+            "name": o.name,
+            "fixture_pose": np.asarray(o.fixture_pose, dtype=np.float64),
+            "mesh_sha256": o.mesh_sha256,
+            "primitive": o.primitive or {},
+            "vertices": np.asarray(o.mesh.vertices, dtype=np.float32),
+            "faces": np.asarray(o.mesh.faces, dtype=np.int32),
+        }
+        for o in objects
+    ]
+
+
+def session_metadata(bench, objects) -> dict:
+    """Keyword arguments of ``SessionWriter`` for a session recorded on a started ``bench``:
+    ``SessionWriter(path, **session_metadata(bench, plan.objects), resume=...)``.
+
+    Simulated benches store their full ``SensorSpec``; a real sensor stores its serial and the
+    nominal camera pose (its measured spec lives in the sensor registry)."""
+    spec = getattr(getattr(bench, "sim", None), "spec", None)
+    return {
+        "sensor_serial": bench.sensor_serial,
+        "sensor_spec": spec.to_dict() if spec is not None else {"serial": bench.sensor_serial},
+        "intrinsics": dict(bench.intrinsics),
+        "camera_in_tcp": list(spec.camera_in_tcp) if spec is not None else list(NOMINAL_CAMERA_IN_TCP),
+        "simulated": bool(bench.simulated),
+        "objects": object_records(objects),
+    }
+
+
+@dataclass
+class CollectionResult:
+    """What a run did. ``frames``: frames queued to the writer by this run; ``dropped``: frames
+    missing from the camera's sequence numbers; ``non_monotonic``: frames whose device timestamp
+    did not increase; ``duration_s``: bench-clock time of the run."""
+
+    frames: int = 0
+    dropped: int = 0
+    non_monotonic: int = 0
+    poses_done: list[int] = field(default_factory=list)
+    poses_without_contact: list[int] = field(default_factory=list)
+    duration_s: float = 0.0
+    stopped: bool = False
+
+
+@dataclass(frozen=True)
+class _Stamp:
+    """What the arm is doing now: plan object index (-1 = none), pose id, phase value, pose index."""
+
+    object_index: int = -1
+    pose_id: int = -1
+    phase: int = sf.PHASE_FREE
+    pose_index: int = -1
+
+
+class _StopRequested(Exception):
+    """Internal: the stop event was set."""
+
+
+class _Recorder(threading.Thread):
+    """Drains camera frames, arm samples and pressure readings into the writer (see module doc)."""
+
+    def __init__(self, bench, plan: CollectionPlan, writer: SessionWriter, progress_callback, result: CollectionResult):
+        super().__init__(name="collection-recorder", daemon=True)
+        self.bench = bench
+        self.plan = plan
+        self.writer = writer
+        self.progress_callback = progress_callback
+        self.result = result
+        self.stamp = _Stamp()
+        self.error: BaseException | None = None
+        self.halt = threading.Event()
+        self._last_seq: int | None = None
+        self._last_t_device = -np.inf
+        self._last_report = 0.0
+        self._reported_stamp: _Stamp | None = None
+
+    def run(self) -> None:
+        try:
+            while not self.halt.is_set():
+                frame = self.bench.camera.get_frame(FRAME_TIMEOUT_S)
+                self._write_frame(frame)
+                self._write_streams()
+                self.bench.pressure.check()
+                self._report()
+        except BaseException as err:  # noqa: BLE001 - handed to the main thread
+            self.error = err
+        finally:
+            try:
+                self._write_streams()
+            except BaseException as err:  # noqa: BLE001
+                self.error = self.error or err
+
+    def _write_frame(self, frame) -> None:
+        stamp = self.stamp
+        if self._last_seq is not None and frame.seq != self._last_seq + 1:
+            self.result.dropped += max(0, frame.seq - self._last_seq - 1)
+        if frame.t_device <= self._last_t_device:
+            self.result.non_monotonic += 1
+        self._last_seq, self._last_t_device = frame.seq, frame.t_device
+        object_index = self.writer.object_indices[stamp.object_index] if stamp.object_index >= 0 else -1
+        self.writer.append_frame(
+            frame.ir, frame.depth, frame.t_device, frame.t_host, frame.seq, object_index, stamp.pose_id,
+            stamp.phase, self.bench.arm.state().tcp_pose, true_depth=frame.true_depth,
+        )
+        self.result.frames += 1
+
+    def _write_streams(self) -> None:
+        for sample in self.bench.arm.drain_states():
+            self.writer.append_arm(sample.t, sample.tcp_pose, sample.tcp_wrench)
+        for reading in self.bench.pressure.drain():
+            self.writer.append_pressure(reading.t, reading.hpa)
+
+    def _report(self, force: bool = False) -> None:
+        if self.progress_callback is None:
+            return
+        now = time.monotonic()
+        stamp = self.stamp
+        if not force and stamp == self._reported_stamp and now - self._last_report < 1.0 / PROGRESS_HZ:
+            return
+        self._last_report, self._reported_stamp = now, stamp
+        arm = self.bench.arm.state()
+        reading = self.bench.pressure.latest()
+        name = self.plan.objects[stamp.object_index].name if stamp.object_index >= 0 else ""
+        self.progress_callback(
+            object_name=name,
+            pose_index=stamp.pose_index,
+            poses_per_object=self.plan.settings.poses_per_object,
+            phase=_PHASE_NAMES[stamp.phase],
+            frames=self.writer.n_frames,
+            force_n=float(np.linalg.norm(arm.tcp_wrench[:3])) if arm is not None else 0.0,
+            pressure_hpa=float(reading.hpa) if reading is not None else float("nan"),
+        )
+
+
+def run_collection(
+    bench,
+    plan: CollectionPlan,
+    writer: SessionWriter,
+    progress_callback: Callable[..., None] | None = None,
+    stop_event: threading.Event | None = None,
+) -> CollectionResult:
+    """Run ``plan`` on ``bench`` (a ``collect.bench.Bench``), recording into ``writer``.
+
+    ``progress_callback(object_name, pose_index, poses_per_object, phase, frames, force_n,
+    pressure_hpa)`` is called with keyword arguments from the recorder thread (the fields of
+    ``calibrate.commission_events.CollectionProgress``); it must not block.
+    Poses already completed in the file (``writer.completed_pose_ids``, after ``resume``) and
+    reference frames already recorded (``writer.referenced_objects``) are skipped.
+    Raises what the bench raised (``HardwareFault``, ``KeyboardInterrupt``) after a safe stop.
+    """
+    result = CollectionResult()
+    recorder = _Recorder(bench, plan, writer, progress_callback, result)
+    stop_event = stop_event or threading.Event()
+    arm, s = bench.arm, plan.settings
+    t_start = arm.state().t
+
+    def enter(stamp: _Stamp) -> None:
+        if recorder.error is not None:
+            raise recorder.error
+        if stop_event.is_set():
+            raise _StopRequested()
+        recorder.stamp = stamp
+
+    recorder.start()
+    try:
+        for stop in plan.stops:
+            oi = stop.object_index
+            poses = [p for p in plan.poses_of(oi) if p.pose_id not in writer.completed_pose_ids]
+            has_reference = writer.object_indices[oi] in writer.referenced_objects
+            if not poses and has_reference:
+                continue
+            enter(_Stamp())
+            arm.move_to(stop.travel_pose, s.travel_speed, s.accel)
+            arm.move_to(stop.reference_pose, s.travel_speed, s.accel)
+            if not has_reference:
+                enter(_Stamp(oi, -1, sf.PHASE_FREE))
+                arm.hold(s.reference_s)
+            for pose in poses:
+                k = pose.pose_id - oi * s.poses_per_object
+                enter(_Stamp(oi, pose.pose_id, sf.PHASE_APPROACH, k))
+                arm.move_to(pose.above_pose, s.travel_speed, s.accel)
+                contact = arm.move_until_contact(
+                    speed=s.approach_speed, force_threshold_n=s.contact_force_n, max_travel_m=pose.approach_travel_m
+                )
+                if contact is not None:
+                    enter(_Stamp(oi, pose.pose_id, sf.PHASE_PRESS, k))
+                    arm.press(force_n=pose.press_force_n, speed=s.press_speed)
+                    enter(_Stamp(oi, pose.pose_id, sf.PHASE_HOLD, k))
+                    arm.hold(s.hold_s)
+                else:
+                    log.warning("pose %d on %s: no contact within %.1f mm", pose.pose_id, stop.name,
+                                1e3 * pose.approach_travel_m)
+                    result.poses_without_contact.append(pose.pose_id)
+                enter(_Stamp(oi, pose.pose_id, sf.PHASE_RETRACT, k))
+                arm.retract(s.retract_speed)
+                if contact is not None:
+                    result.poses_done.append(pose.pose_id)
+            enter(_Stamp())
+            arm.move_to(stop.travel_pose, s.travel_speed, s.accel)
+        enter(_Stamp())
+    except _StopRequested:
+        result.stopped = True
+        _safe_stop(bench, recorder)
+    except BaseException:
+        _safe_stop(bench, recorder)
+        raise
+    finally:
+        recorder.halt.set()
+        recorder.join()
+        result.duration_s = float(arm.state().t - t_start)
+    if recorder.error is not None and not result.stopped:
+        raise recorder.error
+    return result
+
+
+def _safe_stop(bench, recorder: _Recorder) -> None:
+    """Stop and retract the arm (frames keep recording, as ``retract``); never raises."""
+    stamp = recorder.stamp
+    recorder.stamp = _Stamp(stamp.object_index, stamp.pose_id, sf.PHASE_RETRACT, stamp.pose_index)
+    try:
+        bench.safe_stop()
+    except (HardwareFault, OSError, RuntimeError) as err:
+        log.error("safe stop incomplete: %s", err)

@@ -1,0 +1,81 @@
+"""Summary of a recorded session (``bubble info``): sensor, frames per object and phase, timing, sizes."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from collect import session_format as sf
+from collect.session_reader import Session
+
+_PHASE_ORDER = list(sf.PHASES)
+
+
+def session_summary(path) -> dict:
+    """Facts about the session at ``path`` (JSON-ready). Raises InputError for bad files.
+
+    Keys: path, sensor_serial, simulated, created, software_version, closed_cleanly, frames,
+    width, height, duration_s (device clock, first to last frame), fps, dropped (missing sequence
+    numbers), non_increasing_t (frames whose device time did not increase), objects
+    ({name: {phase: frames, "poses": n, "reference": n}}), unassigned_frames, arm_samples,
+    pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
+    """
+    with Session.open(path) as s:
+        n = s.n_frames
+        duration = float(s.t_device[-1] - s.t_device[0]) if n > 1 else 0.0
+        gaps = np.diff(s.seq)
+        objects = {}
+        for obj in s.objects:
+            mine = s.object_index == obj.index
+            counts = {name: int(np.count_nonzero(mine & (s.phase == sf.PHASES[name]))) for name in _PHASE_ORDER}
+            counts["poses"] = int(len(np.unique(s.pose_id[mine & (s.pose_id >= 0)])))
+            counts["reference"] = int(len(s.reference_frames(obj.name)))
+            objects[obj.name] = counts
+        return {
+            "path": os.fspath(path),
+            "sensor_serial": s.sensor_serial,
+            "simulated": s.simulated,
+            "created": s.created,
+            "software_version": s.software_version,
+            "closed_cleanly": s.closed_cleanly,
+            "frames": n,
+            "width": s.width,
+            "height": s.height,
+            "duration_s": duration,
+            "fps": (n - 1) / duration if duration > 0 else 0.0,
+            "dropped": int(np.sum(np.maximum(gaps - 1, 0))),
+            "non_increasing_t": int(np.count_nonzero(np.diff(s.t_device) <= 0)),
+            "objects": objects,
+            "unassigned_frames": int(np.count_nonzero(s.object_index < 0)),
+            "arm_samples": len(s.arm().t),
+            "pressure_samples": len(s.pressure().t),
+            "file_bytes": os.path.getsize(path),
+            "dataset_bytes": s.storage_bytes(),
+        }
+
+
+def describe_session(path) -> str:
+    """``session_summary`` as the text ``bubble info`` prints."""
+    info = session_summary(path)
+    mb = info["file_bytes"] / 1e6
+    per_min = mb / (info["duration_s"] / 60) if info["duration_s"] > 0 else float("nan")
+    lines = [
+        f"{info['path']}: bubble session, sensor {info['sensor_serial']}"
+        f" ({'simulated' if info['simulated'] else 'real'}), created {info['created']},"
+        f" software {info['software_version']}",
+        f"  status: {'closed cleanly' if info['closed_cleanly'] else 'NOT closed cleanly (crashed or still recording)'}",
+        f"  frames: {info['frames']} of {info['width']}x{info['height']} over {info['duration_s']:.1f} s"
+        f" ({info['fps']:.1f} fps); dropped {info['dropped']}, non-increasing timestamps {info['non_increasing_t']}",
+        f"  streams: {info['arm_samples']} arm samples, {info['pressure_samples']} pressure readings",
+        f"  size: {mb:.1f} MB ({per_min:.0f} MB per minute of recording)",
+        "  " + f"{'object':<16}{'poses':>6}{'ref':>6}" + "".join(f"{p:>9}" for p in _PHASE_ORDER),
+    ]
+    for name, counts in info["objects"].items():
+        lines.append("  " + f"{name:<16}{counts['poses']:>6}{counts['reference']:>6}"
+                     + "".join(f"{counts[p]:>9}" for p in _PHASE_ORDER))
+    if info["unassigned_frames"]:
+        lines.append(f"  {info['unassigned_frames']} frames between objects (travel, phase free)")
+    big = sorted(info["dataset_bytes"].items(), key=lambda kv: -kv[1])[:4]
+    lines.append("  largest datasets: " + ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in big))
+    return "\n".join(lines)
