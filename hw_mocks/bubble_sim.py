@@ -1,0 +1,256 @@
+"""The simulated Soft-bubble: membrane physics, pressure, contact wrench, IR and ToF frames.
+
+``BubbleSim(spec, objects, seed)`` holds one sensor and the bench objects it can touch. For a TCP
+pose (base frame) and a time it solves the membrane (``solve``), then renders the camera images
+(``render``). Physics runs on a physics grid of every second pixel that covers the whole rim
+(``hw_mocks.membrane``), the result is interpolated to the full image and clamped against the
+object there. Frames: see docs/architecture.md (TCP at the rest apex, +z out of the bubble;
+camera placed by ``spec.camera_in_tcp``; depth is camera z-depth).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from hw_mocks.dome import Dome, RayGrid
+from hw_mocks.dot_pattern import albedo_texture
+from hw_mocks.ir_render import IrRenderer, surface_incidence
+from hw_mocks.membrane import MembraneSolver
+from hw_mocks.objects import BenchObject
+from hw_mocks.obstacle import REACH_OUT_M, object_depth
+from hw_mocks.sensor_spec import ATMOSPHERE_PA, SensorSpec
+from hw_mocks.tof_render import TofRenderer
+from hw_mocks.transforms import invert, pose_to_matrix
+
+#: Physics grid spacing in image pixels.
+PHYSICS_STEP = 2
+
+
+@dataclass
+class MembraneState:
+    """The membrane for one TCP pose and time.
+
+    ``true_depth (H,W) float32 m`` camera z-depth of the membrane, 0 where the camera sees the
+    housing; ``contact (H,W) bool``; ``pressure_hpa`` absolute; ``wrench (6,) float64``
+    ``[Fx,Fy,Fz,Tx,Ty,Tz]`` N, N m: the object's force on the sensor and its torque about the
+    TCP, in the base frame; ``dent_volume_m3`` volume pushed in by the object (>= 0);
+    ``net_volume_change_m3`` change of the enclosed volume (dent offset by bulging);
+    ``object_index`` index into the simulator's objects of the touched object (-1 none);
+    ``material_flow (H,W,2) float32 px`` image motion (du, dv) of the membrane material seen at
+    each pixel, relative to rest; ``sweeps`` solver iterations spent.
+    """
+
+    tcp_pose: np.ndarray
+    t: float
+    true_depth: np.ndarray
+    contact: np.ndarray
+    pressure_hpa: float
+    wrench: np.ndarray
+    dent_volume_m3: float
+    net_volume_change_m3: float
+    object_index: int
+    material_flow: np.ndarray
+    sweeps: int
+
+
+@dataclass
+class SimFrame:
+    """One simulated camera frame: the membrane ``state`` and the images ``ir (H,W) uint16``
+    amplitude and ``depth (H,W) uint16`` in ``collect.session_format.DEPTH_UNIT_M`` (0 = invalid)."""
+
+    state: MembraneState
+    ir: np.ndarray
+    depth: np.ndarray
+
+
+class BubbleSim:
+    """One simulated sensor ``spec`` in front of the placed bench ``objects``.
+
+    ``seed`` seeds the noise of ``frame`` calls that pass no generator.
+    """
+
+    def __init__(self, spec: SensorSpec, objects: list[BenchObject] | tuple = (), seed: int = 0):
+        self.spec = spec
+        self.objects = list(objects)
+        self.dome = Dome(spec)
+        self._rng = np.random.default_rng(seed)
+        h, w = spec.height, spec.width
+
+        # Full image grid.
+        self.grid = RayGrid.build(spec, 0.0, 0.0, 1, (h, w))
+        depth, mask = self.dome.rest_depth(self.grid)
+        self.membrane_mask = mask
+        self.rest_depth = np.where(mask, depth, 0.0).astype(np.float32)
+        self._rest_depth64 = depth
+        self.housing_depth = self.dome.rim_plane_depth(self.grid).astype(np.float32)
+
+        # Physics grid covering the whole rim (it may extend beyond the image).
+        u_min, u_max, v_min, v_max = self.dome.rim_pixel_bounds()
+        s = PHYSICS_STEP
+        u0, v0 = math.floor(u_min) - 2 * s, math.floor(v_min) - 2 * s
+        shape = (int(math.ceil((v_max - v0) / s)) + 3, int(math.ceil((u_max - u0) / s)) + 3)
+        self.physics = RayGrid.build(spec, u0, v0, s, shape)
+        d_phys, m_phys = self.dome.rest_depth(self.physics)
+        self._d_phys = np.where(m_phys, d_phys, 0.0)
+        self.solver = MembraneSolver(
+            self._d_phys,
+            m_phys,
+            spec.fx / s,
+            spec.fy / s,
+            spec.tension_n_per_m,
+            spec.stretch_stiffness_pa_per_m,
+            spec.gas_volume_m3,
+            spec.rest_pressure_pa,
+        )
+        self._m_phys = self.solver.mask
+        self._n0_phys = self.dome.rest_normals(self.physics, np.where(m_phys, d_phys, 1.0))
+        uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        self._map_x, self._map_y = self.physics.coords_of(uu, vv)
+        self._pix_u, self._pix_v = uu.astype(np.float32), vv.astype(np.float32)
+
+        self.texture = albedo_texture(spec, self.dome, self.grid, depth, mask)
+        self.ir = IrRenderer(spec, self.grid.rays, self.housing_depth)
+        self.tof = TofRenderer(spec, self.grid.rays, mask, self.housing_depth)
+        self._rays32 = self.grid.rays.astype(np.float32)
+        self._cache_key = None
+        self._cache_state: MembraneState | None = None
+        self._obstacle_key = None
+        self._obstacle = None
+
+    # ---- physics ---------------------------------------------------------------------------------
+    def gas_content(self, t: float) -> float:
+        """``P V`` of the enclosed gas at time ``t`` s (Pa m^3): constant unless the bubble leaks."""
+        s = self.solver
+        k0 = s.rest_pressure * s.gas_volume
+        leak_pa_s = self.spec.leak_hpa_per_s * 100.0
+        k = k0 - leak_pa_s * max(float(t), 0.0) * (s.gas_volume + s.rest_pressure * s.unit_volume)
+        k_min = ATMOSPHERE_PA * (s.gas_volume + (ATMOSPHERE_PA - s.rest_pressure) * s.unit_volume)
+        return max(k, k_min)
+
+    def _obstacles(self, tcp_pose: np.ndarray):
+        """Object depth along the physics rays ``(rows,cols)`` m (inf = none) and the index of the
+        nearest object per ray (-1 = none), for a TCP pose (cached per pose)."""
+        key = tuple(np.round(tcp_pose, 12))
+        if key == self._obstacle_key:
+            return self._obstacle
+        base_from_cam = pose_to_matrix(tcp_pose) @ self.dome.tcp_from_cam
+        nearest = np.full(self.physics.shape, np.inf)
+        which = np.full(self.physics.shape, -1, dtype=np.int16)
+        for k, obj in enumerate(self.objects):
+            obj_from_cam = invert(obj.object_to_base()) @ base_from_cam
+            d = object_depth(obj.heightmap, obj_from_cam, self.physics.rays, self._d_phys)
+            closer = d < nearest
+            nearest[closer] = d[closer]
+            which[closer] = k
+        nearest[~self._m_phys] = np.inf
+        self._obstacle_key, self._obstacle = key, (nearest, which)
+        return nearest, which
+
+    def solve(self, tcp_pose, t: float = 0.0) -> MembraneState:
+        """Membrane state for the TCP at ``tcp_pose (6,) [m, rotvec]`` (base frame) at time ``t`` s.
+        Warm-started from the previous call; repeated calls with the same pose (and, for a leaking
+        bubble, the same time) return the cached state."""
+        pose = np.asarray(tcp_pose, dtype=np.float64).reshape(6)
+        key = (tuple(np.round(pose, 12)), round(float(t), 9) if self.spec.leak_hpa_per_s > 0 else None)
+        if key == self._cache_key:
+            return self._cache_state
+        depth_obj, which = self._obstacles(pose)
+        psi = np.where(np.isfinite(depth_obj), depth_obj - self._d_phys, np.inf)
+        sol = self.solver.solve(psi, self.gas_content(t))
+
+        # Which object is touched: the one under most contact pixels.
+        touched = which[sol.contact]
+        touched = touched[touched >= 0]
+        object_index = int(np.bincount(touched).argmax()) if len(touched) else -1
+
+        wrench = self._wrench(pose, sol.u, sol.load_n)
+
+        # Full image: interpolate the displacement, clamp against the interpolated object.
+        u_full = cv2.remap(sol.u.astype(np.float32), self._map_x, self._map_y, cv2.INTER_LINEAR)
+        membrane = self._rest_depth64 + u_full
+        far = np.where(np.isfinite(depth_obj), depth_obj, self._d_phys + 10 * REACH_OUT_M).astype(np.float32)
+        obj_full = cv2.remap(far, self._map_x, self._map_y, cv2.INTER_LINEAR, borderValue=1.0)
+        contact = self.membrane_mask & (membrane >= obj_full - 1e-5)
+        true_depth = np.where(self.membrane_mask, np.minimum(membrane, obj_full), 0.0).astype(np.float32)
+
+        state = MembraneState(
+            tcp_pose=pose,
+            t=float(t),
+            true_depth=true_depth,
+            contact=contact,
+            pressure_hpa=sol.pressure_pa / 100.0,
+            wrench=wrench,
+            dent_volume_m3=sol.dent_volume_m3,
+            net_volume_change_m3=sol.net_volume_change_m3,
+            object_index=object_index if contact.any() or sol.contact.any() else -1,
+            material_flow=self._material_flow(sol.u),
+            sweeps=sol.sweeps,
+        )
+        self._cache_key, self._cache_state = key, state
+        return state
+
+    def _wrench(self, tcp_pose: np.ndarray, u: np.ndarray, load: np.ndarray) -> np.ndarray:
+        """Object force on the sensor and its torque about the TCP, base frame ``(6,)``."""
+        sel = load > 0
+        if not sel.any():
+            return np.zeros(6)
+        points = self.physics.rays * (self._d_phys + u)[..., None]  # camera frame
+        du = np.gradient(points, axis=1)
+        dv = np.gradient(points, axis=0)
+        n = np.cross(du[sel], dv[sel])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+        n *= np.sign(np.sum(n * points[sel], axis=1))[:, None]  # outward: away from the camera
+        force_cam = -load[sel][:, None] * n  # pushes the membrane into the bubble
+        r_tc = self.dome.tcp_from_cam[:3, :3]
+        f_tcp = force_cam @ r_tc.T
+        p_tcp = self.dome.to_tcp(points[sel])
+        r_bt = pose_to_matrix(tcp_pose)[:3, :3]
+        force = r_bt @ f_tcp.sum(axis=0)
+        torque = r_bt @ np.cross(p_tcp, f_tcp).sum(axis=0)
+        return np.concatenate([force, torque])
+
+    def _material_flow(self, u: np.ndarray) -> np.ndarray:
+        """Image motion ``(H,W,2) float32 px`` of the membrane material: each material point moves
+        along its rest normal until it reaches the new depth along its rest ray."""
+        rays, n0, d0 = self.physics.rays, self._n0_phys, self._d_phys
+        s = u / np.maximum(n0[..., 2], 0.3)
+        x = rays * d0[..., None] + s[..., None] * n0
+        z = np.maximum(x[..., 2], 1e-3)
+        flow_u = np.where(self._m_phys, self.spec.fx * (x[..., 0] / z - rays[..., 0]), 0.0).astype(np.float32)
+        flow_v = np.where(self._m_phys, self.spec.fy * (x[..., 1] / z - rays[..., 1]), 0.0).astype(np.float32)
+        fu = cv2.remap(flow_u, self._map_x, self._map_y, cv2.INTER_LINEAR)
+        fv = cv2.remap(flow_v, self._map_x, self._map_y, cv2.INTER_LINEAR)
+        return np.stack([fu, fv], axis=-1)
+
+    # ---- rendering -------------------------------------------------------------------------------
+    def render(self, state: MembraneState, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Camera images of a membrane state: ``(ir (H,W) uint16, depth (H,W) uint16)``; depth in
+        ``collect.session_format.DEPTH_UNIT_M``, 0 = invalid. Noise drawn from ``rng``."""
+        ir_clean, incidence = self.clean_amplitude(state)
+        ir = self.ir.noisy(ir_clean, rng)
+        depth = self.tof.render(state.true_depth, ir_clean, incidence, rng)
+        return ir, depth
+
+    def clean_amplitude(self, state: MembraneState) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free amplitude ``(H,W) float32`` and incidence cosines ``(H,W) float32``."""
+        depth = np.where(self.membrane_mask, state.true_depth, self.housing_depth)
+        points = self._rays32 * depth[..., None]
+        incidence = surface_incidence(points)
+        albedo = cv2.remap(
+            self.texture,
+            self._pix_u - state.material_flow[..., 0],
+            self._pix_v - state.material_flow[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        return self.ir.clean(depth, albedo, incidence, self.membrane_mask), incidence
+
+    def frame(self, tcp_pose, t: float = 0.0, rng: np.random.Generator | None = None) -> SimFrame:
+        """``solve`` + ``render`` (noise from ``rng``, or the simulator's own seeded generator)."""
+        state = self.solve(tcp_pose, t)
+        ir, depth = self.render(state, self._rng if rng is None else rng)
+        return SimFrame(state, ir, depth)
