@@ -115,32 +115,43 @@ class BenchApp(App):
         self._connected = False
         self._last_snapshot_at: float | None = None
         self._latest_images = None  # (ir, depth_m) of the latest snapshot
+        self._fault_text: str | None = None  # banner text of the run's last FaultRaised
         self.result = None  # the last CommissionResult
         self.error: BaseException | None = None  # the last exception raised by the flow
         self.sub_title = ("SIMULATED" if config.simulated else "REAL") + f" · {config.run_dir}"
 
     # ----------------------------------------------------------------- layout
     def compose(self):
+        cfg = self.config
+        # Panels are kept as attributes: a modal screen on top must not hide them from updates.
+        self.banner = Banner(id="banner")
+        self.bench_panel = BenchPanel(cfg.simulated, id="bench")
+        self.live_sensor = SensorView(compact=True, id="live-sensor")
+        self.tabs = TabbedContent(initial="tab-commission", id="tabs")
+        self.steps = StepsPanel(id="steps")
+        self.collection = CollectionPanel(tuple(cfg.objects), int(cfg.poses_per_object), id="collection")
+        self.training = TrainingCurve(id="training")
+        self.sensor = SensorView(id="sensor")
+        self.acceptance = AcceptanceTable(id="acceptance")
+        self.registry = RegistryView(cfg.registry_dir, id="registry")
         yield Header()
-        yield Banner(id="banner")
+        yield self.banner
         with Horizontal(id="main"):
             with Vertical(id="left"):
-                yield BenchPanel(self.config.simulated, id="bench")
-                yield SensorView(compact=True, id="live-sensor")
-            with TabbedContent(initial="tab-commission", id="tabs"):
+                yield self.bench_panel
+                yield self.live_sensor
+            with self.tabs:
                 with TabPane("Commission [1]", id="tab-commission"):
                     with Vertical(id="commission"):
-                        yield StepsPanel(id="steps")
-                        yield CollectionPanel(
-                            tuple(self.config.objects), int(self.config.poses_per_object), id="collection"
-                        )
-                        yield TrainingCurve(id="training")
+                        yield self.steps
+                        yield self.collection
+                        yield self.training
                 with TabPane("Sensor [2]", id="tab-sensor"):
-                    yield SensorView(id="sensor")
+                    yield self.sensor
                 with TabPane("Acceptance [3]", id="tab-acceptance"):
-                    yield AcceptanceTable(id="acceptance")
+                    yield self.acceptance
                 with TabPane("Registry [4]", id="tab-registry"):
-                    yield RegistryView(self.config.registry_dir, id="registry")
+                    yield self.registry
         yield Footer()
 
     def on_mount(self) -> None:
@@ -210,7 +221,7 @@ class BenchApp(App):
         assert self._stop_event is not None
         self._stop_event.set()
         self._arm_state = "stopping"
-        self.query_one(Banner).show(message, "warning")
+        self.banner.show(message, "warning")
         self._update_bench_panel(None)
 
     async def action_quit(self) -> None:
@@ -221,10 +232,10 @@ class BenchApp(App):
         self.exit()
 
     def action_show_tab(self, tab: str) -> None:
-        self.query_one(TabbedContent).active = tab
+        self.tabs.active = tab
 
     def action_reload_registry(self) -> None:
-        self.query_one(RegistryView).reload()
+        self.registry.reload()
 
     # ------------------------------------------------------- flow -> UI events
     def _on_flow_event(self, event: object) -> None:
@@ -243,20 +254,21 @@ class BenchApp(App):
     def apply_events(self, events: list[object]) -> None:
         """Show a batch of (non-snapshot) events, oldest first; redraws each panel once."""
         now = self._clock()
-        steps = self.query_one(StepsPanel)
+        steps = self.steps
         points: list[TrainingProgress] = []
         for event in events:
             if isinstance(event, (StepStarted, StepProgress, StepFinished)):
                 steps.apply(event, now)
             elif isinstance(event, CollectionProgress):
-                self.query_one(CollectionPanel).apply(event)
+                self.collection.apply(event)
             elif isinstance(event, TrainingProgress):
                 points.append(event)
             elif isinstance(event, FaultRaised):
-                self.query_one(Banner).show(f"FAULT {event.kind}: {event.message}", "fault")
+                self._fault_text = f"FAULT {event.kind}: {event.message}"
+                self.banner.show(self._fault_text, "fault")
             elif isinstance(event, Verdict):
-                self.query_one(AcceptanceTable).show(event.accepted, event.checks, event.report_path)
-        self.query_one(TrainingCurve).apply(points)
+                self.acceptance.show(event.accepted, event.checks, event.report_path)
+        self.training.apply(points)
 
     def refresh_live(self) -> None:
         """Timer: show the latest bench snapshot and refresh ETAs (a few times per second)."""
@@ -266,32 +278,33 @@ class BenchApp(App):
             self._connected = True
             self._last_snapshot_at = now
             self._latest_images = (snapshot.ir, snapshot.depth_m)
-            self.query_one("#live-sensor", SensorView).show(*self._latest_images)
-            if self.query_one(TabbedContent).active == "tab-sensor":
-                self.query_one("#sensor", SensorView).show(*self._latest_images)
+            self.live_sensor.show(*self._latest_images)
+            if self.tabs.active == "tab-sensor":
+                self.sensor.show(*self._latest_images)
         self._update_bench_panel(snapshot)
-        self.query_one(StepsPanel).tick(now)
+        self.steps.tick(now)
 
     @on(TabbedContent.TabActivated)
     def _tab_activated(self, event: TabbedContent.TabActivated) -> None:
         if event.pane.id == "tab-sensor" and self._latest_images is not None:
-            self.query_one("#sensor", SensorView).show(*self._latest_images)
+            self.sensor.show(*self._latest_images)
 
     def _update_bench_panel(self, snapshot) -> None:
         age = None if self._last_snapshot_at is None else self._clock() - self._last_snapshot_at
         connected = self._connected and self.running
-        self.query_one(BenchPanel).show(snapshot, age if self.running else None, connected, self._arm_state)
+        self.bench_panel.show(snapshot, age if self.running else None, connected, self._arm_state)
 
     def _reset_views(self) -> None:
         self._inbox.drain()
         self._inbox.take_snapshot()
         self._connected = False
         self._last_snapshot_at = None
-        self.query_one(Banner).clear()
-        self.query_one(StepsPanel).reset()
-        self.query_one(CollectionPanel).reset()
-        self.query_one(TrainingCurve).reset()
-        self.query_one(AcceptanceTable).reset()
+        self._fault_text = None
+        self.banner.clear()
+        self.steps.reset()
+        self.collection.reset()
+        self.training.reset()
+        self.acceptance.reset()
 
     # ------------------------------------------------------------- flow end
     def on_worker_state_changed(self, event: Worker.StateChanged) -> None:
@@ -299,27 +312,27 @@ class BenchApp(App):
             return
         self._drain_inbox()
         now = self._clock()
-        banner = self.query_one(Banner)
+        banner = self.banner
         if event.state == WorkerState.SUCCESS:
             self.result = result = event.worker.result
             if result.stopped or result.fault:
-                self.query_one(StepsPanel).interrupt(now)
+                self.steps.interrupt(now)
             self._arm_state = "stopped" if (result.stopped or result.fault) else "idle"
             session = Path(result.run_dir) / "session.h5"
             if result.stopped:
                 banner.show(f"Stopped by operator: arm retracted. Recorded data kept in {session}", "warning")
-                self.query_one(AcceptanceTable).show(None, result.checks, "", "stopped by operator")
+                self.acceptance.show(None, result.checks, "", "stopped by operator")
             elif result.fault:
-                if banner.level != "fault":
-                    banner.show(f"FAULT {result.fault}: arm stopped, run rejected.", "fault")
-                self.query_one(AcceptanceTable).show(result.accepted, result.checks, str(result.report_path))
+                reported = self._fault_text or f"FAULT {result.fault}"
+                banner.show(f"{reported} | arm stopped, run rejected", "fault")
+                self.acceptance.show(result.accepted, result.checks, str(result.report_path))
             else:
-                verdict = "ACCEPTED" if result.accepted else "REJECTED"
+                verdict = "ACCEPTED" if result.accepted else f"REJECTED ({result.reason})" if result.reason else "REJECTED"
                 banner.show(f"{verdict}. Report: {result.report_path}", "info" if result.accepted else "fault")
-                self.query_one(AcceptanceTable).show(result.accepted, result.checks, str(result.report_path))
+                self.acceptance.show(result.accepted, result.checks, str(result.report_path))
         else:
             self.error = err = event.worker.error
-            self.query_one(StepsPanel).interrupt(now)
+            self.steps.interrupt(now)
             self._arm_state = "stopped"
             if isinstance(err, HardwareFault):
                 banner.show(f"FAULT {err.kind}: {err}", "fault")
@@ -328,7 +341,7 @@ class BenchApp(App):
             else:
                 banner.show(f"Internal error: {type(err).__name__}: {err}", "fault")
         self._update_bench_panel(None)
-        self.query_one(RegistryView).reload()
+        self.registry.reload()
         if self._quit_requested:
             self.exit()
 

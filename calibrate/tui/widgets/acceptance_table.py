@@ -15,18 +15,22 @@ class AcceptanceTable(Vertical):
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         self.border_title = "Acceptance"
+        self.verdict_line = Static("no verdict yet", id="verdict-line")
+        self.table = DataTable(id="checks", zebra_stripes=True, cursor_type="none", show_cursor=False)
+        self.report_line = Static("", id="report-line")
 
     def compose(self):
-        yield Static("no verdict yet", id="verdict-line")
-        table = DataTable(id="checks", zebra_stripes=True, cursor_type="row")
-        table.add_columns("check", "value", "threshold", "result", "reason")
-        yield table
-        yield Static("", id="report-line")
+        yield self.verdict_line
+        yield self.table
+        yield self.report_line
+
+    def on_mount(self) -> None:
+        self.table.add_columns("check", "value", "threshold", "result", "reason")
 
     def reset(self) -> None:
-        self.query_one("#verdict-line", Static).update("no verdict yet")
-        self.query_one("#report-line", Static).update("")
-        self.query_one("#checks", DataTable).clear()
+        self.verdict_line.update("no verdict yet")
+        self.report_line.update("")
+        self.table.clear()
 
     def show(self, accepted: bool | None, checks: list[dict], report_path: str, note: str = "") -> None:
         """Show the checks; ``accepted`` None means the run ended without a verdict (``note`` says why)."""
@@ -39,8 +43,8 @@ class AcceptanceTable(Vertical):
         if accepted is not None:
             failed = sum(1 for check in checks if not check.get("passed"))
             line.append(f"  {len(checks) - failed}/{len(checks)} checks passed")
-        self.query_one("#verdict-line", Static).update(line)
-        table = self.query_one("#checks", DataTable)
+        self.verdict_line.update(line)
+        table = self.table
         table.clear()
         for check in checks:
             passed = bool(check.get("passed"))
@@ -51,4 +55,4 @@ class AcceptanceTable(Vertical):
                 Text("PASS", style="bold green") if passed else Text("FAIL", style="bold red"),
                 str(check.get("reason", "") or ""),
             )
-        self.query_one("#report-line", Static).update(f"report: {report_path}" if report_path else "")
+        self.report_line.update(f"report: {report_path}" if report_path else "")

@@ -20,14 +20,16 @@ class CollectionPanel(Vertical):
         self.objects = list(objects)
         self.poses_per_object = poses_per_object
         self.border_title = "Collection"
+        self.line = Label("waiting for collection", id="collection-line")
+        self.bar = ProgressBar(total=max(1, len(self.objects) * poses_per_object), show_eta=False, id="collection-bar")
 
     def compose(self):
-        yield Label("waiting for collection", id="collection-line")
-        yield ProgressBar(total=max(1, len(self.objects) * self.poses_per_object), show_eta=False, id="collection-bar")
+        yield self.line
+        yield self.bar
 
     def reset(self) -> None:
-        self.query_one("#collection-line", Label).update("waiting for collection")
-        self.query_one("#collection-bar", ProgressBar).update(progress=0)
+        self.line.update("waiting for collection")
+        self.bar.update(progress=0)
 
     def apply(self, event: CollectionProgress) -> None:
         if event.object_name not in self.objects:
@@ -44,5 +46,5 @@ class CollectionPanel(Vertical):
         line.append("  ")
         line.append(f"{event.phase:<8}", style=_PHASE_STYLES.get(event.phase, ""))
         line.append(f"  frames {event.frames:5d}  |F| {event.force_n:5.2f} N  {event.pressure_hpa:7.1f} hPa")
-        self.query_one("#collection-line", Label).update(line)
-        self.query_one("#collection-bar", ProgressBar).update(total=total, progress=min(done, total))
+        self.line.update(line)
+        self.bar.update(total=total, progress=min(done, total))

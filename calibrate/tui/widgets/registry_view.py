@@ -13,6 +13,13 @@ from calibrate.tui.widgets.formatting import number
 from collect.errors import InputError
 
 
+def _short_time(iso: str | None) -> str:
+    """``YYYY-MM-DD HH:MM`` of an ISO-8601 time stamp (as stored), ``-`` when missing."""
+    if not iso:
+        return "-"
+    return str(iso)[:16].replace("T", " ")
+
+
 class RegistryView(Vertical):
     """Table of ``SensorRegistry.profiles()``; ``reload`` re-reads the registry directory."""
 
@@ -20,19 +27,19 @@ class RegistryView(Vertical):
         super().__init__(**kwargs)
         self.registry_dir = registry_dir
         self.border_title = "Sensor registry"
+        self.line = Static("", id="registry-line")
+        self.table = DataTable(id="registry-table", zebra_stripes=True, cursor_type="row")
 
     def compose(self):
-        yield Static("", id="registry-line")
-        table = DataTable(id="registry-table", zebra_stripes=True, cursor_type="row")
-        table.add_columns("serial", "status", "last commissioned", "mode", "runs", "abs_rel", "a1", "model")
-        yield table
+        yield self.line
+        yield self.table
 
     def on_mount(self) -> None:
+        self.table.add_columns("serial", "status", "last run", "mode", "runs", "abs_rel", "a1", "model")
         self.reload()
 
     def reload(self) -> None:
-        table = self.query_one("#registry-table", DataTable)
-        line = self.query_one("#registry-line", Static)
+        table, line = self.table, self.line
         table.clear()
         try:
             registry = SensorRegistry(self.registry_dir)
@@ -48,7 +55,7 @@ class RegistryView(Vertical):
             table.add_row(
                 profile.serial,
                 Text(status, style="bold green" if status == "accepted" else "bold red"),
-                str(data.get("last_commissioned", "-")),
+                _short_time(data.get("last_commissioned")),
                 "sim" if data.get("simulated") else "real",
                 str(len(profile.history)),
                 number(metrics.get("abs_rel")),

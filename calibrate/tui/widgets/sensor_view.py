@@ -62,32 +62,35 @@ class SensorView(Vertical):
         super().__init__(**kwargs)
         self.border_title = "Live sensor" if compact else "Sensor"
         self.set_class(compact, "-compact")
+        self.ir_caption = Static("IR amplitude: no frame yet", classes="caption")
+        self.ir_image = HalfBlockImage(GREY)
+        self.depth_caption = Static("ToF depth: no frame yet", classes="caption")
+        self.depth_image = HalfBlockImage(DEPTH)
+        self.legend = Static(self._legend_text(), classes="sensor-legend")
 
     def compose(self):
-        with Horizontal(id="sensor-images"):
+        with Horizontal(classes="sensor-images"):
             with Vertical(classes="sensor-pane"):
-                yield Static("IR amplitude: no frame yet", id="ir-caption", classes="caption")
-                yield HalfBlockImage(GREY, id="ir-image")
+                yield self.ir_caption
+                yield self.ir_image
             with Vertical(classes="sensor-pane"):
-                yield Static("ToF depth: no frame yet", id="depth-caption", classes="caption")
-                yield HalfBlockImage(DEPTH, id="depth-image")
-        yield Static(self._legend(), id="sensor-legend")
+                yield self.depth_caption
+                yield self.depth_image
+        yield self.legend
 
     @staticmethod
-    def _legend() -> str:
-        return "[#db3907]near[/] → [#3e7df5]far[/]  [on #460046]  [/] no data"
+    def _legend_text(no_data: str = "") -> str:
+        return f"[#db3907]near[/] → [#3e7df5]far[/]  [on #460046]  [/] no data{no_data}"
 
     def show(self, ir: np.ndarray | None, depth_m: np.ndarray | None) -> None:
         """Draw new images: ``ir`` (H,W) uint16 amplitude, ``depth_m`` (H,W) float32 m, 0 = invalid."""
         if ir is not None:
             scaled = scale_image(np.asarray(ir, dtype=np.float32))
-            self.query_one("#ir-image", HalfBlockImage).set_image(scaled)
-            self.query_one("#ir-caption", Static).update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}")
+            self.ir_image.set_image(scaled)
+            self.ir_caption.update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}")
         if depth_m is not None:
             depth = np.asarray(depth_m, dtype=np.float32)
             scaled = scale_image(depth, valid=depth > 0)
-            self.query_one("#depth-image", HalfBlockImage).set_image(scaled)
-            self.query_one("#depth-caption", Static).update(
-                f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm, "
-                f"{scaled.invalid_fraction * 100:.0f} % no data"
-            )
+            self.depth_image.set_image(scaled)
+            self.depth_caption.update(f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm")
+            self.legend.update(self._legend_text(f" {scaled.invalid_fraction * 100:.0f} %"))

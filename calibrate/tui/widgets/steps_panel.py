@@ -28,6 +28,7 @@ _MARKS = {
     "failed": ("✘", "-failed"),
     "stopped": ("■", "-stopped"),
     "resumed": ("↺", "-ok"),
+    "skipped": ("–", "-pending"),
 }
 
 #: Below this fraction the ETA comes from the step's announced duration, not from its progress.
@@ -45,12 +46,16 @@ class StepRow(Horizontal):
         self.finished_at: float | None = None
         self.eta_s: float | None = None
         self.fraction = 0.0
+        self.title_label = Label(f"· {STEP_TITLES[step]}", classes="step-title")
+        self.bar = ProgressBar(total=1.0, show_eta=False, classes="step-bar")
+        self.time_label = Label("", classes="step-time")
+        self.summary_label = Label("", classes="step-summary")
 
     def compose(self):
-        yield Label(f"· {STEP_TITLES[self.step]}", classes="step-title")
-        yield ProgressBar(total=1.0, show_eta=False, classes="step-bar")
-        yield Label("", classes="step-time")
-        yield Label("", classes="step-summary")
+        yield self.title_label
+        yield self.bar
+        yield self.time_label
+        yield self.summary_label
 
     def _set_status(self, status: str) -> None:
         old_class = _MARKS[self.status][1]
@@ -58,36 +63,40 @@ class StepRow(Horizontal):
         mark, new_class = _MARKS[status]
         self.remove_class(old_class)
         self.add_class(new_class)
-        self.query_one(".step-title", Label).update(f"{mark} {STEP_TITLES[self.step]}")
+        self.title_label.update(f"{mark} {STEP_TITLES[self.step]}")
 
     def reset(self) -> None:
         """Back to pending, for a new run."""
         self.started_at = self.finished_at = self.eta_s = None
         self.fraction = 0.0
         self._set_status("pending")
-        self.query_one(ProgressBar).update(progress=0.0)
-        self.query_one(".step-time", Label).update("")
-        self.query_one(".step-summary", Label).update("")
+        self.bar.update(progress=0.0)
+        self.time_label.update("")
+        self.summary_label.update("")
 
     def start(self, now: float, eta_s: float | None) -> None:
         self.started_at, self.finished_at, self.eta_s, self.fraction = now, None, eta_s, 0.0
         self._set_status("running")
-        self.query_one(ProgressBar).update(progress=0.0)
-        self.query_one(".step-summary", Label).update("")
+        self.bar.update(progress=0.0)
+        self.summary_label.update("")
 
     def progress(self, fraction: float, message: str) -> None:
         self.fraction = min(max(float(fraction), 0.0), 1.0)
-        self.query_one(ProgressBar).update(progress=self.fraction)
+        self.bar.update(progress=self.fraction)
         if message:
-            self.query_one(".step-summary", Label).update(message)
+            self.summary_label.update(message)
 
-    def finish(self, now: float, ok: bool, summary: str, resumed: bool) -> None:
+    def finish(self, now: float, ok: bool, summary: str, resumed: bool, skipped: bool = False) -> None:
         self.finished_at = now
+        if skipped:
+            self._set_status("skipped")
+            self.summary_label.update(("skipped: " + summary) if summary else "skipped")
+            return
         self._set_status("resumed" if resumed and ok else ("ok" if ok else "failed"))
         if ok:
             self.fraction = 1.0
-            self.query_one(ProgressBar).update(progress=1.0)
-        self.query_one(".step-summary", Label).update(("resumed: " if resumed else "") + summary)
+            self.bar.update(progress=1.0)
+        self.summary_label.update(("resumed: " if resumed else "") + summary)
 
     def interrupt(self, now: float) -> None:
         """The run ended (stop or fault) while this step was running."""
@@ -97,7 +106,7 @@ class StepRow(Horizontal):
 
     def tick(self, now: float) -> None:
         """Refresh the time column: ETA while running, duration when done."""
-        label = self.query_one(".step-time", Label)
+        label = self.time_label
         if self.status == "running" and self.started_at is not None:
             elapsed = now - self.started_at
             if self.fraction >= _MIN_FRACTION_FOR_RATE:
@@ -107,6 +116,8 @@ class StepRow(Horizontal):
             else:
                 remaining = None
             label.update(f"ETA {duration(remaining)}")
+        elif self.status == "skipped":
+            label.update("")
         elif self.started_at is not None and self.finished_at is not None:
             label.update(f"took {duration(self.finished_at - self.started_at)}")
         elif self.status == "resumed":
@@ -119,13 +130,13 @@ class StepsPanel(Vertical):
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         self.border_title = "Commissioning steps"
+        self.rows = {step: StepRow(step) for step in STEPS}
 
     def compose(self):
-        for step in STEPS:
-            yield StepRow(step)
+        yield from self.rows.values()
 
     def row(self, step: Step) -> StepRow:
-        return self.query_one(f"#step-{Step(step).value}", StepRow)
+        return self.rows[Step(step)]
 
     def apply(self, event: object, now: float) -> None:
         """Apply one step event (others are ignored)."""
@@ -134,20 +145,20 @@ class StepsPanel(Vertical):
         elif isinstance(event, StepProgress):
             self.row(event.step).progress(event.fraction, event.message)
         elif isinstance(event, StepFinished):
-            self.row(event.step).finish(now, event.ok, event.summary, event.resumed)
+            self.row(event.step).finish(now, event.ok, event.summary, event.resumed, event.skipped)
         else:
             return
         self.tick(now)
 
     def reset(self) -> None:
-        for row in self.query(StepRow):
+        for row in self.rows.values():
             row.reset()
 
     def interrupt(self, now: float) -> None:
-        for row in self.query(StepRow):
+        for row in self.rows.values():
             row.interrupt(now)
         self.tick(now)
 
     def tick(self, now: float) -> None:
-        for row in self.query(StepRow):
+        for row in self.rows.values():
             row.tick(now)

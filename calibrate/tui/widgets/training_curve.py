@@ -91,17 +91,20 @@ class TrainingCurve(Vertical):
         self.loss: list[float] = []
         self.a1: list[float] = []
         self.last: TrainingProgress | None = None
+        self.line = Label("waiting for fine-tuning", id="training-line")
+        self.loss_plot = CurvePlot("loss (m)", "{:.5f}", "bold yellow", id="loss-plot")
+        self.a1_plot = CurvePlot("val δ<1.05", "{:.3f}", "bold green", id="a1-plot")
 
     def compose(self):
-        yield Label("waiting for fine-tuning", id="training-line")
-        yield CurvePlot("loss (m)", "{:.5f}", "bold yellow", id="loss-plot")
-        yield CurvePlot("val δ<1.05", "{:.3f}", "bold green", id="a1-plot")
+        yield self.line
+        yield self.loss_plot
+        yield self.a1_plot
 
     def reset(self) -> None:
         self.loss, self.a1, self.last = [], [], None
-        self.query_one("#training-line", Label).update("waiting for fine-tuning")
-        self.query_one("#loss-plot", CurvePlot).set_values([])
-        self.query_one("#a1-plot", CurvePlot).set_values([])
+        self.line.update("waiting for fine-tuning")
+        self.loss_plot.set_values([])
+        self.a1_plot.set_values([])
 
     def apply(self, points: list[TrainingProgress]) -> None:
         """Append a batch of training points and redraw once."""
@@ -112,8 +115,8 @@ class TrainingCurve(Vertical):
             if point.a1 is not None:
                 self.a1.append(float(point.a1))
         self.last = points[-1]
-        self.query_one("#training-line", Label).update(
+        self.line.update(
             f"step {self.last.step}  elapsed {duration(self.last.elapsed_s)}  ETA {duration(self.last.eta_s)}"
         )
-        self.query_one("#loss-plot", CurvePlot).set_values(self.loss)
-        self.query_one("#a1-plot", CurvePlot).set_values(self.a1)
+        self.loss_plot.set_values(self.loss)
+        self.a1_plot.set_values(self.a1)

@@ -1,0 +1,304 @@
+"""The bench TUI driven by a scripted event source (headless, ``App.run_test`` + Pilot).
+
+The scripted flow below stands in for ``run_commissioning`` only inside these tests: it emits a
+fixed event sequence through the app's real ``on_event`` path, then waits for the test (or the
+stop key) before returning. The fixed clock and fixed images make the snapshots deterministic.
+The real flow on the simulated bench is exercised in ``test_tui_commissioning.py``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibrate.commission_events import (
+    BenchSnapshot,
+    CollectionProgress,
+    FaultRaised,
+    Step,
+    StepFinished,
+    StepProgress,
+    StepStarted,
+    TrainingProgress,
+    Verdict,
+)
+from calibrate.commissioning import CommissionConfig, CommissionResult
+from calibrate.sensor_registry import SensorRegistry
+from calibrate.tui.app import BenchApp
+from calibrate.tui.widgets.banner import Banner
+from calibrate.tui.widgets.confirm import ConfirmStart
+from collect.errors import HardwareFault
+
+SIZE = (120, 36)
+CHECKS = [
+    {"name": "leak_rate", "value": 0.012, "threshold": 0.05, "passed": True, "reason": ""},
+    {"name": "a1", "value": 0.934, "threshold": 0.9, "passed": True, "reason": ""},
+    {"name": "abs_rel", "value": 0.0183, "threshold": 0.03, "passed": True, "reason": ""},
+    {"name": "pose_e_x_mm", "value": 2.41, "threshold": 2.0, "passed": False, "reason": "median above limit"},
+]
+
+
+class FixedClock:
+    """Monotonic clock the test moves by hand, s."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def bench_images() -> tuple[np.ndarray, np.ndarray]:
+    """A dome with one dent: (ir (172,224) uint16, depth (172,224) float32 m, 0 outside the FOV)."""
+    v, u = np.mgrid[0:172, 0:224].astype(np.float32)
+    r2 = ((u - 111.5) / 112) ** 2 + ((v - 85.5) / 86) ** 2
+    dent = 0.006 * np.exp(-(((u - 140) / 18) ** 2 + ((v - 70) / 18) ** 2))
+    depth = (0.093 + 0.03 * r2 - dent).astype(np.float32)
+    depth[r2 > 1.2] = 0.0
+    dots = ((u.astype(int) * 7 + v.astype(int) * 13) % 29 == 0)
+    ir = (42000 * np.exp(-r2) * np.where(dots, 0.3, 1.0)).astype(np.uint16)
+    return ir, depth
+
+
+def mid_run_events() -> list[object]:
+    """Connect .. camera health done, collection under way, a training curve (fixed numbers)."""
+    ir, depth = bench_images()
+    events: list[object] = [
+        StepStarted(Step.CONNECT, 2.0),
+        StepFinished(Step.CONNECT, True, "serial SB-0042, 224x172 @ 45 fps"),
+        StepStarted(Step.LEAK_TEST, 20.0),
+        StepFinished(Step.LEAK_TEST, True, "decay 0.012 hPa/s", resumed=True),
+        StepStarted(Step.CAMERA_HEALTH, 3.0),
+        StepFinished(Step.CAMERA_HEALTH, True, "0 dead px, 91 % valid"),
+        StepStarted(Step.REFERENCE, 2.0),
+        StepFinished(Step.REFERENCE, True, "30 frames"),
+        StepStarted(Step.COLLECT, 40.0),
+        StepProgress(Step.COLLECT, 0.375, "mug pose 4/8"),
+        CollectionProgress("mug", 3, 8, "press", 1234, 4.62, 1067.3),
+        BenchSnapshot(True, [0.412, -0.105, 0.187, 3.1416, 0.0, 0.0], [0.12, -0.31, -4.6, 0.011, -0.004, 0.0], 1067.3,
+                      ir, depth),
+    ]
+    for k in range(40):
+        a1 = 0.55 + 0.4 * (1 - np.exp(-k / 12)) if k % 4 == 0 else None
+        events.append(TrainingProgress(k * 10, k * 1.5, 0.004 * np.exp(-k / 10) + 0.0011, a1, 150.0 - k * 1.5))
+    return events
+
+
+class ScriptedFlow:
+    """Emits ``events`` like the flow would, then waits for ``release`` or the stop event.
+
+    ``finish`` events are emitted after the release (not after a stop); ``result`` builds the
+    return value from (config, stopped); ``error`` is raised instead of returning when set.
+    """
+
+    def __init__(self, events, finish=(), result=None, error=None):
+        self.events, self.finish, self.error = list(events), list(finish), error
+        self.result = result or (lambda config, stopped: CommissionResult(
+            accepted=False, checks=[], run_dir=config.run_dir, report_path=config.run_dir / "report.html",
+            stopped=stopped))
+        self.emitted = threading.Event()
+        self.release = threading.Event()
+        self.calls = 0
+        self.saw_stop = False
+
+    def __call__(self, config, on_event, stop_event):
+        self.calls += 1
+        for event in self.events:
+            on_event(event)
+        self.emitted.set()
+        while not (self.release.is_set() or stop_event.is_set()):
+            stop_event.wait(0.01)
+        self.saw_stop = stop_event.is_set()
+        if not self.saw_stop:
+            for event in self.finish:
+                on_event(event)
+        if self.error is not None:
+            raise self.error
+        return self.result(config, self.saw_stop)
+
+
+def make_config(**overrides) -> CommissionConfig:
+    """Relative paths so the snapshots do not depend on the temporary directory."""
+    kwargs = dict(run_dir=Path("run"), simulated=True, registry_dir=Path("registry"), objects=("mug", "box"),
+                  poses_per_object=8)
+    kwargs.update(overrides)
+    return CommissionConfig(**kwargs)
+
+
+@pytest.fixture
+def in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+async def wait_for(predicate, pilot, timeout=10.0):
+    """Let the app run until ``predicate()`` holds."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not predicate():
+        if loop.time() > deadline:
+            raise AssertionError("condition not reached in time")
+        await pilot.pause(0.02)
+
+
+async def start_and_wait(pilot, flow: ScriptedFlow):
+    await pilot.press("c")
+    assert isinstance(pilot.app.screen, ConfirmStart)
+    await pilot.press("y")
+    await asyncio.to_thread(flow.emitted.wait, 10)
+    await pilot.pause()
+    pilot.app.refresh_live()
+    await pilot.pause()
+
+
+# ---------------------------------------------------------------- behaviour
+
+
+def test_confirmation_guards_the_start(in_tmp):
+    async def scenario():
+        flow = ScriptedFlow([])
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("c")
+            assert isinstance(app.screen, ConfirmStart)
+            await pilot.press("n")
+            assert not isinstance(app.screen, ConfirmStart)
+            await pilot.press("c", "s")  # the stop key also cancels the dialog
+            assert not isinstance(app.screen, ConfirmStart)
+            assert flow.calls == 0 and not app.running
+
+    asyncio.run(scenario())
+
+
+def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events())
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            assert app.running and app.arm_state == "moving"
+            await pilot.press("3")  # acceptance tab: the stop key is a priority binding
+            await pilot.press("s")
+            assert app.arm_state in ("stopping", "stopped")
+            await wait_for(lambda: app.result is not None, pilot)
+            assert flow.saw_stop and app.result.stopped and app.arm_state == "stopped"
+            banner = app.query_one(Banner)
+            assert banner.level == "warning" and "Stopped by operator" in str(banner.content)
+            assert app.query_one("#step-collect").status == "stopped"
+
+    asyncio.run(scenario())
+
+
+def test_quit_mid_run_stops_first_and_exits_after_the_flow_returns(in_tmp):
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events())
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("q")
+            await wait_for(lambda: not app.is_running, pilot)
+        assert flow.saw_stop and app.result.stopped
+
+    asyncio.run(scenario())
+
+
+def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events(), error=HardwareFault("camera-stall", "no frame for 1.0 s"))
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.error is not None, pilot)
+            banner = app.query_one(Banner)
+            assert banner.level == "fault" and "camera-stall" in str(banner.content)
+            assert app.query_one("#step-collect").status == "stopped" and app.arm_state == "stopped"
+
+    asyncio.run(scenario())
+
+
+# ---------------------------------------------------------------- snapshots
+
+
+def test_snapshot_commission_running(snap_compare, in_tmp):
+    flow = ScriptedFlow(mid_run_events())
+    app = BenchApp(make_config(), flow=flow, clock=FixedClock())
+
+    async def run_before(pilot):
+        await start_and_wait(pilot, flow)
+
+    assert snap_compare(app, terminal_size=SIZE, run_before=run_before)
+
+
+def test_snapshot_sensor_tab(snap_compare, in_tmp):
+    flow = ScriptedFlow(mid_run_events())
+    app = BenchApp(make_config(), flow=flow, clock=FixedClock())
+
+    async def run_before(pilot):
+        await start_and_wait(pilot, flow)
+        await pilot.press("2")
+        await pilot.pause()
+
+    assert snap_compare(app, terminal_size=SIZE, run_before=run_before)
+
+
+def test_snapshot_confirm_dialog(snap_compare, in_tmp):
+    app = BenchApp(make_config(), flow=ScriptedFlow([]), clock=FixedClock())
+    assert snap_compare(app, terminal_size=SIZE, press=["c"])
+
+
+def test_snapshot_verdict(snap_compare, in_tmp):
+    clock = FixedClock()
+    finish = [StepFinished(Step.COLLECT, True, "16 poses, 2880 frames")]
+    for step, seconds, summary in ((Step.FINETUNE, 150.0, "a1 0.934"), (Step.VALIDATE, 8.0, "abs_rel 0.0183"),
+                                   (Step.POSE_CHECK, 5.0, "e_x 2.41 mm"), (Step.VERDICT, 1.0, "rejected")):
+        finish += [StepStarted(step, seconds), StepFinished(step, step is not Step.POSE_CHECK, summary)]
+    finish.append(Verdict(False, CHECKS, "run/report.html"))
+    flow = ScriptedFlow(mid_run_events(), finish, result=lambda config, stopped: CommissionResult(
+        accepted=False, checks=CHECKS, run_dir=config.run_dir, report_path=Path("run/report.html")))
+    app = BenchApp(make_config(), flow=flow, clock=clock)
+
+    async def run_before(pilot):
+        await start_and_wait(pilot, flow)
+        clock.now += 95.0
+        flow.release.set()
+        await wait_for(lambda: app.result is not None, pilot)
+        await pilot.press("3")
+        await pilot.pause()
+
+    assert snap_compare(app, terminal_size=SIZE, run_before=run_before)
+
+
+def test_snapshot_fault_banner(snap_compare, in_tmp):
+    clock = FixedClock()
+    flow = ScriptedFlow(mid_run_events(), [FaultRaised("force-spike", "|F| 61.2 N > limit 40 N at pose 4")],
+                        result=lambda config, stopped: CommissionResult(
+                            accepted=False, checks=[], run_dir=config.run_dir, report_path=Path("run/report.html"),
+                            fault="force-spike"))
+    app = BenchApp(make_config(), flow=flow, clock=clock)
+
+    async def run_before(pilot):
+        await start_and_wait(pilot, flow)
+        clock.now += 12.0
+        flow.release.set()
+        await wait_for(lambda: app.result is not None, pilot)
+        await pilot.pause()
+
+    assert snap_compare(app, terminal_size=SIZE, run_before=run_before)
+
+
+def test_snapshot_registry(snap_compare, in_tmp):
+    from datetime import datetime, timezone
+
+    registry = SensorRegistry(Path("registry"))
+    intrinsics = {"fx": 160.0, "fy": 160.0, "cx": 111.5, "cy": 85.5, "width": 224, "height": 172}
+    for serial, accepted, a1 in (("SB-0041", True, 0.941), ("SB-0042", False, 0.612)):
+        registry.register(serial, accepted=accepted, run_dir=Path("run"), intrinsics=intrinsics, camera_in_tcp=None,
+                          simulated=True, acceptance={"accepted": accepted, "abs_rel": 0.02, "a1": a1},
+                          when=datetime(2025, 5, 1, 9, 30, tzinfo=timezone.utc))
+    app = BenchApp(make_config(), flow=ScriptedFlow([]), clock=FixedClock())
+    assert snap_compare(app, terminal_size=SIZE, press=["4"])

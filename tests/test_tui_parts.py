@@ -1,0 +1,135 @@
+"""Unit tests of the TUI's pure parts: event inbox, half-block images, charts, formats."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from calibrate.commission_events import (
+    BenchSnapshot,
+    CollectionProgress,
+    Step,
+    StepFinished,
+    StepProgress,
+    StepStarted,
+    TrainingProgress,
+)
+from calibrate.tui.halfblock import DEPTH, GREY, INVALID_RGB, UPPER_HALF, fit_cells, halfblock_rows, scale_image
+from calibrate.tui.inbox import EventInbox
+from calibrate.tui.widgets.formatting import duration, number
+from calibrate.tui.widgets.training_curve import bar_chart, column_values
+
+
+def _snapshot(p: float) -> BenchSnapshot:
+    return BenchSnapshot(True, [0.0] * 6, [0.0] * 6, p)
+
+
+def _progress(frames: int, obj: str = "mug") -> CollectionProgress:
+    return CollectionProgress(obj, 0, 2, "press", frames, 1.0, 1065.0)
+
+
+def test_inbox_keeps_order_coalesces_fast_events_and_wakes_once_per_batch():
+    inbox = EventInbox()
+    wakes = [inbox.put(StepStarted(Step.COLLECT, 10.0))]
+    wakes += [inbox.put(_progress(k)) for k in range(100)]
+    wakes += [inbox.put(_snapshot(1000.0 + k)) for k in range(50)]
+    wakes.append(inbox.put(StepProgress(Step.COLLECT, 0.1)))
+    wakes.append(inbox.put(StepProgress(Step.COLLECT, 0.2)))
+    wakes.append(inbox.put(TrainingProgress(1, 0.1, 0.5)))
+    wakes.append(inbox.put(TrainingProgress(2, 0.2, 0.4)))
+    wakes.append(inbox.put(StepFinished(Step.COLLECT, True)))
+    assert wakes == [True] + [False] * (len(wakes) - 1)
+    events = inbox.drain()
+    assert [type(e).__name__ for e in events] == [
+        "StepStarted", "CollectionProgress", "StepProgress", "TrainingProgress", "TrainingProgress", "StepFinished"
+    ]
+    assert events[1].frames == 99 and events[2].fraction == 0.2
+    assert inbox.take_snapshot().pressure_hpa == 1049.0
+    assert inbox.take_snapshot() is None
+    assert inbox.drain() == []
+    assert inbox.put(_progress(5)) is True  # empty again: the next event wakes the UI
+    assert inbox.received == 157
+
+
+def test_inbox_does_not_merge_across_other_events_or_steps():
+    inbox = EventInbox()
+    for event in (_progress(1), StepProgress(Step.COLLECT, 0.5), _progress(2),
+                  StepProgress(Step.FINETUNE, 0.1), StepProgress(Step.COLLECT, 0.6)):
+        inbox.put(event)
+    assert len(inbox.drain()) == 5
+
+
+def test_inbox_loses_nothing_under_concurrent_producers():
+    inbox = EventInbox()
+    n = 2000
+
+    def produce(offset):
+        for k in range(n):
+            inbox.put(TrainingProgress(offset + k, 0.0, 0.0))
+
+    threads = [threading.Thread(target=produce, args=(i * n,)) for i in range(2)]
+    got = []
+    for t in threads:
+        t.start()
+    while any(t.is_alive() for t in threads):
+        got += inbox.drain()
+    got += inbox.drain()
+    assert sorted(e.step for e in got) == list(range(2 * n))
+
+
+def test_scale_image_maps_valid_range_and_marks_invalid():
+    depth = np.full((4, 6), 0.08, np.float32)
+    depth[0, 0] = 0.0
+    depth[1, :] = 0.06
+    scaled = scale_image(depth, valid=depth > 0, percentiles=(0.0, 100.0))
+    assert scaled.lo == pytest.approx(0.06) and scaled.hi == pytest.approx(0.08)
+    assert scaled.index[0, 0] == -1 and scaled.index[1, 2] == 0 and scaled.index[3, 3] == 255
+    assert scaled.invalid_fraction == pytest.approx(1 / 24)
+    empty = scale_image(np.zeros((3, 3), np.float32), valid=np.zeros((3, 3), bool))
+    assert (empty.index == -1).all() and empty.invalid_fraction == 1.0
+
+
+def test_fit_cells_keeps_square_pixels_inside_the_box():
+    assert fit_cells((172, 224), 224, 200) == (224, 86)  # width-limited: one cell per column
+    cols, rows = fit_cells((172, 224), 200, 20)  # height-limited
+    assert rows == 20 and cols == int(224 * 40 / 172)
+    assert fit_cells((172, 224), 0, 10) == (0, 0)
+
+
+def test_halfblock_rows_paint_upper_and_lower_pixels():
+    index = np.array([[0, 255], [255, -1]], np.int16)
+    rows = halfblock_rows(index, 2, 1, GREY)
+    assert len(rows) == 1
+    cells = [(seg.text, seg.style) for seg in rows[0]]
+    assert "".join(text for text, _ in cells) == UPPER_HALF * 2
+    (_, left), (_, right) = cells
+    assert left.color.get_truecolor() == (0, 0, 0) and left.bgcolor.get_truecolor() == tuple(GREY.lut[252])
+    assert right.color.get_truecolor() == tuple(GREY.lut[252])
+    assert right.bgcolor.get_truecolor() == INVALID_RGB
+
+
+def test_halfblock_rows_merge_runs_and_resample():
+    index = np.zeros((172, 224), np.int16)
+    index[:, 112:] = 200
+    rows = halfblock_rows(index, 56, 21, DEPTH)
+    assert len(rows) == 21
+    assert all(len(segments) == 2 and sum(len(s.text) for s in segments) == 56 for segments in rows)
+
+
+def test_bar_chart_levels_and_compression():
+    rows, lo, hi = bar_chart([0.0, 1.0, 0.5], width=5, height=2)
+    assert (lo, hi) == (0.0, 1.0)
+    # eighths of a bar: 0 -> 1 (a sliver), 1 -> 16 (both cells full), 0.5 -> 9 (full + 1/8)
+    assert rows == [" █▁  ", "▁██  "]
+    assert len(column_values(list(range(100)), 10)) == 10
+    assert column_values(list(range(100)), 10)[0] == pytest.approx(4.5)
+    assert bar_chart([], 4, 2)[0] == ["    ", "    "]
+
+
+def test_formats():
+    assert duration(None) == "--:--"
+    assert duration(83.4) == "1:23"
+    assert duration(3725) == "1:02:05"
+    assert number(0.123456) == "0.1235" and number(True) == "yes" and number(None) == "-" and number("< 5") == "< 5"
