@@ -20,6 +20,7 @@ from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, Hardwar
 COMMAND_MODULES = (
     "hw_mocks.cli",
     "collect.cli",
+    "trainer.cli",
     "calibrate.pose_cli",
 )
 

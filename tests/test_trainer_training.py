@@ -1,0 +1,158 @@
+"""Training, resume, inference and the train/evaluate command line on small synthetic sessions."""
+
+import json
+import shutil
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+import calibrate.cli
+from conftest import make_synthetic_session
+from trainer.checkpoint import has_checkpoint
+from trainer.inference import DepthEstimator
+from trainer.metrics import METRIC_KEYS
+from trainer.model_dir import WEIGHTS_FILE, load_metadata
+from trainer.training import TrainConfig, train_model
+
+SMALL = {"height": 48, "width": 64, "poses_per_object": 3}
+
+
+def _config(data, out, **overrides):
+    options = dict(data=[str(p) for p in data], out=str(out), arch="resnet", width=0.125, epochs=3,
+                   batch_size=4, lr=2e-3, input_size=(64, 64), eval_interval_s=0.0, eval_frames=8, threads=1)
+    options.update(overrides)
+    return TrainConfig(**options)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    return make_synthetic_session(tmp_path_factory.mktemp("data") / "s.h5", **SMALL)
+
+
+@pytest.fixture(scope="module")
+def trained(session, tmp_path_factory):
+    events = []
+    result = train_model(_config([session], tmp_path_factory.mktemp("m") / "model"), progress_callback=events.append)
+    return result, events
+
+
+@pytest.fixture
+def bubble(monkeypatch):
+    """``bubble`` with only the trainer's commands registered (isolated from other packages)."""
+    monkeypatch.setattr(calibrate.cli, "COMMAND_MODULES", ("trainer.cli",))
+    return lambda *argv: calibrate.cli.main([str(a) for a in argv])
+
+
+def test_training_writes_model_dir_and_learns(trained, session):
+    result, events = trained
+    assert set(METRIC_KEYS) <= set(result.metrics) and result.metrics["n_images"] > 0
+    assert result.steps == events[-1].step and events[-1].event == "done"
+    assert events[-1].fraction == pytest.approx(1.0) and not result.stopped
+    steps = [e.step for e in events if e.event == "step"]
+    assert steps == sorted(steps) and steps[0] == 1
+    assert result.history[-1]["abs_rel"] < 0.8 * result.history[0]["abs_rel"]  # it learns
+    meta = load_metadata(result.model_dir)
+    assert meta.training["sources"][0]["sha256"] and meta.training["sensor_serials"] == ["SYN-0001"]
+    assert meta.training["split"]["kind"] == "in-class-poses"
+    assert meta.metrics["a1"] == result.metrics["a1"] and meta.inference["onnx_matches_torch"]
+    assert meta.geometry.to_dict()["offset_top_left"] == [8, 0]
+    assert not has_checkpoint(result.model_dir)
+
+
+def test_estimator_predicts_native_depth(trained, session):
+    from collect.session_reader import Session
+
+    with Session.open(session) as s:
+        ir = s.ir(10)
+    estimator = DepthEstimator.load(trained[0].model_dir)
+    depth = estimator.predict(ir)
+    assert depth.shape == (48, 64) and depth.dtype == np.float32
+    assert np.all((depth > 0.04) & (depth < 0.12))
+    assert np.allclose(estimator.predict_batch(np.stack([ir, ir]))[1], depth)
+
+
+def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
+    out = tmp_path / "model"
+
+    def interrupt(progress):
+        if progress.step == 3 and progress.event == "eval":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_model(_config([session], out, epochs=2, export_onnx=False), progress_callback=interrupt)
+    assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
+    events = []
+    result = train_model(_config([session], out, epochs=2, export_onnx=False, resume=True), progress_callback=events.append)
+    full = train_model(_config([session], tmp_path / "full", epochs=2, export_onnx=False))
+    assert [e.step for e in events if e.event == "step"][0] == 4
+    assert result.steps == full.steps
+
+
+def test_stop_event_ends_training_early(session, tmp_path):
+    stop = threading.Event()
+
+    def on_progress(progress):
+        if progress.step == 2:
+            stop.set()
+
+    result = train_model(_config([session], tmp_path / "m", export_onnx=False), on_progress, stop)
+    assert result.stopped and result.steps == 2 and (tmp_path / "m" / WEIGHTS_FILE).is_file()
+
+
+def test_fine_tune_from_init_model_keeps_its_architecture(trained, session, tmp_path):
+    result = train_model(_config([session], tmp_path / "ft", arch=None, width=None, epochs=0.5, export_onnx=False,
+                                 init=str(trained[0].model_dir)))
+    meta = load_metadata(result.model_dir)
+    assert (meta.arch, meta.width) == ("resnet", 0.125)
+    assert meta.training["init"]["model_dir"] == str(trained[0].model_dir)
+
+
+def test_evaluate_command_writes_metrics_latency_and_truth_comparison(bubble, trained, session, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    assert bubble("evaluate", "--model", trained[0].model_dir, "--data", session, "--objects", "mug", "--json", out) == 0
+    data = json.loads(out.read_text())
+    assert set(METRIC_KEYS) <= set(data) and data["latency_ms"] > 0
+    assert list(data["per_object"]) == ["mug"]
+    vs = data["vs_true"]
+    assert vs["tof"]["a1"] > 0.99 and 0 < vs["tof_coverage"] < 1
+    assert vs["model_on_tof_dropout"]["n_pixels"] > 0
+    assert "Abs.Rel" in capsys.readouterr().out
+
+
+def test_train_command_small_run(bubble, session, tmp_path):
+    out = tmp_path / "cli_model"
+    code = bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.3",
+                  "--holdout-object", "box", "--no-onnx", "--threads", "1", "--json", tmp_path / "m.json")
+    assert code == 0
+    assert load_metadata(out).training["split"] == {"kind": "holdout-object", "object": "box"}
+    assert json.loads((tmp_path / "m.json").read_text())["split"] == "holdout-object"
+
+
+def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
+    model = trained[0].model_dir
+    garbage = tmp_path / "garbage.h5"
+    garbage.write_bytes(b"not an hdf5 file" * 100)
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(session.read_bytes()[: session.stat().st_size // 3])
+    other_size = make_synthetic_session(tmp_path / "other.h5", height=40, width=56, poses_per_object=1)
+    pickled = tmp_path / "pickled"
+    shutil.copytree(model, pickled)
+    torch.save({"w": torch.zeros(2)}, pickled / WEIGHTS_FILE)
+    cases = [
+        ("evaluate", "--model", model, "--data", tmp_path / "missing.h5"),
+        ("evaluate", "--model", model, "--data", garbage),
+        ("evaluate", "--model", model, "--data", truncated),
+        ("evaluate", "--model", model, "--data", other_size),
+        ("evaluate", "--model", model, "--data", session, "--objects", "teapot"),
+        ("evaluate", "--model", pickled, "--data", session),
+        ("evaluate", "--model", tmp_path / "no_model", "--data", session),
+        ("train", "--data", session, "--out", tmp_path / "x", "--holdout-object", "teapot", "--epochs", "1"),
+        ("train", "--data", session, other_size, "--out", tmp_path / "x", "--epochs", "1"),
+    ]
+    for argv in cases:
+        capsys.readouterr()
+        assert bubble(*argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("bubble: error:"), (argv, err)

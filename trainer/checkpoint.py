@@ -1,0 +1,66 @@
+"""Training checkpoints in a model directory, without pickle.
+
+``checkpoint.safetensors`` holds the network weights and the optimizer's tensors
+(``net.<name>``, ``optim.<param index>.<state name>``); ``checkpoint.json`` holds the optimizer's
+hyper-parameters and the training progress (epoch, step, elapsed seconds, history, ...).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from collect.errors import InputError
+
+CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
+CHECKPOINT_STATE = "checkpoint.json"
+
+
+def has_checkpoint(model_dir: str | Path) -> bool:
+    model_dir = Path(model_dir)
+    return (model_dir / CHECKPOINT_WEIGHTS).is_file() and (model_dir / CHECKPOINT_STATE).is_file()
+
+
+def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer, progress: dict) -> None:
+    """Write network + optimizer state and the JSON-serializable ``progress`` (atomically, per file)."""
+    model_dir = Path(model_dir)
+    model_dir.mkdir(parents=True, exist_ok=True)
+    tensors = {f"net.{k}": v.detach().cpu().contiguous() for k, v in network.state_dict().items()}
+    opt = optimizer.state_dict()
+    for index, state in opt["state"].items():
+        for name, value in state.items():
+            tensors[f"optim.{index}.{name}"] = torch.as_tensor(value).detach().cpu().contiguous()
+    tmp = model_dir / (CHECKPOINT_WEIGHTS + ".tmp")
+    save_file(tensors, str(tmp))
+    tmp.replace(model_dir / CHECKPOINT_WEIGHTS)
+    state = {"param_groups": opt["param_groups"], "progress": progress}
+    tmp = model_dir / (CHECKPOINT_STATE + ".tmp")
+    tmp.write_text(json.dumps(state, indent=1))
+    tmp.replace(model_dir / CHECKPOINT_STATE)
+
+
+def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer) -> dict:
+    """Restore network and optimizer from ``model_dir``; returns the saved progress dict."""
+    model_dir = Path(model_dir)
+    try:
+        tensors = load_file(str(model_dir / CHECKPOINT_WEIGHTS))
+        state = json.loads((model_dir / CHECKPOINT_STATE).read_text())
+    except (SafetensorError, OSError, ValueError) as err:
+        raise InputError(f"cannot read the checkpoint in {model_dir}: {err}") from None
+    net_state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
+    try:
+        network.load_state_dict(net_state)
+    except RuntimeError as err:
+        raise InputError(f"checkpoint in {model_dir} does not match the network: {str(err).splitlines()[0]}") from None
+    opt_state: dict = {}
+    for key, value in tensors.items():
+        if key.startswith("optim."):
+            _, index, name = key.split(".", 2)
+            opt_state.setdefault(int(index), {})[name] = value
+    optimizer.load_state_dict({"state": opt_state, "param_groups": state["param_groups"]})
+    return state["progress"]

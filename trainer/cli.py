@@ -1,0 +1,170 @@
+"""``bubble train`` and ``bubble evaluate``.
+
+Data-parallel training: ``torchrun --nproc_per_node 2 -m calibrate.cli train ...`` (gloo on CPU,
+nccl on GPU) runs the same command in every process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+#: Columns of the paper's tables: (metric key, header).
+PAPER_COLUMNS = (("abs_rel", "Abs.Rel"), ("rmse", "RMSE [m]"), ("rmse_log", "RMSE_log"), ("silog", "SILog"), ("a1", "δ<1.05"))
+
+
+def register(subparsers) -> None:
+    train = subparsers.add_parser("train", help="train or fine-tune a depth network on session files")
+    train.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5", help="training session files")
+    train.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
+    train.add_argument("--arch", choices=("resnet", "packnet", "bts"), help="network (default: resnet, or the init model's)")
+    train.add_argument("--width", type=float, help="channel width multiplier (default: per architecture)")
+    train.add_argument("--init", metavar="MODEL_DIR", help="fine-tune from this model directory ('base' = the shipped base model)")
+    budget = train.add_mutually_exclusive_group()
+    budget.add_argument("--epochs", type=float, help="training budget in epochs")
+    budget.add_argument("--minutes", type=float, help="training budget in minutes of training time (default 3)")
+    train.add_argument("--holdout-object", metavar="NAME", help="leave this object out for validation")
+    train.add_argument("--split", choices=("poses", "frames"), default="poses",
+                       help="in-class 70/30 split of contact poses (default) or of frames (the paper's)")
+    train.add_argument("--val-data", nargs="+", default=[], metavar="SESSION.h5", help="validate on these sessions instead of a split")
+    train.add_argument("--objects", help="comma-separated objects to train on (default: all)")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
+    train.add_argument("--batch-size", type=int, default=8)
+    train.add_argument("--lr", type=float, default=2e-4)
+    train.add_argument("--inverse-depth-loss", action="store_true", help="L1 on inverse depth instead of depth")
+    train.add_argument("--no-augment", action="store_true", help="no IR augmentation")
+    train.add_argument("--no-onnx", action="store_true", help="skip the ONNX export (torch inference)")
+    train.add_argument("--threads", type=int, help="torch CPU threads")
+    train.add_argument("--json", metavar="OUT.json", help="also write the final validation metrics here")
+    train.set_defaults(func=run_train)
+
+    evaluate = subparsers.add_parser("evaluate", help="the paper's metrics of a model on session files")
+    evaluate.add_argument("--model", required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
+    evaluate.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5")
+    evaluate.add_argument("--objects", help="comma-separated objects to evaluate on (default: all)")
+    evaluate.add_argument("--runtime", choices=("onnx", "torch"), help="inference runtime (default: the model's)")
+    evaluate.add_argument("--json", metavar="OUT.json", help="write the metrics (keys at top level) here")
+    evaluate.set_defaults(func=run_evaluate)
+
+
+def _objects(text: str | None) -> list[str] | None:
+    return None if not text else [name.strip() for name in text.split(",") if name.strip()]
+
+
+def _json_safe(value):
+    """NaN/inf -> None, recursively (strict JSON)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    Path(path).write_text(json.dumps(_json_safe(data), indent=2) + "\n")
+
+
+def metrics_table(title: str, rows: dict[str, dict]):
+    """A rich table of the paper's columns, one row per name."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("data")
+    for _, header in PAPER_COLUMNS:
+        table.add_column(header, justify="right")
+    table.add_column("images", justify="right")
+    for name, m in rows.items():
+        table.add_row(name, *(f"{m[key]:.4f}" for key, _ in PAPER_COLUMNS), str(m["n_images"]))
+    return table
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from trainer.training import TrainConfig, train_model
+
+    config = TrainConfig(
+        data=args.data,
+        out=args.out,
+        arch=args.arch,
+        width=args.width,
+        init=args.init,
+        epochs=args.epochs,
+        minutes=args.minutes,
+        seed=args.seed,
+        resume=args.resume,
+        split=args.split,
+        holdout_object=args.holdout_object,
+        val_data=args.val_data,
+        objects=_objects(args.objects),
+        batch_size=args.batch_size,
+        lr=args.lr,
+        inverse_depth_loss=args.inverse_depth_loss,
+        augment=not args.no_augment,
+        export_onnx=not args.no_onnx,
+        threads=args.threads,
+    )
+    console = Console(stderr=True)
+    columns = (
+        TextColumn("[bold]train"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TextColumn("ep {task.fields[epoch]:.2f}  loss {task.fields[loss]}  δ<1.05 {task.fields[a1]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    bar = Progress(*columns, console=console)
+    task = None
+
+    def on_progress(p) -> None:
+        nonlocal task
+        if task is None:  # started at the first step: data errors print no empty bar
+            bar.start()
+            task = bar.add_task("train", total=1.0, epoch=0.0, loss="-", a1="-")
+        a1 = "-" if not p.val else f"{p.val['a1']:.3f}"
+        if not math.isfinite(p.loss):
+            loss = "-"
+        else:
+            loss = f"{p.loss:.3f} 1/m" if config.inverse_depth_loss else f"{p.loss * 1e3:.3f} mm"
+        bar.update(task, completed=p.fraction, epoch=p.epoch, loss=loss, a1=a1)
+
+    try:
+        result = train_model(config, progress_callback=on_progress)
+    finally:
+        bar.stop()
+    if result is None:  # a non-zero torchrun rank
+        return 0
+    console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))
+    console.print(f"model written to {result.model_dir} ({result.steps} steps, {result.train_s / 60:.1f} min training, "
+                  f"peak RSS {result.peak_rss_mb:.0f} MB)")
+    if args.json:
+        write_json(args.json, result.metrics)
+    return 0
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from trainer.evaluation import evaluate_model
+
+    result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
+    console = Console()
+    rows = {**result["per_object"], "all (vs ToF)": result}
+    if "vs_true" in result:
+        vs = result["vs_true"]
+        rows["ToF vs true"] = vs["tof"]
+        rows["model vs true, ToF px"] = vs["model_on_tof_valid"]
+        rows["model vs true, all px"] = vs["model"]
+        if vs["model_on_tof_dropout"]["n_images"]:
+            rows["model vs true, dropouts"] = vs["model_on_tof_dropout"]
+    console.print(metrics_table(f"{result['arch']} on {len(args.data)} session(s)", rows))
+    console.print(f"latency {result['latency_ms']:.2f} ms per frame (batch 1, {result['runtime']})")
+    if args.json:
+        write_json(args.json, result)
+    return 0

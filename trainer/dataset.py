@@ -1,0 +1,178 @@
+"""Training / evaluation frames loaded from session files into memory.
+
+``load_frames(paths)`` reads the contact frames (``press``, ``hold``) of every object and a
+share of the no-contact ``free`` frames through ``collect.session_reader.Session`` and keeps
+them at native size; ``to_network_tensors`` turns a subset into network inputs (normalized IR,
+depth, validity) at the network's input geometry. A calibration set (~2,500 frames of
+224 x 172) fits in memory easily.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from collect.errors import InputError
+from collect.session_reader import Session
+from trainer.preprocessing import InputGeometry, IRNormalization
+
+#: Phases whose frames show the membrane in contact (the training frames of the paper).
+CONTACT_PHASES = ("press", "hold")
+
+#: Free (no-contact) frames kept, as a fraction of the contact frames of a session.
+FREE_FRAME_FRACTION = 0.1
+
+
+@dataclass(frozen=True)
+class SessionSource:
+    """Provenance of the frames of one session file (recorded in model metadata)."""
+
+    path: str
+    sha256: str
+    sensor_serial: str
+    simulated: bool
+    n_frames: int  # frames taken from the file
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class FrameSet:
+    """Frames of one or more sessions, native size, in memory (N frames)."""
+
+    ir: np.ndarray  # (N,H,W) uint16 amplitude
+    depth: np.ndarray  # (N,H,W) float32 m ToF depth, 0 = invalid
+    true_depth: np.ndarray | None  # (N,H,W) float32 m, only when every session is simulated
+    session: np.ndarray  # (N,) int index into sources
+    object_name: np.ndarray  # (N,) str object pressed ("" for none)
+    pose_id: np.ndarray  # (N,) int32 contact pose within its session (-1 = none)
+    phase: np.ndarray  # (N,) str phase name
+    sources: list[SessionSource] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.ir.shape[0])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(height, width) of the frames."""
+        return int(self.ir.shape[1]), int(self.ir.shape[2])
+
+    def subset(self, idx: np.ndarray) -> "FrameSet":
+        """The frames ``idx`` ``(n,) int`` (same sources)."""
+        return FrameSet(
+            ir=self.ir[idx],
+            depth=self.depth[idx],
+            true_depth=None if self.true_depth is None else self.true_depth[idx],
+            session=self.session[idx],
+            object_name=self.object_name[idx],
+            pose_id=self.pose_id[idx],
+            phase=self.phase[idx],
+            sources=self.sources,
+        )
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _select_frames(s: Session, objects: list[str] | None, phases: tuple[str, ...], free_fraction: float, rng) -> np.ndarray:
+    names = [n for n in s.object_names if objects is None or n in objects]
+    if not names:
+        return np.zeros(0, dtype=np.int64)
+    contact = s.select(object=names, phase=list(phases))
+    free = s.select(object=names, phase="free")
+    n_free = min(len(free), int(round(free_fraction * len(contact))))
+    chosen_free = np.sort(rng.choice(free, size=n_free, replace=False)) if n_free else free[:0]
+    return np.union1d(contact, chosen_free)
+
+
+def load_frames(
+    paths: list[str | Path],
+    objects: list[str] | None = None,
+    phases: tuple[str, ...] = CONTACT_PHASES,
+    free_fraction: float = FREE_FRAME_FRACTION,
+    seed: int = 0,
+) -> FrameSet:
+    """Frames of ``paths`` in ``phases`` (plus ``free_fraction`` free frames) of ``objects`` (None = all).
+
+    Raises ``InputError`` for unreadable sessions, sessions of different frame sizes, unknown
+    objects (named in no session) and sessions without any matching frame.
+    """
+    if not paths:
+        raise InputError("no session files given")
+    rng = np.random.default_rng(seed)
+    parts: dict[str, list] = {k: [] for k in ("ir", "depth", "true", "session", "object", "pose", "phase")}
+    sources: list[SessionSource] = []
+    size = None
+    known_objects: set[str] = set()
+    for k, path in enumerate(paths):
+        with Session.open(path) as s:
+            if size is not None and (s.height, s.width) != size:
+                raise InputError(
+                    f"{path}: frames are {s.width}x{s.height}, other sessions are {size[1]}x{size[0]}"
+                )
+            size = (s.height, s.width)
+            known_objects.update(s.object_names)
+            idx = _select_frames(s, objects, phases, free_fraction, rng)
+            if len(idx) == 0:
+                continue
+            depth = s.depth_m(idx)
+            parts["ir"].append(s.ir(idx))
+            parts["depth"].append(depth)
+            parts["true"].append(s.true_depth(idx) if s.simulated else None)
+            parts["session"].append(np.full(len(idx), len(sources), dtype=np.int64))
+            names = np.array(s.object_names + [""], dtype=object)
+            parts["object"].append(names[s.object_index[idx]])
+            parts["pose"].append(s.pose_id[idx])
+            parts["phase"].append(np.asarray(s.phase_name(idx), dtype=object))
+            sources.append(SessionSource(str(path), file_sha256(path), s.sensor_serial, s.simulated, len(idx)))
+    if objects is not None:
+        unknown = sorted(set(objects) - known_objects)
+        if unknown:
+            raise InputError(f"unknown object {unknown[0]!r} (sessions hold: {', '.join(sorted(known_objects))})")
+    if not sources:
+        raise InputError(f"no {'/'.join(phases)} frames in {', '.join(str(p) for p in paths)}")
+    truths = parts["true"]
+    return FrameSet(
+        ir=np.concatenate(parts["ir"]),
+        depth=np.concatenate(parts["depth"]),
+        true_depth=None if any(t is None for t in truths) else np.concatenate(truths),
+        session=np.concatenate(parts["session"]),
+        object_name=np.concatenate(parts["object"]),
+        pose_id=np.concatenate(parts["pose"]),
+        phase=np.concatenate(parts["phase"]),
+        sources=sources,
+    )
+
+
+@dataclass
+class NetworkTensors:
+    """Frames at the network's input geometry (n frames, input size h x w)."""
+
+    x: torch.Tensor  # (n,1,h,w) float32 normalized IR, 0 in the padding
+    depth: torch.Tensor  # (n,1,h,w) float32 m ToF depth, 0 = invalid or padding
+    content: torch.Tensor  # (1,1,h,w) bool, True where the native frame lies in the input
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+
+def to_network_tensors(frames: FrameSet, geometry: InputGeometry, normalization: IRNormalization) -> NetworkTensors:
+    """Normalized, padded (and scaled, if the geometry says so) tensors of ``frames``."""
+    x = geometry.to_input(normalization.apply(frames.ir))
+    depth = geometry.to_input(frames.depth, nearest=True)
+    content = geometry.to_input(np.ones((1,) + frames.size, dtype=np.uint8), nearest=True).astype(bool)
+    return NetworkTensors(
+        x=torch.from_numpy(x[:, None]),
+        depth=torch.from_numpy(depth[:, None]),
+        content=torch.from_numpy(content[:, None]),
+    )

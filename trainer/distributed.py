@@ -1,0 +1,71 @@
+"""Distributed data-parallel training under ``torchrun`` (gloo on CPU, nccl on GPU).
+
+``torchrun --nproc_per_node 2 -m calibrate.cli train --data ... --out MODEL_DIR`` runs the same
+``bubble train`` entry in every process; ``DistContext.from_env()`` sees torchrun's environment
+(``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``, ``LOCAL_WORLD_SIZE``) and joins the process group.
+Rank 0 validates, checkpoints and writes the model directory; every rank trains on its own
+shard of each epoch's shuffled frames, and gradients are averaged by DDP.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+
+@dataclass(frozen=True)
+class DistContext:
+    """Where this process sits in the (possibly single-process) training job."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    local_world_size: int = 1
+    device: str = "cpu"
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @classmethod
+    def from_env(cls, prefer_cuda: bool = True) -> "DistContext":
+        """Single-process context, or join torchrun's process group when ``WORLD_SIZE > 1``."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        cuda = prefer_cuda and torch.cuda.is_available()
+        if world <= 1:
+            return cls(device="cuda" if cuda else "cpu")
+        rank = int(os.environ["RANK"])
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+        if not dist.is_initialized():
+            dist.init_process_group(backend="nccl" if cuda else "gloo")
+        if cuda:
+            torch.cuda.set_device(local_rank)
+        return cls(rank, world, local_rank, local_world, f"cuda:{local_rank}" if cuda else "cpu")
+
+    def cpu_threads(self) -> int:
+        """Torch intra-op threads for this process: the machine's cores shared by the local processes."""
+        return max(1, (os.cpu_count() or 1) // self.local_world_size)
+
+    def any_flags(self, *flags: bool) -> tuple[bool, ...]:
+        """Each flag made true on every rank when it is true on any rank (one all-reduce)."""
+        if not self.enabled:
+            return tuple(bool(f) for f in flags)
+        t = torch.tensor([1.0 if f else 0.0 for f in flags], device=self.device)
+        dist.all_reduce(t, op=dist.ReduceOp.MAX)
+        return tuple(bool(v > 0) for v in t.tolist())
+
+    def barrier(self) -> None:
+        if self.enabled:
+            dist.barrier()
+
+    def close(self) -> None:
+        if self.enabled and dist.is_initialized():
+            dist.destroy_process_group()

@@ -1,0 +1,39 @@
+"""Depth networks, one per module, built by architecture name.
+
+Every network maps normalized IR ``(N,1,H,W) float32`` (H, W multiples of 32) to metric depth
+``(N,1,H,W) float32 m`` strictly inside ``(min_depth, max_depth)``, and ends in a logit layer
+``to_logits`` followed by the ``head`` (``BoundedInverseDepth``).
+"""
+
+from __future__ import annotations
+
+from torch import nn
+
+from collect.errors import InputError
+from trainer.networks.bts import BTSDepth
+from trainer.networks.packnet import PackNetDepth
+from trainer.networks.resnet import ResNetDepth
+
+#: Architecture name -> network class ``cls(width, min_depth, max_depth)``.
+ARCHITECTURES: dict[str, type[nn.Module]] = {
+    "resnet": ResNetDepth,
+    "packnet": PackNetDepth,
+    "bts": BTSDepth,
+}
+
+#: Input height and width must be multiples of this (the encoders downsample 5 times).
+INPUT_MULTIPLE = 32
+
+
+def build_network(arch: str, width: float, min_depth: float, max_depth: float) -> nn.Module:
+    """A freshly initialized network of architecture ``arch`` (one of ``ARCHITECTURES``)."""
+    if arch not in ARCHITECTURES:
+        raise InputError(f"unknown architecture {arch!r}; choose one of {', '.join(ARCHITECTURES)}")
+    if not width > 0:
+        raise InputError(f"network width must be positive, got {width}")
+    return ARCHITECTURES[arch](width, min_depth, max_depth)
+
+
+def set_initial_depth(network: nn.Module, depth: float) -> None:
+    """Make a fresh ``network`` start by predicting ``depth`` (m) everywhere (bias of its logit layer)."""
+    network.head.init_bias(network.to_logits, depth)

@@ -1,0 +1,369 @@
+"""Training and fine-tuning: ``train_model(config, progress_callback, stop_event) -> TrainResult``.
+
+The paper's recipe (Adam, betas 0.9/0.999, lr 2e-4 halved after every 40 % of the run - the
+paper's 100 epochs with halvings at 40 and 80 -, L1 on valid pixels) with a budget in epochs or
+in minutes of training time, fitted to a CPU: the frames live in memory as tensors, batches are
+small, validation runs on a subsample every ``eval_interval_s`` seconds, and the loop checkpoints
+into the model directory so that ``resume`` continues an interrupted run. Under ``torchrun``
+the same loop runs data-parallel (``trainer.distributed``).
+
+Budget accounting: ``minutes`` counts training time only (validation and checkpoints excluded),
+so that curves of accuracy against minutes mean the same on every run.
+"""
+
+from __future__ import annotations
+
+import math
+import resource
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from collect.errors import InputError
+from trainer.augmentation import augment_ir
+from trainer.checkpoint import CHECKPOINT_STATE, CHECKPOINT_WEIGHTS, has_checkpoint, load_checkpoint, save_checkpoint
+from trainer.dataset import FrameSet, NetworkTensors, load_frames, to_network_tensors
+from trainer.distributed import DistContext
+from trainer.losses import masked_l1
+from trainer.metrics import depth_metrics
+from trainer.model_dir import ModelMetadata, load_network, resolve_model_dir, save_model
+from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, set_initial_depth
+from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
+from trainer.splits import split_holdout_object, split_in_class
+
+#: Default width multiplier per architecture: the widest whose deployed inference keeps >= 60 fps
+#: batch 1 at 224 x 224 on a 2-core CPU for ``resnet`` (see docs/bench_trainer.md).
+DEFAULT_WIDTHS = {"resnet": 0.375, "packnet": 0.25, "bts": 0.25}
+DEFAULT_ARCH = "resnet"
+#: Bubble depth range (m): the membrane lies 55-100 mm from the camera.
+DEFAULT_MIN_DEPTH = 0.04
+DEFAULT_MAX_DEPTH = 0.12
+#: Budget when neither epochs nor minutes are given (the product's fine-tuning promise).
+DEFAULT_MINUTES = 3.0
+#: The learning rate halves after every this fraction of the budget (paper: every 40 of 100 epochs).
+LR_HALVING_FRACTION = 0.4
+
+
+@dataclass
+class TrainConfig:
+    """Everything ``train_model`` needs. Paths are session files / the output model directory."""
+
+    data: list[str]
+    out: str
+    arch: str | None = None  # None: the init model's, else DEFAULT_ARCH
+    width: float | None = None  # None: the init model's, else DEFAULT_WIDTHS[arch]
+    init: str | None = None  # model directory (or "base") to fine-tune from
+    epochs: float | None = None
+    minutes: float | None = None  # training time budget; DEFAULT_MINUTES when neither is given
+    seed: int = 0
+    resume: bool = False
+    split: str = "poses"  # "frames" | "poses" (in-class 70/30), ignored with holdout_object / val_data
+    holdout_object: str | None = None
+    val_data: list[str] = field(default_factory=list)  # validate on these sessions instead of a split
+    objects: list[str] | None = None  # restrict training data to these objects
+    batch_size: int = 8
+    lr: float = 2e-4
+    inverse_depth_loss: bool = False
+    augment: bool = True
+    min_depth: float = DEFAULT_MIN_DEPTH
+    max_depth: float = DEFAULT_MAX_DEPTH
+    input_size: tuple[int, int] = DEFAULT_INPUT_SIZE
+    eval_interval_s: float = 20.0
+    eval_frames: int = 64  # validation frames used for the periodic (live) metrics
+    export_onnx: bool = True
+    threads: int | None = None  # torch CPU threads; None: the cores shared by local processes
+
+
+@dataclass
+class TrainProgress:
+    """A snapshot handed to ``progress_callback`` after every step and every validation."""
+
+    epoch: float  # fractional epochs done
+    step: int
+    loss: float  # running mean of the training loss (m, or 1/m for inverse-depth loss)
+    lr: float
+    train_s: float  # training time so far (s)
+    fraction: float  # share of the budget done, 0..1
+    eta_s: float | None  # estimated training time left (s)
+    val: dict | None = None  # latest periodic validation metrics (trainer.metrics keys)
+    event: str = "step"  # "step" | "eval" | "done"
+
+
+@dataclass
+class TrainResult:
+    model_dir: Path
+    metrics: dict  # final validation metrics on the whole validation split
+    history: list[dict]  # periodic validation: train_s, epoch, step, loss, metric keys
+    epochs: float
+    steps: int
+    train_s: float
+    stopped: bool  # True when stop_event ended the run before its budget
+    peak_rss_mb: float
+
+
+def _learning_rate(base_lr: float, fraction: float) -> float:
+    return base_lr * 0.5 ** math.floor(min(fraction, 0.999999) / LR_HALVING_FRACTION)
+
+
+def _peak_rss_mb() -> float:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
+
+
+def predict_tensors(network: nn.Module, x: torch.Tensor, device: str, batch_size: int = 16) -> np.ndarray:
+    """Depth ``(n,h,w) float32 m`` of network inputs ``x`` ``(n,1,h,w)`` in eval mode."""
+    was_training = network.training
+    network.eval()
+    out = []
+    with torch.inference_mode():
+        for start in range(0, len(x), batch_size):
+            out.append(network(x[start : start + batch_size].to(device)).cpu().numpy()[:, 0])
+    network.train(was_training)
+    return np.concatenate(out) if out else np.zeros((0,) + tuple(x.shape[-2:]), np.float32)
+
+
+def evaluate_tensors(network: nn.Module, tensors: NetworkTensors, device: str, min_depth: float, max_depth: float) -> dict:
+    """The paper's metrics of ``network`` against the ToF depth of ``tensors`` (padding ignored)."""
+    pred = predict_tensors(network, tensors.x, device)
+    return depth_metrics(pred, tensors.depth[:, 0].numpy(), min_depth=min_depth, max_depth=max_depth)
+
+
+def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, dict]:
+    if config.val_data:
+        val = load_frames(config.val_data, objects=config.objects, seed=config.seed)
+        return frames, val, {"kind": "sessions", "val_data": [str(p) for p in config.val_data]}
+    if config.holdout_object:
+        train_idx, val_idx = split_holdout_object(frames, config.holdout_object)
+        info = {"kind": "holdout-object", "object": config.holdout_object}
+    else:
+        train_idx, val_idx = split_in_class(frames, by=config.split, seed=config.seed)
+        info = {"kind": f"in-class-{config.split}", "train_fraction": 0.7, "seed": config.seed}
+    if len(train_idx) == 0 or len(val_idx) == 0:
+        raise InputError(f"the {info['kind']} split leaves no training or no validation frames; record more poses")
+    return frames.subset(train_idx), frames.subset(val_idx), info
+
+
+def _check_config(config: TrainConfig) -> None:
+    if config.epochs is not None and config.minutes is not None:
+        raise InputError("give either epochs or minutes, not both")
+    if config.epochs is not None and not config.epochs > 0:
+        raise InputError(f"epochs must be positive, got {config.epochs}")
+    if config.minutes is not None and not config.minutes > 0:
+        raise InputError(f"minutes must be positive, got {config.minutes}")
+    if config.batch_size < 1:
+        raise InputError(f"batch size must be at least 1, got {config.batch_size}")
+    h, w = config.input_size
+    if h % INPUT_MULTIPLE or w % INPUT_MULTIPLE:
+        raise InputError(f"input size {w}x{h} must be a multiple of {INPUT_MULTIPLE} in both directions")
+    if config.arch is not None and config.arch not in ARCHITECTURES:
+        raise InputError(f"unknown architecture {config.arch!r}; choose one of {', '.join(ARCHITECTURES)}")
+
+
+def _build(config: TrainConfig, frames: FrameSet) -> tuple[nn.Module, ModelMetadata, dict | None]:
+    """Network (fresh or from ``config.init``) and the metadata of the model being trained."""
+    init_info = None
+    if config.init:
+        network, init_meta = load_network(resolve_model_dir(config.init))
+        if config.arch is not None and config.arch != init_meta.arch:
+            raise InputError(f"--arch {config.arch} differs from the init model's architecture {init_meta.arch}")
+        if config.width is not None and config.width != init_meta.width:
+            raise InputError(f"width {config.width} differs from the init model's width {init_meta.width}")
+        arch, width = init_meta.arch, init_meta.width
+        min_depth, max_depth = init_meta.min_depth, init_meta.max_depth
+        input_size = (init_meta.geometry.input_height, init_meta.geometry.input_width)
+        init_info = {"model_dir": str(config.init), "metrics": init_meta.metrics,
+                     "sensor_serials": init_meta.training.get("sensor_serials", [])}
+        network.train()
+    else:
+        arch = config.arch or DEFAULT_ARCH
+        width = config.width if config.width is not None else DEFAULT_WIDTHS[arch]
+        min_depth, max_depth, input_size = config.min_depth, config.max_depth, tuple(config.input_size)
+        network = build_network(arch, width, min_depth, max_depth)
+        valid = frames.depth[(frames.depth > min_depth) & (frames.depth < max_depth)]
+        if valid.size:
+            set_initial_depth(network, float(np.median(valid)))
+    h, w = frames.size
+    geometry = InputGeometry(h, w, int(input_size[0]), int(input_size[1]))
+    metadata = ModelMetadata(
+        arch=arch,
+        width=width,
+        min_depth=min_depth,
+        max_depth=max_depth,
+        geometry=geometry,
+        normalization=IRNormalization.fit(frames.ir),
+    )
+    return network, metadata, init_info
+
+
+def train_model(
+    config: TrainConfig,
+    progress_callback: Callable[[TrainProgress], None] | None = None,
+    stop_event: threading.Event | None = None,
+) -> TrainResult | None:
+    """Train (or fine-tune) a depth network and write the model directory ``config.out``.
+
+    Returns the final validation metrics and the periodic validation history; the model
+    directory holds the weights, ``metadata.json`` (with those metrics) and, when
+    ``config.export_onnx``, ``model.onnx`` with the inference runtime chosen. ``stop_event``
+    ends training early (the model so far is still written). Raises ``InputError`` for bad
+    data or settings. Under torchrun only rank 0 returns a result (the others None).
+    """
+    _check_config(config)
+    ctx = DistContext.from_env()
+    torch.set_num_threads(config.threads or ctx.cpu_threads())
+    torch.manual_seed(config.seed)
+    out_dir = Path(config.out)
+
+    frames = load_frames(config.data, objects=config.objects, seed=config.seed)
+    train_frames, val_frames, split_info = _split(config, frames)
+    if val_frames.size != train_frames.size:
+        raise InputError(f"validation frames are {val_frames.size[1]}x{val_frames.size[0]}, training frames "
+                         f"{train_frames.size[1]}x{train_frames.size[0]}")
+    network, metadata, init_info = _build(config, train_frames)
+    train_t = to_network_tensors(train_frames, metadata.geometry, metadata.normalization)
+    val_t = to_network_tensors(val_frames, metadata.geometry, metadata.normalization)
+    live_idx = np.linspace(0, len(val_t) - 1, min(config.eval_frames, len(val_t))).round().astype(int)
+    live_val = NetworkTensors(val_t.x[live_idx], val_t.depth[live_idx], val_t.content)
+
+    network.to(ctx.device)
+    model: nn.Module = network
+    if ctx.enabled:
+        model = nn.parallel.DistributedDataParallel(network, device_ids=[ctx.local_rank] if ctx.device != "cpu" else None)
+    optimizer = torch.optim.Adam(network.parameters(), lr=config.lr, betas=(0.9, 0.999))
+
+    progress = {"epoch": 0.0, "step": 0, "train_s": 0.0, "history": [], "loss": float("nan")}
+    if config.resume and has_checkpoint(out_dir):
+        progress = load_checkpoint(out_dir, network, optimizer)
+        network.to(ctx.device)
+
+    minutes = DEFAULT_MINUTES if config.epochs is None and config.minutes is None else config.minutes
+    budget_s = None if minutes is None else 60.0 * minutes
+    n_per_rank = len(train_t) // ctx.world_size
+    if n_per_rank == 0:
+        raise InputError(f"{len(train_t)} training frames cannot be shared by {ctx.world_size} processes")
+    steps_per_epoch = math.ceil(n_per_rank / config.batch_size)
+
+    def fraction_done(epoch: float, train_s: float) -> float:
+        return train_s / budget_s if budget_s is not None else epoch / config.epochs
+
+    gen = torch.Generator().manual_seed(config.seed * 7919 + ctx.rank)
+    epoch_f, step, train_s = float(progress["epoch"]), int(progress["step"]), float(progress["train_s"])
+    history: list[dict] = list(progress["history"])
+    running = progress["loss"]
+    last_eval = time.perf_counter()
+    val_live: dict | None = history[-1] if history else None
+    stopped = False
+
+    def report(event: str) -> None:
+        if progress_callback is None or not ctx.is_main:
+            return
+        frac = min(1.0, fraction_done(epoch_f, train_s))
+        eta = train_s / frac * (1.0 - frac) if frac > 0 else None
+        progress_callback(TrainProgress(epoch_f, step, running, _learning_rate(config.lr, frac), train_s, frac, eta, val_live, event))
+
+    def validate_and_checkpoint() -> None:
+        nonlocal val_live
+        if ctx.is_main:
+            metrics = evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)
+            val_live = {"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running, **metrics}
+            history.append(val_live)
+            save_checkpoint(out_dir, network, optimizer,
+                            {"epoch": epoch_f, "step": step, "train_s": train_s, "history": history, "loss": running})
+            report("eval")
+        ctx.barrier()
+
+    model.train()
+    (done,) = ctx.any_flags(fraction_done(epoch_f, train_s) >= 1.0)
+    while not done:
+        epoch = int(epoch_f)
+        perm = torch.randperm(len(train_t), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
+        shard = perm[ctx.rank :: ctx.world_size][:n_per_rank]
+        first = int(round((epoch_f - epoch) * steps_per_epoch))
+        for b in range(first, steps_per_epoch):
+            t0 = time.perf_counter()
+            lr = _learning_rate(config.lr, fraction_done(epoch_f, train_s))
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            idx = shard[b * config.batch_size : (b + 1) * config.batch_size]
+            x = train_t.x[idx]
+            if config.augment:
+                x = augment_ir(x, train_t.content, metadata.normalization.std, gen)
+            target = train_t.depth[idx].to(ctx.device)
+            valid = (target > metadata.min_depth) & (target < metadata.max_depth)
+            loss = masked_l1(model(x.to(ctx.device)), target, valid, inverse=config.inverse_depth_loss)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            value = float(loss.detach())
+            running = value if not math.isfinite(running) else 0.9 * running + 0.1 * value
+            step += 1
+            epoch_f = epoch + (b + 1) / steps_per_epoch
+            train_s += time.perf_counter() - t0
+            report("step")
+            stop, over, eval_due = ctx.any_flags(
+                stop_event is not None and stop_event.is_set(),
+                fraction_done(epoch_f, train_s) >= 1.0,
+                time.perf_counter() - last_eval >= config.eval_interval_s,
+            )
+            if stop or over:
+                stopped = not over
+                done = True
+                break
+            if eval_due:
+                validate_and_checkpoint()
+                last_eval = time.perf_counter()
+        else:
+            epoch_f = float(epoch + 1)
+
+    result = None
+    if ctx.is_main:
+        metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
+        history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
+                        **evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)})
+        peak = _peak_rss_mb()
+        metadata.metrics = {**metrics, "split": split_info["kind"], "n_val_frames": len(val_t)}
+        metadata.training = {
+            "sources": [s.to_dict() for s in frames.sources],
+            "val_sources": [s.to_dict() for s in val_frames.sources] if config.val_data else [],
+            "sensor_serials": sorted({s.sensor_serial for s in frames.sources}),
+            "split": split_info,
+            "objects": sorted(set(train_frames.object_name) - {""}),
+            "n_train_frames": len(train_t),
+            "n_val_frames": len(val_t),
+            "init": init_info,
+            "epochs": epoch_f,
+            "steps": step,
+            "train_s": train_s,
+            "stopped_early": stopped,
+            "batch_size": config.batch_size * ctx.world_size,
+            "world_size": ctx.world_size,
+            "optimizer": {"name": "adam", "betas": [0.9, 0.999], "lr": config.lr,
+                          "lr_halving": f"x0.5 after every {int(LR_HALVING_FRACTION * 100)} % of the budget"},
+            "budget": {"epochs": config.epochs, "minutes": minutes},
+            "loss": "l1-inverse-depth" if config.inverse_depth_loss else "l1-depth",
+            "augment": config.augment,
+            "seed": config.seed,
+            "peak_rss_mb": peak,
+            "history": history,
+        }
+        save_model(out_dir, network.cpu(), metadata)
+        if config.export_onnx:
+            from trainer.onnx_export import export_and_select_runtime
+
+            export_and_select_runtime(out_dir)
+        for name in (CHECKPOINT_WEIGHTS, CHECKPOINT_STATE):
+            (out_dir / name).unlink(missing_ok=True)
+        result = TrainResult(out_dir, metadata.metrics, history, epoch_f, step, train_s, stopped, peak)
+        val_live = history[-1]
+        report("done")
+    ctx.barrier()
+    ctx.close()
+    return result
+
