@@ -76,7 +76,8 @@ class FramePoses:
     pose_id: int
     e_x_mm: float  # predicted vs measured, modulo the shape's symmetry
     e_theta: float
-    n_points: dict[str, int]  # per source
+    n_points: dict[str, int]  # per source, points kept by the fit
+    n_outliers: dict[str, int]  # per source, points the fit dropped as outliers
     rms_mm: dict[str, float]  # per source, RMS signed distance of the points at the fit
     poses: dict[str, list[float]]  # per source (+ "bench": the true pose from fixture and arm)
     #: simulated only: source -> {e_x_mm, e_theta} vs the true pose, modulo the shape's symmetry
@@ -259,6 +260,7 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
             frame=int(frame), pose_id=int(pose_ids[k]),
             **_errors(align_symmetry(shape, pred, meas), meas),
             n_points={s: f.n_points for s, f in fits.items()},
+            n_outliers={s: f.n_outliers for s, f in fits.items()},
             rms_mm={s: 1e3 * f.rms_m for s, f in fits.items()},
             poses={**{s: f.pose.theta().tolist() for s, f in fits.items()}, "bench": truth.theta().tolist()},
             vs_true={s: _errors(align_symmetry(shape, f.pose, truth), truth)
@@ -283,7 +285,8 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         vs_true=vs_true, frames=frames,
         settings={"threshold_m": threshold_m, "n_points": n_points, "prior_error_mm": prior_error_mm,
                   "prior_error_deg": prior_error_deg, "seed": seed,
-                  "prior_weight": fitter.prior_weight},
+                  "prior_weight": fitter.prior_weight, "outlier_k": fitter.outlier_k,
+                  "outlier_floor_m": fitter.outlier_floor_m},
     )
     if plots_dir is not None:
         write_histograms(result, plots_dir)

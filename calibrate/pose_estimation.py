@@ -345,18 +345,27 @@ def point_residuals(theta: np.ndarray, points: np.ndarray, shape: Shape,
 @dataclass(frozen=True)
 class FitResult:
     pose: Pose
-    rms_m: float  # root mean square signed distance of the points at the solution
-    n_points: int
+    rms_m: float  # root mean square signed distance of the points kept, at the solution
+    n_points: int  # points kept
+    n_outliers: int  # points dropped as outliers
     iterations: int  # Jacobian evaluations
     success: bool
 
 
 class ProximityPoseEstimator:
-    """Fits a shape's pose to contact points; one instance per shape, reused across frames."""
+    """Fits a shape's pose to contact points; one instance per shape, reused across frames.
+
+    After the first fit, points farther from the surface than ``outlier_k`` robust standard
+    deviations of the residuals (and than ``outlier_floor_m``) are dropped - ToF flying pixels,
+    membrane that bends in near the object without touching it - and the fit is refined from
+    there (``outlier_k = 0`` turns this off).
+    """
 
     def __init__(self, shape: Shape, prior_weight: float = 1e-2, norm_weight: float = 1.0,
-                 max_evaluations: int = 50):
+                 max_evaluations: int = 100, outlier_k: float = 3.0, outlier_floor_m: float = 3e-4):
         self.shape = shape
+        self.outlier_k = float(outlier_k)
+        self.outlier_floor_m = float(outlier_floor_m)
         self.prior_weight = float(prior_weight)
         self.norm_weight = float(norm_weight)
         self.max_evaluations = int(max_evaluations)
@@ -405,14 +414,30 @@ class ProximityPoseEstimator:
         x0 = (start or prior).theta()
         if x0[3:] @ theta_prior[3:] < 0:  # same hemisphere as the prior
             x0 = np.concatenate([x0[:3], -x0[3:]])
-        self._cache = None
-        sol = least_squares(self._residuals, x0, jac=self._jacobian, method="lm",
-                            args=(points, theta_prior), xtol=1e-10, ftol=1e-10,
-                            max_nfev=self.max_evaluations)
-        self._cache = None
+        sol = self._solve(x0, points, theta_prior)
+        evaluations = int(sol.njev or sol.nfev)
+        n_outliers = 0
+        if self.outlier_k > 0 and sol.status > 0:
+            r = sol.fun[: len(points)]
+            spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+            keep = np.abs(r) <= max(self.outlier_k * spread, self.outlier_floor_m)
+            if not keep.all() and keep.sum() >= MIN_POINTS:
+                n_outliers = int(len(points) - keep.sum())
+                points = points[keep]
+                sol = self._solve(sol.x, points, theta_prior)
+                evaluations += int(sol.njev or sol.nfev)
         q = sol.x[3:] / np.linalg.norm(sol.x[3:])
         if q[0] < 0:
             q = -q
         rms = float(np.sqrt(np.mean(sol.fun[: len(points)] ** 2)))
         return FitResult(pose=Pose(sol.x[:3].copy(), q), rms_m=rms, n_points=len(points),
-                         iterations=int(sol.njev or sol.nfev), success=bool(sol.status > 0))
+                         n_outliers=n_outliers, iterations=evaluations, success=bool(sol.status > 0))
+
+    def _solve(self, x0: np.ndarray, points: np.ndarray, theta_prior: np.ndarray):
+        self._cache = None
+        try:
+            return least_squares(self._residuals, x0, jac=self._jacobian, method="lm",
+                                 args=(points, theta_prior), xtol=1e-10, ftol=1e-10,
+                                 max_nfev=self.max_evaluations)
+        finally:
+            self._cache = None

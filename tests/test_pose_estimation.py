@@ -110,7 +110,7 @@ def test_fit_recovers_pose_from_perturbed_prior_with_noise():
                   true.position + [0.002, -0.0015, 0.002])
     assert position_error(prior, true) > 2.5e-3 and orientation_error(prior, true) > 1e-4
     fit = ProximityPoseEstimator(CYL).fit(points, prior)
-    assert fit.success and fit.n_points == 1500
+    assert fit.success and fit.n_points + fit.n_outliers == 1500 and fit.n_outliers < 10
     assert position_error(fit.pose, true) < 3e-4  # side + rim constrain all but the spin about the axis
     axis_true = quat_to_matrix(true.quaternion)[:, 2]
     axis_fit = quat_to_matrix(fit.pose.quaternion)[:, 2]
@@ -214,3 +214,17 @@ def test_align_symmetry_removes_spin_and_slide_only():
     assert abs(position_error(align_symmetry(CYL, off, true), true) - 0.002) < 1e-9
     grid_like = object()
     assert align_symmetry(grid_like, off, true) is off
+
+
+def test_outliers_are_dropped_and_the_fit_refined():
+    rng = np.random.default_rng(7)
+    true = _pose([0.3, -0.2, 0.5], [0.01, -0.02, 0.09])
+    obj = _side_and_rim_patch(rng)
+    obj[:60] *= [1.15, 1.15, 1.0]  # flying pixels: 6 mm off the side wall
+    points = obj @ quat_to_matrix(true.quaternion).T + true.position + rng.normal(0, 5e-5, obj.shape)
+    prior = _pose(Rotation.from_matrix(quat_to_matrix(true.quaternion)).as_rotvec() + [0.02, 0.0, -0.02],
+                  true.position + [0.001, 0.001, -0.001])
+    robust = ProximityPoseEstimator(CYL).fit(points, prior)
+    plain = ProximityPoseEstimator(CYL, outlier_k=0).fit(points, prior)
+    assert robust.n_outliers >= 60 and plain.n_outliers == 0
+    assert position_error(robust.pose, true) < 1e-4 < position_error(plain.pose, true)
