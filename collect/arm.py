@@ -192,6 +192,12 @@ class Arm:
         """The first fault the monitor recorded (sticky), or None."""
         return self._fault
 
+    def abort(self, fault: HardwareFault) -> None:
+        """Record ``fault`` from another device (camera stall, serial loss) and stop the arm: the
+        running motion raises it at its next sample (within 1/state_hz)."""
+        self._set_fault(fault)
+        self.stop()
+
     def check(self) -> None:
         """Raise the recorded fault, if any."""
         if self._fault is not None:

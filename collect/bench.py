@@ -174,6 +174,7 @@ class SimBenchConfig(BenchConfig):
         objects = _placed_objects(self.objects)
         limits = self.limits or workspace_limits(objects)
         scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed)
+        scene.start()
         firmware = PressureFirmware(scene, seed=self.seed)
         firmware.start()
         arm = Arm(FakeRTDEControl(scene.arm), FakeRTDEReceive(scene.arm), limits, settings=self.motion,
@@ -242,6 +243,8 @@ class Bench:
                 log.error("bench: error while closing: %s", err)
         if self._firmware is not None:
             self._firmware.stop()
+        if self.sim is not None:
+            self.sim.stop()
 
 
 @contextlib.contextmanager

@@ -1,7 +1,8 @@
 """Twin of the OAK ToF camera: frames rendered by the bubble simulator, delivered as depthai messages.
 
 ``SimCameraDevice`` plays the device: a thread renders frame ``k`` at simulated time
-``k / spec.fps`` (the TCP pose of that instant, the shared membrane solution, fresh sensor noise),
+``k / spec.fps`` from the bench's latest membrane solution (``SimBench.latest``: solved by the
+physics thread at most one frame period earlier) with fresh sensor noise,
 packs depth and amplitude into ``dai.ImgFrame`` messages (RAW16, device timestamp, host-synced
 timestamp, sequence number) and sends them into two non-blocking ``dai.MessageQueue`` objects,
 which drop the oldest message when full, as a device's output queues do.
@@ -81,9 +82,8 @@ class SimCameraDevice:
 
     def render(self, seq: int, t: float) -> tuple:
         """Depth and amplitude messages of frame ``seq`` at simulated time ``t``, and its true depth."""
-        scene = self.scene
-        state = scene.membrane(scene.tcp_pose(t), t, 0.0)
-        ir, depth = scene.sim.render(state, self._rng)
+        state = self.scene.latest().state
+        ir, depth = self.scene.sim.render(state, self._rng)
         t_device = t + self.boot_offset_s
         return (_img_frame(depth, seq, t_device, t), _img_frame(ir, seq, t_device, t),
                 np.asarray(state.true_depth, dtype=np.float32))

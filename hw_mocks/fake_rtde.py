@@ -136,23 +136,33 @@ class SimURController:
         with self._lock:
             return self._move.state(t)[0]
 
-    def _update(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """Advance to now: returns (t, pose (6,), velocity (6,), raw wrench (6,)); applies safety."""
+    def _freeze(self, t: float, pose: np.ndarray) -> None:
+        self._protective = True
+        self._move = _LinearMove(pose, pose, t, 1.0, 1.0)
+
+    def _update(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """Advance to now: returns (t, pose (6,), velocity (6,)); applies a scheduled protective stop."""
         with self._lock:
             t = self.scene.now()
             pose, _, velocity = self._move.state(t)
-            wrench = np.asarray(self.scene.wrench(pose, t), dtype=np.float64)
-            if not self._protective and (self.scene.fault_active("protective-stop", t)
-                                         or np.linalg.norm(wrench[:3]) > self.protective_force_n):
-                self._protective = True
-                self._move = _LinearMove(pose, pose, t, 1.0, 1.0)
+            if not self._protective and self.scene.fault_active("protective-stop", t):
+                self._freeze(t, pose)
                 velocity = np.zeros(6)
-            return t, pose, velocity, wrench
+            return t, pose, velocity
+
+    def _raw_wrench(self) -> np.ndarray:
+        """Raw wrench (6,) at the current pose; protective-stops above ``protective_force_n``."""
+        with self._lock:
+            t, pose, _ = self._update()
+            wrench = np.asarray(self.scene.wrench(pose, t), dtype=np.float64)
+            if not self._protective and np.linalg.norm(wrench[:3]) > self.protective_force_n:
+                self._freeze(t, pose)
+            return wrench
 
     # control side
     def move_linear(self, pose, speed: float, accel: float) -> bool:
         with self._lock:
-            t, current, _, _ = self._update()
+            t, current, _ = self._update()
             if self._protective:
                 return False
             self._move = _LinearMove(current, np.asarray(pose, dtype=np.float64), t, speed, accel)
@@ -175,13 +185,12 @@ class SimURController:
 
     def zero_ft(self) -> None:
         with self._lock:
-            self._ft_offset = self._update()[3].copy()
+            self._ft_offset = self._raw_wrench().copy()
 
     def trigger_protective_stop(self) -> None:
         with self._lock:
-            t, pose, _, _ = self._update()
-            self._protective = True
-            self._move = _LinearMove(pose, pose, t, 1.0, 1.0)
+            t, pose, _ = self._update()
+            self._freeze(t, pose)
 
     # receive side
     def tcp_pose(self) -> list[float]:
@@ -191,7 +200,7 @@ class SimURController:
         return self._update()[2].tolist()
 
     def tcp_force(self) -> list[float]:
-        return (self._update()[3] - self._ft_offset).tolist()
+        return (self._raw_wrench() - self._ft_offset).tolist()
 
     def protective_stopped(self) -> bool:
         self._update()

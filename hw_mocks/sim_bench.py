@@ -8,12 +8,17 @@
 * the membrane state cache, so that the twins share one physics solution;
 * the fault schedule (``--sim-fault KIND@SECONDS``).
 
-Physics budget: a solve + render costs up to ~10 ms, so the twins never solve per arm tick. The
-camera twin solves + renders once per frame (45 fps) at the TCP pose of the frame's timestamp;
-the arm (125-500 Hz state reads) and the pressure firmware (100 Hz) take the latest solution and
-re-solve only when it is older than ``ARM_MAX_AGE_S`` / ``PRESSURE_MAX_AGE_S`` and the pose moved,
-or older than ``REST_REFRESH_S`` (slow effects such as a leak). With the camera streaming, the
-arm's wrench therefore lags the pose by at most one frame (22 ms: 0.2 mm at a 10 mm/s press).
+Physics budget: a solve costs ~10-50 ms (more on a loaded machine), far too slow for the arm's
+125-500 Hz state reads, so nobody solves on demand. A physics thread (the "bubble") re-solves the
+membrane at most ``spec.fps`` times a second, when the pose moved (or every ``REST_REFRESH_S`` at
+rest, for slow effects such as a leak), at the pose the arm's planned trajectory reaches when the
+solve completes (look-ahead = the recent solve duration), so that its result is current rather
+than one solve old. Readers never block on it:
+* the camera twin renders each frame from the latest solution (its pose is at most one solve old);
+* the arm's wrench and the board's pressure are the latest solution extrapolated to the current
+  pose along the direction of motion (linear between the last two solutions, extrapolated at most
+  ``EXTRAPOLATE_MAX`` solve steps beyond), so a press ramps smoothly between solves, and a stop
+  short of the look-ahead pose interpolates back.
 """
 
 from __future__ import annotations
@@ -39,13 +44,15 @@ FAULT_DURATION_S = {
 }
 #: Force (N, base +z, i.e. pushing the sensor up) that ``force-spike`` adds to the wrench.
 FORCE_SPIKE_N = 80.0
-#: Cache policy of the shared membrane solution (s of simulated time), see the module doc.
-ARM_MAX_AGE_S = 0.02
-PRESSURE_MAX_AGE_S = 0.05
+#: Re-solve period at rest (s of simulated time), see the module doc.
 REST_REFRESH_S = 0.25
-#: Pose change (m, rad) below which a cached solution still counts as "at this pose".
+#: Pose change (m, rad) below which the latest solution still counts as "at this pose".
 POSE_TOL_M = 2e-5
 POSE_TOL_RAD = 2e-4
+#: Longest look-ahead (s) of a solve along the arm's planned trajectory.
+MAX_LOOKAHEAD_S = 0.1
+#: Farthest extrapolation of the wrench/pressure, in units of the last solve step.
+EXTRAPOLATE_MAX = 3.0
 
 
 @dataclass(frozen=True)
@@ -111,8 +118,10 @@ class SimClock:
         return not stop.wait(delay)
 
 
-@dataclass
-class _Cached:
+@dataclass(frozen=True)
+class _Solved:
+    """One membrane solution: TCP ``pose`` (6,), simulated time ``t`` s, ``MembraneState``."""
+
     pose: np.ndarray
     t: float
     state: object
@@ -141,8 +150,49 @@ class SimBench:
         self.sim = BubbleSim(spec, self.objects, seed)
         self.home_pose = np.asarray(default_home_pose(self.objects) if home_pose is None else home_pose, dtype=float)
         self._lock = threading.Lock()
-        self._cache: _Cached | None = None
         self.arm = SimURController(self, self.home_pose, protective_force_n)
+        self._solved: list[_Solved] = []  # the last two solutions, oldest first
+        self.solves = 0
+        self._lookahead_s = 0.0
+        self._solve_now()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Start the physics thread (idempotent)."""
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._physics, name="sim-physics", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the physics thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    def _solve_now(self) -> None:
+        """Solve at the pose the arm will have when the solve is done (``_lookahead_s`` ahead)."""
+        t0 = self.now()
+        t = t0 + self._lookahead_s
+        pose = self.arm.pose_at(t)
+        state = self.sim.solve(pose, t)
+        took = self.now() - t0
+        with self._lock:
+            self._solved = (self._solved + [_Solved(pose, t, state)])[-2:]
+            self.solves += 1
+            self._lookahead_s = min(0.7 * self._lookahead_s + 0.3 * took, MAX_LOOKAHEAD_S)
+
+    def _physics(self) -> None:
+        period = 1.0 / float(self.spec.fps)
+        t_next = self.now()
+        while self.clock.sleep_until(t_next, self._stop):
+            t = self.now()
+            last = self.latest()
+            if t - last.t >= REST_REFRESH_S or not _same_pose(last.pose, self.arm.pose_at(t + self._lookahead_s)):
+                self._solve_now()
+            t_next = max(t_next + period, self.now())
 
     def now(self) -> float:
         """Simulated time (s)."""
@@ -157,34 +207,36 @@ class SimBench:
         """TCP pose (6,) of the simulated arm at simulated time ``t`` (default: now)."""
         return self.arm.pose_at(self.now() if t is None else t)
 
-    def membrane(self, pose, t: float, max_age_s: float = 0.0):
-        """The bubble's ``MembraneState`` with the TCP at ``pose`` (6,) at time ``t``, shared by the twins.
-
-        Reuses the cached solution when it is at the same pose and younger than ``REST_REFRESH_S``,
-        or younger than ``max_age_s`` at any pose; otherwise solves (serialized: the solver warm-starts).
-        """
-        pose = np.asarray(pose, dtype=np.float64)
+    def latest(self) -> _Solved:
+        """The latest membrane solution (pose, t, state)."""
         with self._lock:
-            c = self._cache
-            if c is not None:
-                age = t - c.t
-                if age < max_age_s or (age < REST_REFRESH_S and _same_pose(c.pose, pose)):
-                    return c.state
-            state = self.sim.solve(pose, t)
-            if c is None or t >= c.t:
-                self._cache = _Cached(pose.copy(), t, state)
-            return state
+            return self._solved[-1]
+
+    def _extrapolated(self, pose, value) -> np.ndarray:
+        """``value(state)`` of the latest solution extrapolated to ``pose`` (6,) along the last step."""
+        with self._lock:
+            solved = list(self._solved)
+        v2 = np.asarray(value(solved[-1].state), dtype=np.float64)
+        if len(solved) < 2:
+            return v2
+        step = solved[-1].pose[:3] - solved[0].pose[:3]
+        norm2 = float(step @ step)
+        if norm2 < POSE_TOL_M ** 2:
+            return v2
+        s = float((np.asarray(pose, dtype=np.float64)[:3] - solved[-1].pose[:3]) @ step) / norm2
+        v1 = np.asarray(value(solved[0].state), dtype=np.float64)
+        return v2 + float(np.clip(s, -1.0, EXTRAPOLATE_MAX)) * (v2 - v1)
 
     def wrench(self, pose, t: float) -> np.ndarray:
         """Wrench (6,) N, N m on the sensor in the base frame at ``pose``, time ``t``, with any force spike."""
-        w = np.array(self.membrane(pose, t, ARM_MAX_AGE_S).wrench, dtype=np.float64)
+        w = self._extrapolated(pose, lambda st: st.wrench)
         if self.fault_active("force-spike", t):
             w[2] += FORCE_SPIKE_N
         return w
 
     def pressure_hpa(self, t: float) -> float:
         """Absolute bubble pressure (hPa) at time ``t`` with the TCP where the arm has it."""
-        return float(self.membrane(self.tcp_pose(t), t, PRESSURE_MAX_AGE_S).pressure_hpa)
+        return float(self._extrapolated(self.tcp_pose(t), lambda st: st.pressure_hpa))
 
 
 def default_home_pose(objects) -> np.ndarray:

@@ -1,0 +1,160 @@
+"""The simulated bench end to end: the three drivers against their twins, and every fault kind.
+
+Each test opens a real ``sim`` bench (BubbleSim scene, pty pressure firmware read by pyserial,
+ur_rtde-shaped arm twin, depthai-message camera twin) with one object, the box.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from collect.bench import BenchConfig, open_bench
+from collect.errors import HardwareFault, InputError
+from hw_mocks.sim_bench import FAULT_KINDS, SimFault, parse_sim_fault
+
+
+class _Recorder(threading.Thread):
+    """Consumes frames and checks the pressure board like the collection loop; a device fault
+    stops the arm through ``arm.abort``."""
+
+    def __init__(self, bench):
+        super().__init__(daemon=True)
+        self.bench = bench
+        self.frames = []
+        self.error: HardwareFault | None = None
+        self.halt = threading.Event()
+
+    def run(self):
+        try:
+            while not self.halt.is_set():
+                self.frames.append(self.bench.camera.get_frame())
+                self.bench.pressure.check()
+        except HardwareFault as err:
+            self.error = err
+            self.bench.arm.abort(err)
+
+
+def _press_cycle(bench, hold_s: float):
+    """Above the box top, approach, press to 4 N, hold. Returns the approach start pose (6,)."""
+    top = bench.objects[0].top_point()
+    above = np.array([top[0], top[1], top[2] + 0.006, np.pi, 0.0, 0.0])
+    bench.arm.move_to(above, 0.1, 0.5)
+    contact = bench.arm.move_until_contact(speed=0.01, force_threshold_n=0.4, max_travel_m=0.012)
+    assert contact is not None
+    bench.arm.press(force_n=4.0, speed=0.01)
+    bench.arm.hold(hold_s)
+    return above
+
+
+def _config(**kw):
+    return BenchConfig.create("sim", objects=("box",), seed=1, **kw)
+
+
+def test_sim_bench_streams_all_three_devices_through_the_real_driver_paths():
+    with open_bench(_config()) as bench:
+        assert bench.simulated and bench.sim is not None
+        assert bench.sensor_serial == bench.sim.spec.serial  # read from the board with ID?
+        assert bench.intrinsics == bench.sim.spec.intrinsics()
+        assert bench.pressure.firmware_version().startswith("bubble-pb")
+        bench.pressure.set_led(True)
+        rec = _Recorder(bench)
+        rec.start()
+        bench.pressure.drain()
+        bench.arm.drain_states()
+        t0 = bench.clock()
+        rest_hpa = bench.pressure.wait_reading().hpa
+        above = _press_cycle(bench, hold_s=0.3)
+        pressed = bench.arm.state()
+        pressed_hpa = bench.pressure.wait_reading().hpa
+        bench.arm.retract()
+        t1 = bench.clock()
+        rec.halt.set()
+        rec.join()
+        assert rec.error is None
+        states, readings = bench.arm.drain_states(), bench.pressure.drain()
+
+    frames = rec.frames
+    h, w = bench.intrinsics["height"], bench.intrinsics["width"]
+    assert len(frames) > 20
+    seq = np.array([f.seq for f in frames])
+    np.testing.assert_array_equal(np.diff(seq), 1)  # contiguous
+    t_dev = np.array([f.t_device for f in frames])
+    np.testing.assert_allclose(np.diff(t_dev), 1.0 / bench.sim.spec.fps, atol=2e-6)  # 45 fps device clock (us ticks)
+    for f in frames[:3]:
+        assert f.ir.shape == f.depth.shape == f.true_depth.shape == (h, w)
+        assert f.ir.dtype == f.depth.dtype == np.uint16 and f.true_depth.dtype == np.float32
+        assert 0.04 < np.median(f.depth[f.depth > 0]) * 1e-5 < 0.12  # membrane 40-120 mm away
+    # Arm: pressed down onto the box with ~4 N up on the sensor, then back to the approach pose.
+    assert 3.0 < pressed.tcp_wrench[2] < 8.0
+    assert pressed.tcp_pose[2] < above[2] - 0.006
+    np.testing.assert_allclose(states[-1].tcp_pose, above, atol=5e-4)
+    t_arm = np.array([s.t for s in states])
+    assert np.all(np.diff(t_arm) > 0) and len(states) / (t1 - t0) > 50
+    # Pressure: streamed on the board, rising with the dent.
+    assert len(readings) / (t1 - t0) > 50
+    assert pressed_hpa > rest_hpa + 1.0
+    assert bench.pressure.stats["bad_checksum"] == bench.pressure.stats["malformed"] == 0
+
+
+def test_parse_sim_fault():
+    assert parse_sim_fault("camera-stall@12.5") == SimFault("camera-stall", 12.5)
+    assert parse_sim_fault(" force-spike@3 ").at_s == 3.0
+    for bad in ("camera-stall", "camera-stall@", "melt@3", "force-spike@-1", "x@y", ""):
+        with pytest.raises(InputError):
+            parse_sim_fault(bad)
+    with pytest.raises(InputError):
+        BenchConfig.create("sim", faults=("bogus@1",)).open()
+    with pytest.raises(InputError):
+        BenchConfig.create("nope")
+
+
+#: When each fault strikes (s of simulated time): during the hold of the first press.
+FAULT_AT_S = 1.6
+
+
+@pytest.mark.parametrize("kind", [k for k in FAULT_KINDS if k != "serial-garbage"])
+def test_fault_is_detected_and_the_arm_stops_and_retracts(kind):
+    with open_bench(_config(faults=(f"{kind}@{FAULT_AT_S}",))) as bench:
+        rec = _Recorder(bench)
+        rec.start()
+        with pytest.raises(HardwareFault) as err:
+            _press_cycle(bench, hold_s=3.0)
+        t_detect = bench.clock()
+        assert err.value.kind == kind
+        assert t_detect - FAULT_AT_S < 1.0  # bounded detection (camera: silent > 0.5 s)
+        retracted = bench.safe_stop()
+        rec.halt.set()
+        rec.join()
+        time.sleep(0.1)  # the last millimetre of the retract's braking ramp
+        state = bench.arm.state()
+        assert np.linalg.norm(bench.sim.arm.tcp_speed()[:3]) == 0.0  # at rest
+        top = bench.objects[0].top_point()
+        if kind == "protective-stop":
+            assert not retracted  # a protective stop holds the arm until the operator clears it
+            assert bench.sim.arm.protective_stopped()
+            assert not bench.sim.arm.move_linear(state.tcp_pose + [0, 0, 0.01, 0, 0, 0], 0.05, 0.5)
+        else:
+            assert retracted
+            assert state.tcp_pose[2] == pytest.approx(top[2] + 0.006, abs=5e-4)  # back at the approach pose
+            assert abs(state.tcp_wrench[2]) < 1.0 or kind == "force-spike"
+
+
+def test_serial_garbage_is_survived_and_logged(caplog):
+    with open_bench(_config(faults=(f"serial-garbage@{FAULT_AT_S}",))) as bench:
+        rec = _Recorder(bench)
+        rec.start()
+        _press_cycle(bench, hold_s=max(0.0, FAULT_AT_S + 0.6 - bench.clock()))
+        bench.arm.retract()
+        rec.halt.set()
+        rec.join()
+        assert rec.error is None
+        bench.check()
+        stats = bench.pressure.stats
+        assert stats["bad_checksum"] + stats["malformed"] > 5 and stats["seq_gaps"] > 5
+        after = [r for r in bench.pressure.drain() if r.t > FAULT_AT_S + 0.35]
+        assert len(after) > 5  # readings resumed
+    assert "corrupt data" in caplog.text and "recovered" in caplog.text

@@ -1,0 +1,141 @@
+"""Pressure board driver over real pyserial on a real pty: protocol, garbage, timeouts, unplug."""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import time
+import tty
+
+import numpy as np
+import pytest
+
+from collect.errors import HardwareFault
+from collect.pressure_board import PressureBoard, checksum, decode_line, encode_line
+
+
+@pytest.fixture
+def pty_board():
+    """A ``PressureBoard`` on the slave of a fresh pty; the test plays the board on the master fd."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    fcntl.fcntl(master, fcntl.F_SETFL, fcntl.fcntl(master, fcntl.F_GETFL) | os.O_NONBLOCK)
+    board = PressureBoard(os.ttyname(slave), stale_timeout_s=0.3)
+    board.open()
+    yield board, master
+    board.close()
+    for fd in (master, slave):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+def _wait(predicate, timeout_s=2.0):
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def test_line_encoding_round_trip_and_checksum():
+    line = encode_line("P,42,1065.31")
+    assert line.endswith(b"\r\n")
+    assert line == b"P,42,1065.31*" + checksum(b"P,42,1065.31").encode() + b"\r\n"
+    assert decode_line(line.rstrip(b"\r\n")) == ["P", "42", "1065.31"]
+    corrupted = line.replace(b"1065", b"1066").rstrip(b"\r\n")
+    assert decode_line(corrupted) is None
+    assert decode_line(b"P,42,1065.31") is None
+    assert decode_line(b"\xff\xfe*00") is None
+
+
+def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_board):
+    board, master = pty_board
+    rng = np.random.default_rng(3)
+    sent = 0
+    for seq in range(200):
+        if seq % 10 == 3:
+            os.write(master, rng.integers(0, 256, size=int(rng.integers(1, 300)), dtype=np.uint8).tobytes())
+        if seq % 10 == 5:
+            os.write(master, b"P,999,1000.00*00\r\n")  # wrong checksum
+        if seq % 10 == 7:
+            os.write(master, encode_line(f"P,{seq},1.0")[:7])  # truncated, joins the next line
+        if seq % 10 == 8:
+            os.write(master, b"\n" + b"A" * 500 + b"\r\n")  # over-long line
+        os.write(master, encode_line(f"P,{seq},{1060 + seq * 0.01:.2f}"))
+        sent += 1
+        time.sleep(0.0005)
+    assert _wait(lambda: board.latest() is not None and board.latest().seq == 199)
+    readings = board.drain()
+    board.check()  # no fault: garbage is recoverable
+    good = [r for r in readings if r.hpa > 1000]
+    # Lines right after random garbage or a truncated line may be eaten; every other one arrives intact.
+    assert len(good) >= sent - 2 * 20 - 5
+    assert all(r.hpa == pytest.approx(1060 + r.seq * 0.01) for r in good)
+    assert board.stats["bad_checksum"] + board.stats["malformed"] >= 20
+    assert board.stats["overlong"] >= 1
+    assert [r.seq for r in good] == sorted(r.seq for r in good)
+
+
+def test_command_replies_errors_and_timeouts(pty_board):
+    board, master = pty_board
+
+    def answer(reply: bytes, expect: bytes):
+        t_end = time.monotonic() + 2.0
+        buf = b""
+        while expect not in buf and time.monotonic() < t_end:
+            try:
+                buf += os.read(master, 64)
+            except BlockingIOError:
+                time.sleep(0.002)
+        assert expect in buf
+        os.write(master, encode_line("P,1,1000.00") + reply)
+
+    import threading
+
+    th = threading.Thread(target=answer, args=(encode_line("ID,BB-0042"), b"ID?\n"))
+    th.start()
+    assert board.identify() == "BB-0042"
+    th.join()
+    th = threading.Thread(target=answer, args=(encode_line("ERR,unknown command LED 7"), b"LED 1\n"))
+    th.start()
+    with pytest.raises(HardwareFault) as err:
+        board.set_led(True)
+    th.join()
+    assert err.value.kind == "serial-protocol"
+    with pytest.raises(HardwareFault) as err:
+        board.command("VER?", "VER", timeout_s=0.1)
+    assert err.value.kind == "serial-timeout"
+
+
+def test_silence_is_a_timeout_fault(pty_board):
+    board, master = pty_board
+    os.write(master, encode_line("P,0,1000.00"))
+    assert _wait(lambda: board.latest() is not None)
+    board.check()
+    time.sleep(0.4)
+    with pytest.raises(HardwareFault) as err:
+        board.check()
+    assert err.value.kind == "serial-timeout"
+
+
+def test_unplug_is_detected(pty_board):
+    board, master = pty_board
+    os.write(master, encode_line("P,0,1000.00"))
+    assert _wait(lambda: board.latest() is not None)
+    os.close(master)
+    t0 = time.monotonic()
+    with pytest.raises(HardwareFault) as err:
+        while time.monotonic() - t0 < 1.0:
+            board.check()
+            time.sleep(0.005)
+    assert err.value.kind == "serial-unplug"
+    assert time.monotonic() - t0 < 0.25  # detected well before the stale timeout
+
+
+def test_missing_port_is_a_fault():
+    with pytest.raises(HardwareFault) as err:
+        PressureBoard("/dev/does-not-exist-bubble").open()
+    assert err.value.kind == "serial-missing"

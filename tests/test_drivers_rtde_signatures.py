@@ -1,0 +1,158 @@
+"""The arm twin must keep the installed ur_rtde's method names, argument orders and defaults.
+
+Signatures come from the pybind11 docstrings of ``rtde_control.RTDEControlInterface`` and
+``rtde_receive.RTDEReceiveInterface`` (no robot is contacted: the classes are only inspected).
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+
+import numpy as np
+import pytest
+import rtde_control
+import rtde_receive
+
+from collect.arm import Arm
+from collect.safety import SafetyLimits
+from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
+from hw_mocks.sim_bench import SimClock
+
+
+def _split_top_level(text: str) -> list[str]:
+    """Split ``text`` at commas outside brackets and angle brackets."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(text):
+        if ch in "[(<{":
+            depth += 1
+        elif ch in "])>}":
+            depth -= 1
+        elif ch == "," and depth == 0:
+            parts.append(text[start:i].strip())
+            start = i + 1
+    if text[start:].strip():
+        parts.append(text[start:].strip())
+    return parts
+
+
+def real_signatures(cls, name: str) -> list[list[tuple[str, object]]]:
+    """Overloads of ``cls.name`` as lists of (parameter, default or inspect._empty), without self."""
+    doc = getattr(cls, name).__doc__ or ""
+    overloads = []
+    for line in doc.splitlines():
+        line = line.strip()
+        line = line.split(". ", 1)[1] if line[:1].isdigit() and ". " in line else line
+        if not line.startswith(f"{name}(self"):
+            continue
+        inner = line[len(name) + 1: line.rindex(") ->")]
+        params = []
+        for part in _split_top_level(inner)[1:]:
+            pname, _, rest = part.partition(":")
+            default = inspect.Parameter.empty
+            if " = " in rest:
+                text = rest.split(" = ", 1)[1]
+                try:
+                    default = ast.literal_eval(text)
+                except (ValueError, SyntaxError):
+                    default = text
+            params.append((pname.strip(), default))
+        overloads.append(params)
+    return overloads
+
+
+def twin_signature(cls, name: str) -> list[tuple[str, object]]:
+    sig = inspect.signature(getattr(cls, name))
+    return [(p.name, p.default) for p in list(sig.parameters.values())[1:]]
+
+
+def _public_methods(cls) -> list[str]:
+    return [n for n, v in vars(cls).items() if callable(v) and not n.startswith("_")]
+
+
+def test_signature_parser_reads_pybind_overloads():
+    overloads = real_signatures(rtde_control.RTDEControlInterface, "moveL")
+    assert [("pose", inspect.Parameter.empty), ("speed", 0.25), ("acceleration", 1.2),
+            ("asynchronous", False)] in overloads
+    assert len(overloads) == 2
+
+
+@pytest.mark.parametrize("twin, real", [(FakeRTDEControl, rtde_control.RTDEControlInterface),
+                                        (FakeRTDEReceive, rtde_receive.RTDEReceiveInterface)])
+def test_twin_methods_match_installed_ur_rtde(twin, real):
+    methods = _public_methods(twin)
+    assert len(methods) >= 7
+    for name in methods:
+        assert hasattr(real, name), f"{twin.__name__}.{name} does not exist in {real.__name__}"
+        overloads = real_signatures(real, name)
+        assert overloads, f"no signature found in the docstring of {real.__name__}.{name}"
+        assert twin_signature(twin, name) in overloads, (
+            f"{twin.__name__}.{name}{twin_signature(twin, name)} drifted from {real.__name__}: {overloads}")
+
+
+class _Recorder:
+    """Wraps an RTDE twin and records every method call the driver makes."""
+
+    def __init__(self, inner, calls: list):
+        self._inner, self._calls = inner, calls
+
+    def __getattr__(self, name):
+        method = getattr(self._inner, name)
+
+        def call(*args, **kwargs):
+            self._calls.append((type(self._inner), name, args, kwargs))
+            return method(*args, **kwargs)
+
+        return call
+
+
+class _FlatFloor:
+    """A scene whose only object is a stiff floor at z = 0.1 m (1 N/mm), to exercise the motions."""
+
+    def __init__(self):
+        self.clock = SimClock()
+
+    def now(self):
+        return self.clock.now()
+
+    def fault_active(self, kind, t=None):
+        return False
+
+    def wrench(self, pose, t):
+        w = np.zeros(6)
+        w[2] = 1000.0 * max(0.0, 0.1 - pose[2])
+        return w
+
+
+def test_every_call_of_the_driver_binds_to_the_real_ur_rtde_signature():
+    calls: list = []
+    controller = SimURController(_FlatFloor(), [0.4, 0.0, 0.11, np.pi, 0.0, 0.0])
+    arm = Arm(_Recorder(FakeRTDEControl(controller), calls), _Recorder(FakeRTDEReceive(controller), calls),
+              SafetyLimits(), state_hz=250)
+    try:
+        arm.move_to([0.4, 0.0, 0.105, np.pi, 0.0, 0.0], 0.05, 0.5)
+        assert arm.move_until_contact(speed=0.02, force_threshold_n=0.5) is not None
+        arm.press(force_n=3.0)
+        arm.hold(0.05)
+        arm.retract()
+        arm.stop()
+    finally:
+        arm.close()
+    real = {FakeRTDEControl: rtde_control.RTDEControlInterface, FakeRTDEReceive: rtde_receive.RTDEReceiveInterface}
+    used = set()
+    for twin_cls, name, args, kwargs in calls:
+        used.add(name)
+        overloads = real_signatures(real[twin_cls], name)
+        bound = False
+        for params in overloads:
+            sig = inspect.Signature([inspect.Parameter(p, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=d)
+                                     for p, d in params])
+            try:
+                sig.bind(*args, **kwargs)
+                bound = True
+            except TypeError:
+                continue
+            if name == "moveL":  # the pose overload: 6 floats, then speed, acceleration, asynchronous
+                assert len(args[0]) == 6 and all(isinstance(v, float) for v in args[0])
+        assert bound, f"driver called {name}{args} which binds to no overload of {real[twin_cls].__name__}.{name}"
+    assert {"moveL", "stopL", "zeroFtSensor", "getActualTCPPose", "getActualTCPForce", "isProtectiveStopped"} <= used

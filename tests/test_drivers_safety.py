@@ -1,0 +1,105 @@
+"""Safety limits reject bad motion requests before anything is sent to the robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from collect.arm import Arm
+from collect.errors import InputError
+from collect.safety import SafetyLimits, SafetyViolation, tilt_deg
+from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
+from hw_mocks.sim_bench import SimClock
+
+DOWN = [np.pi, 0.0, 0.0]
+LIMITS = SafetyLimits(workspace_min=(0.2, -0.3, 0.05), workspace_max=(0.7, 0.3, 0.4), max_speed_m_s=0.1,
+                      max_accel_m_s2=0.5, force_limit_n=20.0, max_tilt_deg=20.0)
+
+
+def test_limits_accept_a_good_move_and_reject_each_kind_of_violation():
+    assert LIMITS.check_move([0.4, 0.0, 0.2, *DOWN], 0.05, 0.3).shape == (6,)
+    bad = {
+        "outside": ([0.4, 0.0, 0.01, *DOWN], 0.05, 0.3),
+        "outside x": ([0.9, 0.0, 0.2, *DOWN], 0.05, 0.3),
+        "too fast": ([0.4, 0.0, 0.2, *DOWN], 0.5, 0.3),
+        "too hard accel": ([0.4, 0.0, 0.2, *DOWN], 0.05, 2.0),
+        "tilted": ([0.4, 0.0, 0.2, np.pi * 0.7, 0.0, 0.0], 0.05, 0.3),
+        "nan": ([0.4, np.nan, 0.2, *DOWN], 0.05, 0.3),
+        "short": ([0.4, 0.0, 0.2], 0.05, 0.3),
+    }
+    for name, (pose, v, a) in bad.items():
+        with pytest.raises(SafetyViolation):
+            LIMITS.check_move(pose, v, a)
+    with pytest.raises(SafetyViolation):
+        LIMITS.check_force(25.0)
+    assert issubclass(SafetyViolation, InputError)  # reported as bad input: exit 2, one line
+
+
+def test_tilt_is_measured_from_straight_down():
+    assert tilt_deg([0, 0, 0, *DOWN]) == pytest.approx(0.0, abs=1e-9)
+    assert tilt_deg([0, 0, 0, 0.0, 0.0, 0.0]) == pytest.approx(180.0)
+    from scipy.spatial.transform import Rotation
+
+    tilted = (Rotation.from_rotvec(DOWN) * Rotation.from_euler("y", 12.0, degrees=True)).as_rotvec()
+    assert tilt_deg([0, 0, 0, *tilted]) == pytest.approx(12.0)
+
+
+def test_bad_limit_values_are_input_errors():
+    with pytest.raises(InputError):
+        SafetyLimits(workspace_min=(0, 0, 1), workspace_max=(1, 1, 0.5))
+    with pytest.raises(InputError):
+        SafetyLimits(force_limit_n=-1.0)
+
+
+class _Still:
+    """A scene with nothing to touch."""
+
+    def __init__(self):
+        self.clock = SimClock()
+
+    def now(self):
+        return self.clock.now()
+
+    def fault_active(self, kind, t=None):
+        return False
+
+    def wrench(self, pose, t):
+        return np.zeros(6)
+
+
+class _CountingControl(FakeRTDEControl):
+    def __init__(self, controller):
+        super().__init__(controller)
+        self.moves = 0
+
+    def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
+        self.moves += 1
+        return super().moveL(pose, speed, acceleration, asynchronous)
+
+
+def test_arm_rejects_unsafe_requests_before_sending_any_motion():
+    start = [0.4, 0.0, 0.2, *DOWN]
+    controller = SimURController(_Still(), start)
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, state_hz=200)
+    try:
+        with pytest.raises(SafetyViolation):
+            arm.move_to([0.4, 0.0, 0.0, *DOWN])  # below the box
+        with pytest.raises(SafetyViolation):
+            arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.2)  # over the speed cap
+        with pytest.raises(SafetyViolation):
+            arm.press(force_n=30.0)  # over the force limit
+        with pytest.raises(SafetyViolation):
+            arm.move_until_contact(force_threshold_n=50.0)
+        with pytest.raises(SafetyViolation):
+            arm.move_until_contact(max_travel_m=0.2)  # would end below the box
+        with pytest.raises(InputError):
+            arm.press(depth_m=0.05)  # deeper than the press cap
+        with pytest.raises(InputError):
+            arm.press()
+        assert control.moves == 0
+        np.testing.assert_allclose(arm.state().tcp_pose, start, atol=1e-9)
+        arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
+        assert control.moves == 1
+    finally:
+        arm.close()
