@@ -76,6 +76,41 @@ class BenchConfig:
         except TypeError as err:
             raise InputError(f"bench '{type_name}': {err}") from None
 
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "bench config") -> "BenchConfig":
+        """A config from a plain mapping with ``type`` plus the fields of that type; ``limits`` and
+        ``motion`` are mappings of ``SafetyLimits`` / ``MotionSettings`` fields. ``InputError`` if bad."""
+        if not isinstance(data, dict) or "type" not in data:
+            raise InputError(f"{source}: expected a mapping with 'type' ({', '.join(cls._registry)})")
+        kwargs = dict(data)
+        type_name = str(kwargs.pop("type"))
+        for key, sub in (("limits", SafetyLimits), ("motion", MotionSettings)):
+            if key in kwargs and kwargs[key] is not None:
+                if not isinstance(kwargs[key], dict):
+                    raise InputError(f"{source}: '{key}' must be a mapping of {sub.__name__} fields")
+                try:
+                    kwargs[key] = sub(**{k: tuple(v) if isinstance(v, list) else v for k, v in kwargs[key].items()})
+                except TypeError as err:
+                    raise InputError(f"{source}: {key}: {err}") from None
+        for key, value in kwargs.items():
+            if isinstance(value, list):
+                kwargs[key] = tuple(value)
+        return cls.create(type_name, **kwargs)
+
+    @classmethod
+    def from_yaml(cls, path) -> "BenchConfig":
+        """Read a config YAML file (see ``from_dict``); ``InputError`` for a missing or bad file."""
+        import yaml
+
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except OSError as err:
+            raise InputError(f"cannot read bench config {path}: {err.strerror}") from None
+        except yaml.YAMLError as err:
+            raise InputError(f"bench config {path} is not valid YAML: {str(err).splitlines()[0]}") from None
+        return cls.from_dict(data, source=f"bench config {path}")
+
     def open(self) -> "Bench":
         """Open every device of this bench (overridden per type)."""
         raise NotImplementedError(f"bench type '{self.type}' cannot be opened")

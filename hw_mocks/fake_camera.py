@@ -20,12 +20,16 @@ from __future__ import annotations
 import collections
 import dataclasses
 import datetime
+import os
 import threading
 
 import numpy as np
 
 from collect.camera import CameraFrame, QueueToFCamera, STALL_TIMEOUT_S
 from collect.session_format import DEPTH_UNIT_M
+
+# depthai warns at import that no USB device can be reached: irrelevant for the simulated device.
+os.environ.setdefault("DEPTHAI_LEVEL", "error")
 
 QUEUE_SIZE = 8
 #: How many recent frames' true depth the device keeps for the camera to attach.

@@ -158,3 +158,31 @@ def test_serial_garbage_is_survived_and_logged(caplog):
         after = [r for r in bench.pressure.drain() if r.t > FAULT_AT_S + 0.35]
         assert len(after) > 5  # readings resumed
     assert "corrupt data" in caplog.text and "recovered" in caplog.text
+
+
+def test_bench_config_yaml_round_trip_and_errors(tmp_path):
+    good = tmp_path / "bench.yaml"
+    good.write_text(
+        "type: ur\nrobot_ip: 192.168.1.10\nserial_port: /dev/ttyACM1\nhome_pose: [0.45, 0.0, 0.2, 3.14159, 0, 0]\n"
+        "limits: {workspace_min: [0.2, -0.4, 0.01], workspace_max: [0.7, 0.4, 0.4], force_limit_n: 20}\n"
+        "motion: {approach_speed: 0.01}\n")
+    config = BenchConfig.from_yaml(good)
+    assert config.type == "ur" and config.robot_ip == "192.168.1.10" and config.serial_port == "/dev/ttyACM1"
+    assert config.limits.force_limit_n == 20 and config.limits.workspace_min == (0.2, -0.4, 0.01)
+    assert config.motion.approach_speed == 0.01 and config.home_pose[0] == 0.45
+    bad = {
+        "missing.yaml": None,
+        "syntax.yaml": "type: ur\nrobot_ip: [unclosed\n",
+        "notype.yaml": "robot_ip: 1.2.3.4\n",
+        "unknown.yaml": "type: ur\nwarp_drive: true\n",
+        "badlimits.yaml": "type: sim\nlimits: {force_limit_n: -3}\n",
+        "badtype.yaml": "type: kuka\n",
+    }
+    for name, text in bad.items():
+        path = tmp_path / name
+        if text is not None:
+            path.write_text(text)
+        with pytest.raises(InputError):
+            BenchConfig.from_yaml(path)
+    with pytest.raises(InputError):
+        BenchConfig.create("ur").open()  # no robot_ip: refused before any connection attempt
