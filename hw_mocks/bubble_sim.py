@@ -107,6 +107,8 @@ class BubbleSim:
             spec.rest_pressure_pa,
         )
         self._m_phys = self.solver.mask
+        #: no membrane point is farther than this from the TCP (m), even pressed or bulging.
+        self._reach_m = float(np.linalg.norm([spec.dome_semi_x_m, spec.dome_semi_y_m, spec.dome_height_m])) + 0.05
         self._n0_phys = self.dome.rest_normals(self.physics, np.where(m_phys, d_phys, 1.0))
         uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         self._map_x, self._map_y = self.physics.coords_of(uu, vv)
@@ -140,7 +142,11 @@ class BubbleSim:
         base_from_cam = pose_to_matrix(tcp_pose) @ self.dome.tcp_from_cam
         nearest = np.full(self.physics.shape, np.inf)
         which = np.full(self.physics.shape, -1, dtype=np.int16)
+        tcp = np.asarray(tcp_pose[:3])
         for k, obj in enumerate(self.objects):
+            lo, hi = obj.bounds_base()
+            if np.linalg.norm(tcp - np.clip(tcp, lo, hi)) > self._reach_m:
+                continue  # the object is out of the bubble's reach
             obj_from_cam = invert(obj.object_to_base()) @ base_from_cam
             d = object_depth(obj.heightmap, obj_from_cam, self.physics.rays, self._d_phys)
             closer = d < nearest
@@ -238,16 +244,18 @@ class BubbleSim:
     def clean_amplitude(self, state: MembraneState) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free amplitude ``(H,W) float32`` and incidence cosines ``(H,W) float32``."""
         depth = np.where(self.membrane_mask, state.true_depth, self.housing_depth)
-        points = self._rays32 * depth[..., None]
-        incidence = surface_incidence(points)
-        albedo = cv2.remap(
+        incidence = surface_incidence(depth, self._rays32, self.spec.fx, self.spec.fy)
+        return self.ir.clean(depth, self.membrane_albedo(state), incidence, self.membrane_mask), incidence
+
+    def membrane_albedo(self, state: MembraneState) -> np.ndarray:
+        """``(H,W) float32`` albedo seen at each pixel: the printed pattern moved by the material flow."""
+        return cv2.remap(
             self.texture,
             self._pix_u - state.material_flow[..., 0],
             self._pix_v - state.material_flow[..., 1],
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REPLICATE,
         )
-        return self.ir.clean(depth, albedo, incidence, self.membrane_mask), incidence
 
     def frame(self, tcp_pose, t: float = 0.0, rng: np.random.Generator | None = None) -> SimFrame:
         """``solve`` + ``render`` (noise from ``rng``, or the simulator's own seeded generator)."""

@@ -17,7 +17,8 @@ from hw_mocks.sensor_spec import SensorSpec
 
 
 def dot_centres(spec: SensorSpec) -> np.ndarray:
-    """``(N,2) float64 m``: dot centres (TCP-frame x, y) inside the rim; empty without dots."""
+    """``(N,2) float64 m``: dot centres (TCP-frame x, y; on the dome surface) inside the rim;
+    empty without dots. Spacing is set in x/y, so dots thin out slightly on the steep flanks."""
     if not spec.dots:
         return np.zeros((0, 2))
     rng = np.random.default_rng(spec.dot_seed)
@@ -42,8 +43,11 @@ def albedo_texture(spec: SensorSpec, dome: Dome, grid: RayGrid, rest_depth: np.n
     centres = dot_centres(spec)
     if len(centres) == 0:
         return texture
+    # Distances on the dome surface (3-D), so printed dots are round on the membrane.
+    h, a, b = spec.dome_height_m, spec.dome_semi_x_m, spec.dome_semi_y_m
+    z = -h * ((centres[:, 0] / a) ** 2 + (centres[:, 1] / b) ** 2)
     p = dome.to_tcp(grid.rays * rest_depth[..., None])
-    dist, _ = cKDTree(centres).query(p[mask][:, :2])
+    dist, _ = cKDTree(np.column_stack([centres, z])).query(p[mask])
     footprint = rest_depth[mask] * grid.step / spec.fx  # m per pixel on the membrane
     ink = np.clip(0.5 - (dist - spec.dot_radius_m) / footprint, 0.0, 1.0)
     texture[mask] = spec.membrane_albedo + (spec.dot_albedo - spec.membrane_albedo) * ink

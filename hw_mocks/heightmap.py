@@ -8,6 +8,7 @@ Look-ups take object-frame x/y in metres and return z in metres.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -71,6 +72,22 @@ class Heightmap:
             np.maximum.at(heights, cj[inside] * nx + ci[inside], z)
         return cls(heights.reshape(ny, nx).astype(np.float32), float(lo[0]), float(lo[1]), float(res))
 
+    @functools.cached_property
+    def top(self) -> float:
+        """Highest point (m)."""
+        return float(self.heights.max())
+
+    @functools.cached_property
+    def covered_bounds(self) -> tuple[float, float, float, float]:
+        """``(x_min, x_max, y_min, y_max)`` m of the cells with surface."""
+        rows, cols = np.nonzero(self.covered)
+        return (
+            self.x0 + (cols.min() - 1) * self.res,
+            self.x0 + (cols.max() + 1) * self.res,
+            self.y0 + (rows.min() - 1) * self.res,
+            self.y0 + (rows.max() + 1) * self.res,
+        )
+
     @property
     def covered(self) -> np.ndarray:
         """``(Ny,Nx) bool``: cells with surface above them."""
@@ -82,7 +99,9 @@ class Heightmap:
         mx = ((np.asarray(x, dtype=np.float32) - self.x0) / self.res).astype(np.float32, copy=False)
         my = ((np.asarray(y, dtype=np.float32) - self.y0) / self.res).astype(np.float32, copy=False)
         shape, n = mx.shape, mx.size
-        if mx.ndim != 2 or mx.shape[1] > 32767:  # cv2.remap maps must be 2-D and < 32768 wide
+        if n <= 32767 and mx.ndim != 2:
+            mx, my = mx.reshape(1, n), my.reshape(1, n)
+        elif mx.ndim != 2 or mx.shape[1] > 32767:  # cv2.remap maps must be 2-D and < 32768 wide
             rows = -(-n // 1024)
             mx = np.pad(mx.ravel(), (0, rows * 1024 - n)).reshape(rows, 1024)
             my = np.pad(my.ravel(), (0, rows * 1024 - n)).reshape(rows, 1024)

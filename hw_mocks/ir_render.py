@@ -20,17 +20,19 @@ HOUSING_ALBEDO = 0.04
 FULL_SCALE = 65535
 
 
-def surface_incidence(points: np.ndarray) -> np.ndarray:
-    """``cos`` of the angle between each pixel's viewing ray and the surface normal of the point
-    map ``points (H,W,3) m`` (camera frame; central differences), ``(H,W) float32`` in [0, 1]."""
-    du = [cv2.Sobel(points[..., k], cv2.CV_32F, 1, 0, ksize=1) for k in range(3)]
-    dv = [cv2.Sobel(points[..., k], cv2.CV_32F, 0, 1, ksize=1) for k in range(3)]
-    nx = du[1] * dv[2] - du[2] * dv[1]
-    ny = du[2] * dv[0] - du[0] * dv[2]
-    nz = du[0] * dv[1] - du[1] * dv[0]
-    dot = np.abs(nx * points[..., 0] + ny * points[..., 1] + nz * points[..., 2])
-    norm = np.sqrt((nx * nx + ny * ny + nz * nz) * (points[..., 0] ** 2 + points[..., 1] ** 2 + points[..., 2] ** 2))
-    return np.where(norm > 0, dot / np.maximum(norm, 1e-20), 1.0).astype(np.float32)
+def surface_incidence(depth: np.ndarray, rays: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """``cos`` of the angle between each pixel's viewing ray and the surface normal of the depth
+    map ``depth (H,W) float32 m`` (central differences), ``(H,W) float32`` in [0, 1].
+
+    With ``P = d * r``, ``r = ((u-cx)/fx, (v-cy)/fy, 1)``: ``n ~ (-A, -B, A r_x + B r_y + C)``,
+    ``A = d_u/fy``, ``B = d_v/fx``, ``C = d/(fx fy)``, and ``n . r = C``.
+    """
+    a = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=1) * np.float32(0.5 / fy)
+    b = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=1) * np.float32(0.5 / fx)
+    c = depth * np.float32(1.0 / (fx * fy))
+    nz = a * rays[..., 0] + b * rays[..., 1] + c
+    norm = np.sqrt((a * a + b * b + nz * nz) * (rays[..., 0] ** 2 + rays[..., 1] ** 2 + 1.0))
+    return np.abs(c) / np.maximum(norm, np.float32(1e-30))
 
 
 class IrRenderer:

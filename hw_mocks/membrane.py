@@ -34,10 +34,10 @@ import scipy.sparse.linalg as spla
 #: Over-relaxation factor of the projected SOR sweeps.
 OMEGA = 1.8
 #: Convergence: largest change of ``w`` in one sweep (m).
-TOLERANCE_M = 2e-8
+TOLERANCE_M = 5e-7
 MAX_SWEEPS = 600
 #: A pixel is in contact when the membrane is this close to the obstacle (m).
-CONTACT_TOLERANCE_M = 1e-7
+CONTACT_TOLERANCE_M = 2e-6
 CHECK_EVERY = 4
 
 
@@ -164,11 +164,14 @@ class MembraneSolver:
                 pressure = self.pressure_for(float((w[self._flat] * area_in).sum()), gas_content)
                 if sweeps % CHECK_EVERY == 0 and change < TOLERANCE_M:
                     break
-        dp = pressure - self.rest_pressure
-        phi_grid = np.where(self.mask, np.asarray(psi, dtype=np.float64) - dp * self.unit_response, np.inf)
+        phi_grid = np.where(
+            self.mask, np.asarray(psi, dtype=np.float64) - (pressure - self.rest_pressure) * self.unit_response, np.inf
+        )
         wp = w.reshape(self._pshape)
-        np.minimum(wp[1:-1, 1:-1], phi_grid, out=wp[1:-1, 1:-1])  # final projection with the final dp
+        np.minimum(wp[1:-1, 1:-1], phi_grid, out=wp[1:-1, 1:-1])  # final projection
         wg = wp[1:-1, 1:-1].copy()
+        pressure = self.pressure_for(float((wg * self.area).sum()), gas_content)  # exact gas law for w
+        dp = pressure - self.rest_pressure
         u = wg + dp * self.unit_response
         contact = self.mask & (wg >= phi_grid - CONTACT_TOLERANCE_M)
         load = self._contact_load(wp, contact)

@@ -16,8 +16,8 @@ from hw_mocks.heightmap import Heightmap
 REACH_IN_M = 0.035
 #: ... and bulges out at most this far (m): beyond it an object cannot touch the membrane.
 REACH_OUT_M = 0.004
-MARCH_SAMPLES = 12
-BISECTIONS = 4
+MARCH_SAMPLES = 9
+BISECTIONS = 5
 
 
 def object_depth(
@@ -38,11 +38,21 @@ def object_depth(
     t_hi = (rest_depth.ravel() + REACH_OUT_M).astype(np.float32)
     out = np.full(t_lo.shape, np.inf)
 
-    # Quick rejection: the far end of every ray window is above the object's top surface.
-    z_top = float(heightmap.heights.max())
+    # Candidates: rays whose window segment reaches below the object's top and whose x/y span
+    # overlaps the object's footprint.
     z_far = o[2] + t_hi * v[:, 2]
     z_near = o[2] + t_lo * v[:, 2]
-    candidates = np.nonzero(np.minimum(z_far, z_near) <= z_top)[0]
+    x_min, x_max, y_min, y_max = heightmap.covered_bounds
+    x_a, x_b = o[0] + t_lo * v[:, 0], o[0] + t_hi * v[:, 0]
+    y_a, y_b = o[1] + t_lo * v[:, 1], o[1] + t_hi * v[:, 1]
+    near = (
+        (np.minimum(z_far, z_near) <= heightmap.top)
+        & (np.maximum(x_a, x_b) >= x_min)
+        & (np.minimum(x_a, x_b) <= x_max)
+        & (np.maximum(y_a, y_b) >= y_min)
+        & (np.minimum(y_a, y_b) <= y_max)
+    )
+    candidates = np.nonzero(near)[0]
     if len(candidates) == 0:
         return out.reshape(shape)
     v = v[candidates]

@@ -1,0 +1,60 @@
+"""``bubble sim ...``: draw simulated sensors and preview the simulated bubble.
+
+* ``bubble sim new-sensor --seed N [--defect leak|dead-pixels|no-dots] --out SPEC.yaml``
+* ``bubble sim preview --sensor SPEC.yaml --object NAME|MESH [--press-mm D] --out PREVIEW.png``
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from collect.errors import InputError
+
+#: Deepest press the preview accepts (mm).
+MAX_PREVIEW_PRESS_MM = 30.0
+
+
+def register(subparsers) -> None:
+    sim = subparsers.add_parser("sim", help="simulated bubble: draw sensors, preview frames")
+    sim_sub = sim.add_subparsers(dest="sim_command", required=True, parser_class=type(sim))
+
+    new = sim_sub.add_parser("new-sensor", help="draw a plausible new simulated sensor from a seed")
+    new.add_argument("--seed", type=int, required=True, help="sensor seed (>= 0); same seed, same sensor")
+    new.add_argument("--defect", choices=("leak", "dead-pixels", "no-dots"), help="make a faulty sensor")
+    new.add_argument("--out", required=True, help="sensor spec YAML to write")
+    new.set_defaults(func=_new_sensor)
+
+    prev = sim_sub.add_parser("preview", help="render IR, ToF depth, true depth and depth error to a PNG")
+    prev.add_argument("--sensor", required=True, help="sensor spec YAML")
+    prev.add_argument("--object", required=True, help="mug, wine_glass, box, fingers or a mesh file (STL/OBJ/PLY)")
+    prev.add_argument("--press-mm", type=float, default=5.0, help="press depth below first touch of the top (mm)")
+    prev.add_argument("--out", required=True, help="PNG to write")
+    prev.set_defaults(func=_preview)
+
+
+def _new_sensor(args: argparse.Namespace) -> int:
+    from hw_mocks.sensor_spec import draw_sensor
+
+    spec = draw_sensor(args.seed, args.defect)
+    out = Path(args.out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        spec.to_yaml(out)
+    except OSError as err:
+        raise InputError(f"cannot write {out}: {err.strerror or err}") from None
+    print(f"sensor {spec.serial} -> {out}")
+    return 0
+
+
+def _preview(args: argparse.Namespace) -> int:
+    from hw_mocks.preview import render_preview
+    from hw_mocks.sensor_spec import SensorSpec
+
+    if not (0.0 <= args.press_mm <= MAX_PREVIEW_PRESS_MM):
+        raise InputError(f"--press-mm must be within [0, {MAX_PREVIEW_PRESS_MM:g}], got {args.press_mm:g}")
+    spec = SensorSpec.from_yaml(args.sensor)
+    out = Path(args.out)
+    summary = render_preview(spec, args.object, args.press_mm / 1000.0, out)
+    print(summary)
+    return 0

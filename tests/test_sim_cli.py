@@ -1,0 +1,48 @@
+"""`bubble sim new-sensor` and `bubble sim preview`, including bad input (exit 2, one line)."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from calibrate.cli import main
+from hw_mocks.sensor_spec import SensorSpec
+
+
+def test_new_sensor_and_preview(tmp_path, capsys):
+    spec_path = tmp_path / "spec.yaml"
+    assert main(["sim", "new-sensor", "--seed", "21", "--defect", "leak", "--out", str(spec_path)]) == 0
+    spec = SensorSpec.from_yaml(spec_path)
+    assert spec.defect == "leak" and spec.leak_hpa_per_s > 0
+    png = tmp_path / "p.png"
+    assert main(["sim", "preview", "--sensor", str(spec_path), "--object", "box", "--press-mm", "4", "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    out = capsys.readouterr().out
+    assert "pressure" in out and "force" in out
+
+
+def _fails_with_one_line(capsys, argv, needle):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err
+
+
+def test_bad_input_exits_2(tmp_path, capsys):
+    spec_path = tmp_path / "spec.yaml"
+    main(["sim", "new-sensor", "--seed", "1", "--out", str(spec_path)])
+    capsys.readouterr()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("fx: [1, 2\n")
+    png = str(tmp_path / "x.png")
+    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(bad), "--object", "mug", "--out", png], "bad YAML")
+    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "teapot", "--out", png], "unknown object")
+    holey = trimesh.creation.icosphere(radius=0.02)
+    holey.update_faces(np.arange(len(holey.faces)) > 3)
+    holey.export(tmp_path / "holey.stl")
+    _fails_with_one_line(
+        capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", str(tmp_path / "holey.stl"), "--out", png], "watertight"
+    )
+    _fails_with_one_line(
+        capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "mug", "--press-mm", "80", "--out", png], "press-mm"
+    )
+    _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "-3", "--out", str(tmp_path / "n.yaml")], "seed")

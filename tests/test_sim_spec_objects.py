@@ -1,0 +1,117 @@
+"""Sensor spec YAML and bench objects: round trips, validation, meshes, the fixture plate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from collect.errors import InputError
+from hw_mocks.objects import BUILTIN_OBJECTS, PLATE_GAP, fixture_plate, load_object
+from hw_mocks.sensor_spec import SensorSpec, draw_sensor
+
+
+def test_spec_yaml_round_trip(tmp_path):
+    spec = draw_sensor(12, "dead-pixels")
+    spec.to_yaml(tmp_path / "s.yaml")
+    back = SensorSpec.from_yaml(tmp_path / "s.yaml")
+    assert back == spec
+    assert back.intrinsics() == {k: getattr(spec, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
+    assert back.fps == 45.0 and len(back.camera_in_tcp) == 6
+    assert -0.1 < back.camera_in_tcp[2] < -0.085
+
+
+def test_draw_sensor_is_deterministic_and_varied():
+    assert draw_sensor(3) == draw_sensor(3)
+    specs = [draw_sensor(s) for s in range(8)]
+    for name in ("fx", "dome_height_m", "tension_n_per_m", "gauge_pressure_pa", "emitter_amplitude", "depth_noise_m"):
+        values = [getattr(s, name) for s in specs]
+        assert np.std(values) > 0.01 * np.mean(np.abs(values)), name
+    assert draw_sensor(3, "leak").leak_hpa_per_s * 60 > 1.0
+    assert draw_sensor(3, "no-dots").dot_coverage == 0.0
+    with pytest.raises(InputError):
+        draw_sensor(3, "melted")
+
+
+@pytest.mark.parametrize(
+    "edit, field",
+    [
+        (lambda d: d.pop("tension_n_per_m"), "tension_n_per_m"),
+        (lambda d: d.update(fx=-5.0), "fx"),
+        (lambda d: d.update(gas_volume_m3="lots"), "gas_volume_m3"),
+        (lambda d: d.update(camera_in_tcp=[0, 0]), "camera_in_tcp"),
+        (lambda d: d.update(dead_pixels=[[500, 3]]), "dead_pixels"),
+        (lambda d: d.update(colour="red"), "colour"),
+    ],
+)
+def test_bad_spec_fields_name_the_field(tmp_path, edit, field):
+    data = draw_sensor(1).to_dict()
+    edit(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(InputError, match=field):
+        SensorSpec.from_yaml(path)
+
+
+def test_bad_yaml_and_missing_file(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("serial: [unclosed\nfx: 1")
+    with pytest.raises(InputError, match="bad YAML"):
+        SensorSpec.from_yaml(path)
+    path.write_text("- just\n- a list\n")
+    with pytest.raises(InputError, match="mapping"):
+        SensorSpec.from_yaml(path)
+    with pytest.raises(InputError, match="cannot read"):
+        SensorSpec.from_yaml(tmp_path / "nope.yaml")
+
+
+def test_builtin_objects_are_watertight_with_primitives():
+    for name in BUILTIN_OBJECTS:
+        obj = load_object(name)
+        assert obj.mesh.is_watertight, name
+        assert obj.mesh.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)  # sits on the fixture
+        assert len(obj.mesh_sha256) == 64
+    mug = load_object("mug").primitive
+    assert mug["type"] == "cylinder" and mug["radius"] == pytest.approx(0.041)
+    top = load_object("mug").heightmap.heights.max()
+    assert top == pytest.approx(mug["center"][2] + mug["radius"], abs=5e-4)
+
+
+def test_mesh_files(tmp_path):
+    good = trimesh.creation.box(extents=[0.03, 0.02, 0.01])
+    good.apply_translation([0, 0, 0.005])
+    good.export(tmp_path / "brick.stl")
+    obj = load_object(tmp_path / "brick.stl")
+    assert obj.name == "brick" and obj.mesh.is_watertight
+    assert obj.heightmap.heights.max() == pytest.approx(0.01, abs=1e-6)
+
+    open_box = trimesh.creation.box(extents=[0.03, 0.02, 0.01])
+    open_box.update_faces(np.arange(len(open_box.faces)) != 0)
+    open_box.export(tmp_path / "open.stl")
+    with pytest.raises(InputError, match="not watertight"):
+        load_object(tmp_path / "open.stl")
+    (tmp_path / "junk.ply").write_bytes(b"\x00garbage\xff" * 10)
+    with pytest.raises(InputError):
+        load_object(tmp_path / "junk.ply")
+    with pytest.raises(InputError, match="not found"):
+        load_object(tmp_path / "missing.obj")
+    with pytest.raises(InputError, match="unknown object"):
+        load_object("teapot")
+
+
+def test_fixture_plate_spacing_and_surface_points():
+    objs = fixture_plate([load_object(n) for n in BUILTIN_OBJECTS])
+    boxes = [o.bounds_base() for o in objs]
+    for a, b in zip(boxes, boxes[1:]):
+        assert b[0, 1] - a[1, 1] == pytest.approx(PLATE_GAP)
+    for o, bb in zip(objs, boxes):
+        assert -0.32 < bb[0, 1] and bb[1, 1] < 0.32
+        assert bb[0, 2] == pytest.approx(0.0, abs=1e-9)
+        assert 0.3 < bb.mean(axis=0)[0] < 0.6
+        pts, normals = o.top_surface_points(50, np.random.default_rng(0))
+        assert pts.shape == normals.shape == (50, 3)
+        assert (normals[:, 2] > np.cos(np.radians(25.5))).all()
+        t = o.object_to_base()
+        local = (pts - t[:3, 3]) @ t[:3, :3]
+        assert np.allclose(o.heightmap.sample(local[:, 0], local[:, 1]), local[:, 2], atol=1e-6)
