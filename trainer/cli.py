@@ -30,6 +30,7 @@ def register(subparsers) -> None:
                        help="in-class 70/30 split of contact poses (default) or of frames (the paper's)")
     train.add_argument("--val-data", nargs="+", default=[], metavar="SESSION.h5", help="validate on these sessions instead of a split")
     train.add_argument("--objects", help="comma-separated objects to train on (default: all)")
+    train.add_argument("--frame-stride", type=int, default=1, metavar="K", help="keep every K-th contact frame (default 1)")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     train.add_argument("--batch-size", type=int, default=8)
@@ -103,6 +104,7 @@ def run_train(args: argparse.Namespace) -> int:
         holdout_object=args.holdout_object,
         val_data=args.val_data,
         objects=_objects(args.objects),
+        frame_stride=args.frame_stride,
         batch_size=args.batch_size,
         lr=args.lr,
         inverse_depth_loss=args.inverse_depth_loss,

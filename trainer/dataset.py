@@ -84,11 +84,13 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def _select_frames(s: Session, objects: list[str] | None, phases: tuple[str, ...], free_fraction: float, rng) -> np.ndarray:
+def _select_frames(
+    s: Session, objects: list[str] | None, phases: tuple[str, ...], free_fraction: float, stride: int, rng
+) -> np.ndarray:
     names = [n for n in s.object_names if objects is None or n in objects]
     if not names:
         return np.zeros(0, dtype=np.int64)
-    contact = s.select(object=names, phase=list(phases))
+    contact = s.select(object=names, phase=list(phases))[::stride]
     free = s.select(object=names, phase="free")
     n_free = min(len(free), int(round(free_fraction * len(contact))))
     chosen_free = np.sort(rng.choice(free, size=n_free, replace=False)) if n_free else free[:0]
@@ -101,14 +103,20 @@ def load_frames(
     phases: tuple[str, ...] = CONTACT_PHASES,
     free_fraction: float = FREE_FRAME_FRACTION,
     seed: int = 0,
+    stride: int = 1,
 ) -> FrameSet:
     """Frames of ``paths`` in ``phases`` (plus ``free_fraction`` free frames) of ``objects`` (None = all).
+
+    ``stride`` keeps every stride-th matching frame of a session (consecutive frames of a press
+    are nearly alike; pretraining on many sessions uses it to bound memory).
 
     Raises ``InputError`` for unreadable sessions, sessions of different frame sizes, unknown
     objects (named in no session) and sessions without any matching frame.
     """
     if not paths:
         raise InputError("no session files given")
+    if stride < 1:
+        raise InputError(f"frame stride must be at least 1, got {stride}")
     rng = np.random.default_rng(seed)
     parts: dict[str, list] = {k: [] for k in ("ir", "depth", "true", "session", "object", "pose", "phase")}
     sources: list[SessionSource] = []
@@ -122,7 +130,7 @@ def load_frames(
                 )
             size = (s.height, s.width)
             known_objects.update(s.object_names)
-            idx = _select_frames(s, objects, phases, free_fraction, rng)
+            idx = _select_frames(s, objects, phases, free_fraction, stride, rng)
             if len(idx) == 0:
                 continue
             depth = s.depth_m(idx)

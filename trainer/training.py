@@ -68,6 +68,7 @@ class TrainConfig:
     holdout_object: str | None = None
     val_data: list[str] = field(default_factory=list)  # validate on these sessions instead of a split
     objects: list[str] | None = None  # restrict training data to these objects
+    frame_stride: int = 1  # keep every n-th contact frame of each session (memory bound for pretraining)
     batch_size: int = 8
     lr: float = 2e-4
     inverse_depth_loss: bool = False
@@ -137,7 +138,7 @@ def evaluate_tensors(network: nn.Module, tensors: NetworkTensors, device: str, m
 
 def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, dict]:
     if config.val_data:
-        val = load_frames(config.val_data, objects=config.objects, seed=config.seed)
+        val = load_frames(config.val_data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
         return frames, val, {"kind": "sessions", "val_data": [str(p) for p in config.val_data]}
     if config.holdout_object:
         train_idx, val_idx = split_holdout_object(frames, config.holdout_object)
@@ -221,7 +222,7 @@ def train_model(
     torch.manual_seed(config.seed)
     out_dir = Path(config.out)
 
-    frames = load_frames(config.data, objects=config.objects, seed=config.seed)
+    frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
     train_frames, val_frames, split_info = _split(config, frames)
     if val_frames.size != train_frames.size:
         raise InputError(f"validation frames are {val_frames.size[1]}x{val_frames.size[0]}, training frames "
@@ -350,6 +351,7 @@ def train_model(
             "loss": "l1-inverse-depth" if config.inverse_depth_loss else "l1-depth",
             "augment": config.augment,
             "seed": config.seed,
+            "frame_stride": config.frame_stride,
             "peak_rss_mb": peak,
             "history": history,
         }

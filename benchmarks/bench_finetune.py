@@ -1,0 +1,111 @@
+"""Fine-tuning benchmark: a1 against minutes of CPU training for a new simulated sensor.
+
+    .venv/bin/python benchmarks/bench_finetune.py                  # base model, 3 min, writes docs/bench_trainer.md
+    .venv/bin/python benchmarks/bench_finetune.py --minutes 5 --scratch   # also train from scratch for comparison
+
+1. Draw a new simulated sensor (seed ``--sensor-seed``, outside the pretraining seeds) and record
+   its calibration session with ``bubble collect --sim`` (through ``trainer.pretrain.collect_one``).
+2. Zero-shot: the base model on the held-out poses (``bubble evaluate`` path).
+3. Fine-tune from the base model for ``--minutes`` of training time, validating on the held-out
+   poses (in-class pose split, 70/30) every ``--eval-s`` seconds: the a1-vs-minutes curve.
+   Target: a1 >= 0.95 within 3 minutes on this 2-core CPU. Peak training memory (RSS) is reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench_doc import update_section  # noqa: E402
+from trainer.evaluation import evaluate_model  # noqa: E402
+from trainer.pretrain import DEFAULT_OBJECTS, collect_one  # noqa: E402
+from trainer.training import TrainConfig, train_model  # noqa: E402
+
+TARGET_A1 = 0.95
+TARGET_MINUTES = 3.0
+
+
+def curve_rows(history: list[dict]) -> list[str]:
+    rows = ["| training min | epoch | a1 (δ<1.05) | abs_rel | rmse (mm) |", "|---|---|---|---|---|"]
+    for h in history:
+        rows.append(f"| {h['train_s'] / 60:.2f} | {h['epoch']:.2f} | {h['a1']:.3f} | {h['abs_rel']:.4f} | {h['rmse'] * 1e3:.2f} |")
+    return rows
+
+
+def first_time_at(history: list[dict], a1: float) -> float | None:
+    return next((h["train_s"] / 60 for h in history if h["a1"] >= a1), None)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--init", default="base", help="model to fine-tune from (default: the base model)")
+    parser.add_argument("--minutes", type=float, default=TARGET_MINUTES)
+    parser.add_argument("--eval-s", type=float, default=15.0)
+    parser.add_argument("--sensor-seed", type=int, default=7)
+    parser.add_argument("--poses-per-object", type=int, default=8)
+    parser.add_argument("--objects", default=DEFAULT_OBJECTS)
+    parser.add_argument("--scratch", action="store_true", help="also train from scratch for the same time")
+    parser.add_argument("--work", help="keep sessions and models here (default: a temporary directory)")
+    parser.add_argument("--no-doc", action="store_true")
+    args = parser.parse_args()
+    load_before = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.work or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        session = collect_one(work, args.sensor_seed, args.objects, args.poses_per_object, sim_speed=1000.0)
+        print(f"session {session} recorded in {time.perf_counter() - t0:.0f} s", flush=True)
+        zero_shot = evaluate_model(args.init, [session], latency_repeats=5)
+        print(f"zero-shot a1 {zero_shot['a1']:.3f}", flush=True)
+        runs = {"fine-tune from base": {"init": args.init}}
+        if args.scratch:
+            runs["from scratch"] = {"init": None}
+        results = {}
+        for name, opts in runs.items():
+            config = TrainConfig(data=[str(session)], out=str(work / name.replace(" ", "_")), init=opts["init"],
+                                 minutes=args.minutes, eval_interval_s=args.eval_s, split="poses")
+            results[name] = train_model(config)
+            r = results[name]
+            print(f"{name}: a1 {r.metrics['a1']:.3f} after {r.train_s / 60:.2f} min, peak RSS {r.peak_rss_mb:.0f} MB",
+                  flush=True)
+    lines = [
+        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} CPUs, load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} "
+        "(other processes running make these provisional).",
+        "",
+        f"New simulated sensor: seed {args.sensor_seed}, objects {args.objects}, {args.poses_per_object} poses each; "
+        f"validation = held-out contact poses (30 %, in-class pose split). Budget {args.minutes} min of training "
+        f"time (validation excluded). Target: a1 >= {TARGET_A1} within {TARGET_MINUTES} min.",
+        "",
+        f"Zero-shot ({args.init}): a1 {zero_shot['a1']:.3f}, abs_rel {zero_shot['abs_rel']:.4f} (all contact frames).",
+        "",
+    ]
+    for name, r in results.items():
+        reached = first_time_at(r.history, TARGET_A1)
+        lines += [
+            f"### {name}",
+            "",
+            f"Final (all held-out frames): a1 {r.metrics['a1']:.3f}, abs_rel {r.metrics['abs_rel']:.4f}, "
+            f"rmse {r.metrics['rmse'] * 1e3:.2f} mm after {r.train_s / 60:.2f} min ({r.steps} steps); "
+            f"a1 >= {TARGET_A1} reached at "
+            f"{'%.2f min' % reached if reached is not None else 'never'}; peak RSS {r.peak_rss_mb:.0f} MB.",
+            "",
+            *curve_rows(r.history),
+            "",
+        ]
+    lines.append("Rerun: `.venv/bin/python benchmarks/bench_finetune.py`")
+    if not args.no_doc:
+        update_section(ROOT / "docs" / "bench_trainer.md", "finetune", "Fine-tuning a new sensor (a1 vs minutes)", lines)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

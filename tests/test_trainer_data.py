@@ -1,0 +1,85 @@
+"""Frame loading, splits, input geometry and IR normalization."""
+
+import numpy as np
+import pytest
+import torch
+
+from collect.errors import InputError
+from trainer.augmentation import augment_ir
+from trainer.dataset import load_frames, to_network_tensors
+from trainer.losses import masked_l1
+from trainer.preprocessing import InputGeometry, IRNormalization
+from trainer.splits import split_holdout_object, split_in_class
+
+
+def test_load_frames_contact_plus_some_free(synthetic_session):
+    frames = load_frames([synthetic_session], free_fraction=0.25)
+    contact = np.isin(frames.phase, ["press", "hold"])
+    assert contact.sum() == 2 * 2 * 2 * 3  # objects x poses x phases x frames
+    assert (frames.phase == "free").sum() == 6  # 0.25 x 24 contact frames (of the 8 free ones)
+    assert set(frames.object_name) == {"mug", "box"} and frames.true_depth is not None
+    assert frames.sources[0].sensor_serial == "SYN-0001" and len(frames.sources[0].sha256) == 64
+    with pytest.raises(InputError, match="unknown object"):
+        load_frames([synthetic_session], objects=["teapot"])
+
+
+def test_pose_split_never_straddles_a_pose_and_is_seeded(make_synthetic_session, tmp_path):
+    frames = load_frames([make_synthetic_session(tmp_path / "s.h5", poses_per_object=5)])
+    train, val = split_in_class(frames, by="poses", seed=3)
+    assert len(np.intersect1d(train, val)) == 0 and len(train) + len(val) == len(frames)
+    contact = frames.pose_id >= 0
+    assert not set(frames.pose_id[train][contact[train]]) & set(frames.pose_id[val][contact[val]])
+    for name in ("mug", "box"):  # 70/30 of the 5 poses of each object: 4 (round 3.5) train
+        assert len(set(frames.pose_id[train][(frames.object_name[train] == name) & contact[train]])) == 4
+    assert np.array_equal(split_in_class(frames, by="poses", seed=3)[0], train)
+    f_train, f_val = split_in_class(frames, by="frames", seed=3)
+    assert abs(len(f_train) / len(frames) - 0.7) < 0.05
+
+
+def test_holdout_object_split(synthetic_session):
+    frames = load_frames([synthetic_session])
+    train, val = split_holdout_object(frames, "box")
+    assert set(frames.object_name[val]) == {"box"} and (frames.pose_id[val] >= 0).all()
+    assert "box" not in set(frames.object_name[train][frames.pose_id[train] >= 0])
+    with pytest.raises(InputError):
+        split_holdout_object(frames, "teapot")
+
+
+def test_geometry_pads_native_frames_and_crops_back():
+    g = InputGeometry(172, 224, 224, 224)
+    assert g.scale == 1.0 and g.offset == (26, 0)
+    frames = np.arange(2 * 172 * 224, dtype=np.float32).reshape(2, 172, 224)
+    x = g.to_input(frames)
+    assert x.shape == (2, 224, 224) and (x[:, :26] == 0).all() and (x[:, 198:] == 0).all()
+    assert np.array_equal(g.to_native(x), frames)
+    small = InputGeometry(172, 224, 64, 64)  # scale to fit, then pad
+    assert small.content_size == (49, 64) and small.offset == (7, 0)
+    assert small.to_native(small.to_input(np.ones((1, 172, 224), np.float32))).shape == (1, 172, 224)
+    with pytest.raises(InputError, match="frame size"):
+        g.to_input(np.zeros((1, 100, 100)))
+
+
+def test_normalization_turns_gain_into_offset_and_tensors_mask_padding(synthetic_session):
+    frames = load_frames([synthetic_session])
+    norm = IRNormalization.fit(frames.ir)
+    x = norm.apply(frames.ir[:1])
+    assert abs(float(norm.apply(frames.ir).mean())) < 0.05
+    doubled = norm.apply(np.minimum(frames.ir[:1].astype(np.int64) * 2, 65535).astype(np.uint16))
+    bright = frames.ir[:1] > 300
+    assert np.allclose((doubled - x)[bright], np.log(2) / norm.std, atol=0.01)
+    g = InputGeometry(172, 224, 224, 224)
+    t = to_network_tensors(frames, g, norm)
+    assert t.x.shape == (len(frames), 1, 224, 224) and t.content.shape == (1, 1, 224, 224)
+    assert (t.depth[:, :, :26] == 0).all() and int(t.content.sum()) == 172 * 224
+    aug = augment_ir(t.x[:2], t.content, norm.std, torch.Generator().manual_seed(0))
+    assert (aug[:, :, :26] == 0).all() and not torch.equal(aug, t.x[:2])
+
+
+def test_masked_l1_ignores_invalid_pixels():
+    pred = torch.tensor([[[[0.1, 0.2]]]], requires_grad=True)
+    target = torch.tensor([[[[0.12, 0.0]]]])
+    valid = target > 0
+    assert float(masked_l1(pred, target, valid).detach()) == pytest.approx(0.02)
+    assert float(masked_l1(pred, target, valid, inverse=True).detach()) == pytest.approx(10 - 1 / 0.12)
+    masked_l1(pred, target, torch.zeros_like(valid)).backward()  # no valid pixel: zero, still differentiable
+    assert pred.grad is not None and float(pred.grad.abs().sum()) == 0.0

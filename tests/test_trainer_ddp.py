@@ -1,0 +1,30 @@
+"""Data-parallel training under torchrun with 2 CPU processes (gloo)."""
+
+import os
+import socket
+import subprocess
+import sys
+
+from conftest import make_synthetic_session
+from trainer.model_dir import load_metadata
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_torchrun_two_gloo_processes_train_one_model(tmp_path):
+    session = make_synthetic_session(tmp_path / "s.h5", height=48, width=64, poses_per_object=2)
+    out = tmp_path / "model"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+           "--master_port", str(_free_port()), "-m", "calibrate.cli", "train", "--data", str(session),
+           "--out", str(out), "--width", "0.125", "--epochs", "1", "--batch-size", "2", "--no-onnx"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    meta = load_metadata(out)
+    assert meta.training["world_size"] == 2 and meta.training["batch_size"] == 4
+    n_train = meta.training["n_train_frames"]
+    assert meta.training["steps"] == -(-(n_train // 2) // 2)  # each rank: half the frames, batches of 2

@@ -1,0 +1,159 @@
+"""Pretraining of the base model on many simulated sensors (see docs/model_card.md).
+
+Two steps, both resumable:
+
+    # 1. record one simulated calibration session per sensor (bubble sim new-sensor + bubble collect --sim)
+    .venv/bin/python -m trainer.pretrain collect --sensors 16 --work runs/pretrain --jobs 2
+    # 2. train on all but the last --val-sensors sessions, validate on those (held-out sensors),
+    #    and package the result into trainer/base_model/ (weights, metadata, ONNX; <= 20 MB)
+    .venv/bin/python -m trainer.pretrain train --work runs/pretrain --minutes 30 --out trainer/base_model
+    # ... or data-parallel (gloo on CPU, nccl on GPU):
+    torchrun --nproc_per_node 2 -m trainer.pretrain train --work runs/pretrain --epochs 20 --out trainer/base_model
+
+Sensors are drawn with seeds ``--first-seed .. --first-seed + sensors - 1``; the collection uses
+the same seed for its pose plan. The sessions go through the product's own commands, so the base
+model sees exactly what commissioning records.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from collect.errors import EXIT_BAD_INPUT, InputError
+from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE
+
+#: Upper bound for the committed base model directory (bytes).
+MAX_BASE_MODEL_BYTES = 20 * 1024 * 1024
+DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
+
+
+def _bubble(*argv: str) -> None:
+    """Run one ``bubble`` command in a subprocess; raise with its last error line when it fails."""
+    proc = subprocess.run([sys.executable, "-m", "calibrate.cli", *argv], capture_output=True, text=True)
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"bubble {argv[0]} {argv[1] if len(argv) > 1 else ''} failed: {last}")
+
+
+def session_path(work: Path, seed: int) -> Path:
+    return work / f"sensor_{seed:05d}.h5"
+
+
+def collect_one(work: Path, seed: int, objects: str, poses: int, sim_speed: float) -> Path:
+    """Draw sensor ``seed`` and record its calibration session (skipped when already recorded)."""
+    out = session_path(work, seed)
+    if out.exists():
+        return out
+    spec = work / f"sensor_{seed:05d}.yaml"
+    _bubble("sim", "new-sensor", "--seed", str(seed), "--out", str(spec))
+    partial = out.with_suffix(".partial.h5")
+    partial.unlink(missing_ok=True)
+    _bubble("collect", "--sim", "--sensor", str(spec), "--objects", objects, "--poses-per-object", str(poses),
+            "--seed", str(seed), "--sim-speed", str(sim_speed), "--quiet", "--out", str(partial))
+    partial.replace(out)
+    return out
+
+
+def run_collect(args: argparse.Namespace) -> int:
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    seeds = range(args.first_seed, args.first_seed + args.sensors)
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        futures = {seed: pool.submit(collect_one, work, seed, args.objects, args.poses_per_object, args.sim_speed)
+                   for seed in seeds}
+        for seed, future in futures.items():
+            print(f"sensor seed {seed}: {future.result()}", flush=True)
+    return 0
+
+
+def package_base_model(model_dir: Path, out: Path) -> Path:
+    """Copy the deployable files of ``model_dir`` into ``out`` and check the size budget."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name in (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE):
+        if (model_dir / name).is_file():
+            shutil.copy2(model_dir / name, out / name)
+    size = sum(p.stat().st_size for p in out.iterdir() if p.is_file())
+    if size > MAX_BASE_MODEL_BYTES:
+        raise InputError(f"base model is {size / 2**20:.1f} MB, over the {MAX_BASE_MODEL_BYTES / 2**20:.0f} MB budget")
+    return out
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from trainer.training import TrainConfig, train_model
+
+    work = Path(args.work)
+    sessions = sorted(work.glob("sensor_*.h5"))
+    sessions = [p for p in sessions if not p.name.endswith(".partial.h5")]
+    if len(sessions) <= args.val_sensors:
+        raise InputError(f"{len(sessions)} sessions in {work}: need more than --val-sensors {args.val_sensors}")
+    train, val = sessions[: -args.val_sensors], sessions[-args.val_sensors :]
+    config = TrainConfig(
+        data=[str(p) for p in train],
+        val_data=[str(p) for p in val],
+        out=str(work / "model"),
+        arch=args.arch,
+        width=args.width,
+        epochs=args.epochs,
+        minutes=args.minutes if args.epochs is None else None,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        frame_stride=args.frame_stride,
+        seed=args.seed,
+        resume=args.resume,
+    )
+
+    def show(p) -> None:
+        if p.event != "step":
+            a1 = f"{p.val['a1']:.3f}" if p.val else "-"
+            print(f"[{p.event}] epoch {p.epoch:.2f} step {p.step} loss {p.loss * 1e3:.3f} mm "
+                  f"val a1 {a1} ({p.fraction * 100:.0f} %)", flush=True)
+
+    result = train_model(config, progress_callback=show)
+    if result is None:  # a non-zero torchrun rank
+        return 0
+    out = package_base_model(result.model_dir, Path(args.out))
+    print(f"base model -> {out}: held-out sensors a1 {result.metrics['a1']:.3f}, abs_rel {result.metrics['abs_rel']:.4f}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m trainer.pretrain", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="step", required=True)
+    c = sub.add_parser("collect", help="record one simulated session per sensor")
+    c.add_argument("--sensors", type=int, default=16)
+    c.add_argument("--first-seed", type=int, default=1000)
+    c.add_argument("--objects", default=DEFAULT_OBJECTS)
+    c.add_argument("--poses-per-object", type=int, default=8)
+    c.add_argument("--sim-speed", type=float, default=1000.0, help="simulated clock speed factor")
+    c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel")
+    c.add_argument("--work", required=True, help="directory of the sessions")
+    c.set_defaults(func=run_collect)
+    t = sub.add_parser("train", help="train on the sessions of --work and package the base model")
+    t.add_argument("--work", required=True)
+    t.add_argument("--out", default=str(BASE_MODEL_DIR))
+    t.add_argument("--val-sensors", type=int, default=2, help="last sessions held out for validation")
+    t.add_argument("--arch", default="resnet")
+    t.add_argument("--width", type=float)
+    t.add_argument("--epochs", type=float)
+    t.add_argument("--minutes", type=float, default=30.0)
+    t.add_argument("--batch-size", type=int, default=8)
+    t.add_argument("--lr", type=float, default=2e-4)
+    t.add_argument("--frame-stride", type=int, default=3)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--resume", action="store_true")
+    t.set_defaults(func=run_train)
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as err:
+        print(f"pretrain: error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
