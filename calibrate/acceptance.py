@@ -167,10 +167,20 @@ def accepted(checks: list[dict]) -> bool:
     return bool(checks) and not failed(checks)
 
 
+def _short(check: dict) -> str:
+    """``name value (limit)``, e.g. ``heldout_a1 0.91 (needs >= 0.95)``."""
+    if check["value"] is None:
+        return f"{check['name']} not measured"
+    thr = check["threshold"]
+    limit = f"{thr[0]:g}..{thr[1]:g}" if check["op"] == "in" else f"{check['op']} {thr:g}"
+    unit = f" {check['unit']}" if check.get("unit") and check["unit"] not in ("fraction", "ratio") else ""
+    return f"{check['name']} {check['value']:.4g}{unit} (needs {limit}{unit})"
+
+
 def rejection_reason(checks: list[dict], fault: str | None = None) -> str:
-    """One line saying why a run was rejected ('' when accepted)."""
+    """One line saying why a run was rejected ('' when accepted): the fault, then each failed check."""
     parts = []
     if fault:
-        parts.append(f"hardware fault: {fault}")
-    parts += [f"{c['name']}: {c['reason']}" for c in failed(checks)]
+        parts.append(f"hardware fault {fault}")
+    parts += [_short(c) for c in failed(checks)]
     return "; ".join(parts)

@@ -9,9 +9,9 @@ the free, untouched bubble, ``N >= 4`` frames.
 * valid-depth coverage: mean fraction of the image with valid depth;
 * dot pattern: the printed dots darken the membrane locally. The time-mean IR image is divided
   by its local background (a high percentile over a window larger than a dot); pixels darker
-  than ``DOT_RATIO`` of the background are dot pixels. ``dot_contrast`` is ``1 - ratio`` at the
-  2nd percentile of the lit membrane (how dark the darkest dots are), ``dot_count`` the number
-  of dot blobs of a plausible size.
+  than ``DOT_RATIO`` of the background, away from the edge of the lit region, are dot pixels.
+  ``dot_count`` is the number of dot blobs of a plausible size, ``dot_contrast`` the median over
+  those dots of ``1 - ratio`` at their darkest pixel (0 without dots).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ DOT_RATIO = 0.75
 #: Window of the local background, px (larger than a dot).
 BACKGROUND_WINDOW = 15
 #: Dot blobs smaller than this (px) are noise, larger are not dots.
-DOT_MIN_AREA, DOT_MAX_AREA = 2, 400
+DOT_MIN_AREA, DOT_MAX_AREA = 1, 400
 
 
 @dataclass
@@ -110,16 +110,18 @@ def assess_camera(ir: np.ndarray, depth: np.ndarray) -> CameraHealth:
     valid_count = valid.sum(axis=0).astype(np.int32)
     coverage = float(valid.mean())
 
-    healthy_lit = lit & ~dead & ~stuck
-    ratio = np.where(healthy_lit, ir_mean / np.maximum(background, 1.0), 1.0)
-    if healthy_lit.sum() < 100:
-        contrast, dot_mask, dot_count = 0.0, np.zeros_like(lit), 0
-    else:
-        contrast = float(np.clip(1.0 - np.percentile(ratio[healthy_lit], 2), 0.0, 1.0))
-        dot_mask = healthy_lit & (ratio < DOT_RATIO)
-        n_labels, _, stats, _ = cv2.connectedComponentsWithStats(dot_mask.astype(np.uint8), connectivity=8)
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        dot_count = int(np.count_nonzero((areas >= DOT_MIN_AREA) & (areas <= DOT_MAX_AREA)))
+    # Dots are judged away from the edge of the lit region, where the background estimate
+    # runs off the membrane (the housing would look like a dark blob).
+    core = ndimage.binary_erosion(lit, iterations=BACKGROUND_WINDOW // 2) & ~dead & ~stuck
+    ratio = np.where(core, ir_mean / np.maximum(background, 1.0), 1.0)
+    dot_mask = np.zeros_like(lit)
+    n_labels, labels, stats, _ = cv2.connectedComponentsWithStats((core & (ratio < DOT_RATIO)).astype(np.uint8), connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    dots = np.flatnonzero((areas >= DOT_MIN_AREA) & (areas <= DOT_MAX_AREA)) + 1
+    dot_mask = np.isin(labels, dots)
+    dot_count = int(dots.size)
+    # darkest pixel of each dot (its centre), median over the dots
+    contrast = float(1.0 - np.median(ndimage.minimum(ratio, labels, dots))) if dot_count else 0.0
     return CameraHealth(
         dead_pixels=int(dead.sum()),
         stuck_pixels=int(stuck.sum()),

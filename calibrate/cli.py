@@ -21,7 +21,9 @@ COMMAND_MODULES = (
     "hw_mocks.cli",
     "collect.cli",
     "trainer.cli",
+    "calibrate.commission_cli",
     "calibrate.pose_cli",
+    "calibrate.tui_cli",
 )
 
 

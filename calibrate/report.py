@@ -126,6 +126,7 @@ def _leak_plot(t, hpa, rate) -> str:
     ax.plot(t, slope * t + icpt, color="tab:red", label=f"fit: {rate:.3f} hPa/min loss")
     ax.set_xlabel("hold time (s)")
     ax.set_ylabel("pressure (hPa abs)")
+    ax.ticklabel_format(axis="y", useOffset=False)
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
     return _png(fig)
@@ -350,8 +351,8 @@ def render_html(data: ReportData) -> str:
             if drop:
                 truth += (
                     f"<p>ToF dropouts on the membrane: {drop['fraction']:.1%} of pixels "
-                    f"({drop['pixels']} px); the model fills them with a mean absolute error of "
-                    f"{drop['model_mae_mm']:.3f} mm against the truth (&delta;&lt;1.05 = {drop['model_a1']:.3f}).</p>"
+                    f"({drop['pixels']} px over the held-out frames); the model fills them with an RMSE of "
+                    f"{drop['model_rmse_mm']:.3f} mm against the truth (&delta;&lt;1.05 = {drop['model_a1']:.3f}).</p>"
                 )
             if data.example_true is not None and data.example_pred is not None:
                 truth += _img(

@@ -64,7 +64,8 @@ def test_evaluate_pass_fail_and_unmeasured():
     assert not nan["passed"] and nan["value"] is None and "not measured" in nan["reason"]
     checks = [ok, leak]
     assert not accepted(checks) and accepted([ok]) and not accepted([])
-    assert rejection_reason(checks).startswith("leak_rate_hpa_per_min")
+    assert rejection_reason(checks) == "leak_rate_hpa_per_min 3.2 hPa/min (needs <= 1 hPa/min)"
+    assert rejection_reason([nan], "camera-stall: no frame") == "hardware fault camera-stall: no frame; heldout_a1 not measured"
 
 
 def test_leak_rate_from_a_decaying_trace():

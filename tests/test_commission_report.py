@@ -59,7 +59,7 @@ def _full_report_data(accepted: bool) -> ReportData:
         example_ir=rng.uniform(0, 30000, (k, h, w)), example_depth=depth, example_pred=depth + 0.0004,
         example_true=depth + 0.0002, example_labels=["mug pose 3", "box pose 1"],
         training_curve=[dict(step=i, elapsed_s=i * 0.5, loss=1e-3 / (i + 1), a1=None if i % 4 else 0.6 + i / 100) for i in range(30)],
-        truth_comparison=dict(model=metrics, tof=metrics, dropouts=dict(fraction=0.04, pixels=120, model_mae_mm=0.2, model_a1=0.96)),
+        truth_comparison=dict(model=metrics, tof=metrics, dropouts=dict(fraction=0.04, pixels=120, model_rmse_mm=0.2, model_a1=0.96)),
         notes={"pose": "pose check not run in this test"},
         run_info={"run_dir": "/tmp/run", "duration_s": 123.4},
     )

@@ -1,0 +1,195 @@
+"""``bubble commission`` (commission one sensor end to end) and ``bubble sensors`` (the registry).
+
+``bubble commission`` exits 0 when the sensor is accepted, 1 when rejected (a failed check or a
+hardware fault; the data recorded so far stays in RUN_DIR and a re-run resumes), 2 for bad input,
+130 when stopped with Ctrl-C (the arm is stopped and retracted first).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
+
+DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "commission",
+        help="commission a sensor: leak test, camera health, calibration set, fine-tune, validate, report",
+        description="Commission a new bubble sensor end to end and register it. Exit 0 accepted, 1 rejected, "
+        "2 bad input. Re-running with the same --out resumes from the last completed step.",
+    )
+    p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
+    p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
+    p.add_argument("--bench", type=Path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
+    p.add_argument("--out", type=Path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
+    p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
+    p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
+    p.add_argument("--finetune-minutes", type=float, default=2.5, metavar="M", help="fine-tuning time budget (default 2.5)")
+    p.add_argument("--objects", default=DEFAULT_OBJECTS, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS})")
+    p.add_argument("--poses-per-object", type=int, default=8, metavar="K")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pose plan and of the simulated sensor")
+    p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS", help="inject a fault (simulated bench)")
+    p.add_argument("--sim-speed", type=float, default=1.0, help="simulated clock speed-up (simulated bench)")
+    p.add_argument("--quiet", action="store_true", help="print only the verdict")
+    p.set_defaults(func=run_commission)
+
+    s = subparsers.add_parser(
+        "sensors",
+        help="list the sensor registry (or one sensor's history)",
+        description="List the commissioned sensors in the registry, or show one sensor's profile and history.",
+    )
+    s.add_argument("serial", nargs="?", help="show this sensor's profile and commissioning history")
+    s.add_argument("--registry", type=Path, metavar="DIR", help="registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    s.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    s.set_defaults(func=run_sensors)
+
+
+class ProgressPrinter:
+    """Turns commissioning events into terminal lines on ``stream`` (throttled live progress)."""
+
+    def __init__(self, stream=sys.stderr, interval_s: float = 2.0):
+        self.stream = stream
+        self.interval_s = interval_s
+        self._last = 0.0
+
+    def _print(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
+
+    def _due(self) -> bool:
+        now = time.monotonic()
+        if now - self._last >= self.interval_s:
+            self._last = now
+            return True
+        return False
+
+    def __call__(self, event) -> None:
+        from calibrate import commission_events as ev
+
+        if isinstance(event, ev.StepStarted):
+            eta = f" (~{event.eta_s:.0f} s)" if event.eta_s else ""
+            self._print(f"[{event.step.value}] started{eta}")
+        elif isinstance(event, ev.StepFinished):
+            tag = "resumed" if event.resumed else ("ok" if event.ok else "FAILED")
+            if getattr(event, "skipped", False):
+                tag = "skipped"
+            self._print(f"[{event.step.value}] {tag}: {event.summary}")
+        elif isinstance(event, ev.StepProgress) and event.message and self._due():
+            self._print(f"[{event.step.value}] {event.fraction:4.0%} {event.message}")
+        elif isinstance(event, ev.CollectionProgress) and self._due():
+            pose = "reference" if event.pose_index < 0 else f"pose {event.pose_index + 1}/{event.poses_per_object}"
+            self._print(
+                f"[collect] {event.object_name} {pose} {event.phase}: {event.frames} frames, "
+                f"{event.force_n:.1f} N, {event.pressure_hpa:.1f} hPa"
+            )
+        elif isinstance(event, ev.TrainingProgress) and (self._due() or event.a1 is not None):
+            a1 = f", val a1 {event.a1:.3f}" if event.a1 is not None else ""
+            eta = f", {event.eta_s:.0f} s left" if event.eta_s is not None else ""
+            self._print(f"[finetune] step {event.step}: loss {event.loss * 1000:.3f} mm{a1}{eta}")
+        elif isinstance(event, ev.FaultRaised):
+            self._print(f"FAULT {event.kind}: {event.message}")
+
+
+def run_commission(args) -> int:
+    from calibrate.commissioning import CommissionConfig, run_commissioning
+
+    objects = tuple(name.strip() for name in args.objects.split(",") if name.strip())
+    bench = None
+    if args.bench is not None:
+        if args.sim:
+            raise InputError("--bench describes real hardware; drop it or --sim")
+        from collect.bench import BenchConfig
+
+        bench = BenchConfig.from_yaml(args.bench)
+    if (args.sim_fault or args.sensor is not None) and not args.sim:
+        raise InputError("--sensor and --sim-fault need --sim (they describe the simulated bench)")
+    config = CommissionConfig(
+        run_dir=args.out,
+        simulated=args.sim,
+        sensor_spec=args.sensor,
+        bench=bench,
+        thresholds=args.thresholds,
+        registry_dir=args.registry,
+        base_model=args.base_model,
+        finetune_minutes=args.finetune_minutes,
+        objects=objects,
+        poses_per_object=args.poses_per_object,
+        seed=args.seed,
+        sim_faults=tuple(args.sim_fault),
+        sim_speed=args.sim_speed,
+    )
+    stop = threading.Event()
+    printer = (lambda e: None) if args.quiet else ProgressPrinter()
+    outcome: dict = {}
+
+    def work() -> None:
+        try:
+            outcome["result"] = run_commissioning(config, on_event=printer, stop_event=stop)
+        except BaseException as err:  # handed to the main thread, which reports it
+            outcome["error"] = err
+
+    worker = threading.Thread(target=work, name="commission", daemon=True)
+    worker.start()
+    try:
+        while worker.is_alive():
+            worker.join(0.2)
+    except KeyboardInterrupt:
+        print("bubble: stopping the arm and closing the run ...", file=sys.stderr)
+        stop.set()
+        worker.join()
+    if "error" in outcome:
+        raise outcome["error"]
+    result = outcome["result"]
+    if result.stopped:
+        print(f"STOPPED: data kept in {result.run_dir}; re-run the same command to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if result.accepted:
+        print(f"ACCEPTED: report {result.report_path}")
+        return EXIT_OK
+    print(f"REJECTED: {result.reason}")
+    print(f"report {result.report_path}")
+    return EXIT_REJECTED
+
+
+def run_sensors(args) -> int:
+    from calibrate.sensor_registry import SensorRegistry
+
+    registry = SensorRegistry(args.registry)
+    if args.serial:
+        profile = registry.get(args.serial)
+        if args.json:
+            print(json.dumps(profile.data, indent=2))
+            return EXIT_OK
+        data = profile.data
+        print(f"{profile.serial}: {profile.status} ({'simulated' if data.get('simulated') else 'hardware'})")
+        print(f"  directory  {profile.path}")
+        print(f"  model      {profile.model_dir or '-'}")
+        for entry in profile.history:
+            verdict = "accepted" if entry["accepted"] else "rejected"
+            a1 = f" a1={entry['a1']:.3f}" if entry.get("a1") is not None else ""
+            reason = f" - {entry['reason']}" if entry.get("reason") else ""
+            print(f"  {entry['time']}  {verdict}{a1}  {entry['run_dir']}{reason}")
+        return EXIT_OK
+    profiles = registry.profiles()
+    if args.json:
+        print(json.dumps([p.data for p in profiles], indent=2))
+        return EXIT_OK
+    print(f"registry {registry.root}: {len(profiles)} sensor{'s' if len(profiles) != 1 else ''}")
+    if profiles:
+        print(f"{'serial':<28} {'status':<9} {'last commissioned':<26} {'runs':>4} {'abs_rel':>8} {'a1':>6}  model")
+    for p in profiles:
+        m = p.data.get("accepted_metrics") or (p.history[-1] if p.history else {})
+        a1 = f"{m['a1']:.3f}" if m.get("a1") is not None else "-"
+        rel = f"{m['abs_rel']:.4f}" if m.get("abs_rel") is not None else "-"
+        print(
+            f"{p.serial:<28} {p.status:<9} {p.data.get('last_commissioned', '-'):<26} {len(p.history):>4} "
+            f"{rel:>8} {a1:>6}  {'yes' if p.model_dir else 'no'}"
+        )
+    return EXIT_OK
