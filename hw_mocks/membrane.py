@@ -34,7 +34,7 @@ import scipy.sparse.linalg as spla
 #: Over-relaxation factor of the projected SOR sweeps.
 OMEGA = 1.8
 #: Convergence: largest change of ``w`` in one sweep (m).
-TOLERANCE_M = 5e-7
+TOLERANCE_M = 1e-6
 MAX_SWEEPS = 600
 #: A pixel is in contact when the membrane is this close to the obstacle (m).
 CONTACT_TOLERANCE_M = 2e-6
@@ -104,6 +104,7 @@ class MembraneSolver:
         self.unit_response = self._solve_unit_pressure()  # b: m per Pa
         self.unit_volume = float((self.unit_response * self.area).sum())  # m^3 per Pa
         self._w = np.zeros(self._pshape).ravel()
+        self._w_prev = self._w.copy()
 
     # ---- setup ---------------------------------------------------------------------------------
     def _solve_unit_pressure(self) -> np.ndarray:
@@ -129,6 +130,7 @@ class MembraneSolver:
     def reset(self) -> None:
         """Forget the warm start."""
         self._w[:] = 0.0
+        self._w_prev[:] = 0.0
 
     def pressure_for(self, contact_volume: float, gas_content: float) -> float:
         """Absolute pressure (Pa) from ``P (V0 + Vw + (P - P0) Vb) = K``."""
@@ -137,14 +139,21 @@ class MembraneSolver:
         qb = self.gas_volume + contact_volume - p0 * vb
         return float((-qb + np.sqrt(qb * qb + 4 * qa * gas_content)) / (2 * qa))
 
-    def solve(self, psi: np.ndarray, gas_content: float) -> MembraneSolution:
+    def solve(self, psi: np.ndarray, gas_content: float, extrapolate: bool = False) -> MembraneSolution:
         """Solve for obstacle ``psi (rows,cols) m`` (``inf`` = nothing along the ray) and gas
-        content ``gas_content`` (Pa m^3, ``rest_pressure * gas_volume`` for a sealed bubble)."""
+        content ``gas_content`` (Pa m^3, ``rest_pressure * gas_volume`` for a sealed bubble).
+
+        Starts from the previous solution; ``extrapolate`` starts from its linear extrapolation
+        from the last two solves instead (for an obstacle moving steadily, e.g. a pressing arm)."""
         ii, jj = self._ii, self._jj
         b_in = self.unit_response[ii, jj]
         psi_in = np.asarray(psi, dtype=np.float64)[ii, jj]
         area_in = self.area[ii, jj]
         w = self._w
+        previous = w.copy()
+        if extrapolate:
+            w += w - self._w_prev
+        self._w_prev = previous
         pressure = self.pressure_for(float((w[self._flat] * area_in).sum()), gas_content)
         sweeps = 0
         if np.all(psi_in - (pressure - self.rest_pressure) * b_in >= 0.0):

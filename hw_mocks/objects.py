@@ -70,7 +70,12 @@ class BenchObject:
 
     def object_to_base(self) -> np.ndarray:
         """``(4,4)`` transform from the object frame to the base frame."""
-        return pose_to_matrix(self.fixture_pose)
+        key = np.asarray(self.fixture_pose, dtype=np.float64).tobytes()
+        cached = self.__dict__.get("_object_to_base")
+        if cached is None or cached[0] != key:
+            cached = (key, pose_to_matrix(self.fixture_pose))
+            self.__dict__["_object_to_base"] = cached
+        return cached[1].copy()
 
     def placed(self, fixture_pose) -> "BenchObject":
         """A copy mounted at ``fixture_pose`` (6,) (shares the mesh and its height field)."""
@@ -115,10 +120,15 @@ class BenchObject:
 
     def bounds_base(self) -> np.ndarray:
         """``(2,3)`` axis-aligned bounds of the placed mesh in the base frame (m)."""
-        t = self.object_to_base()
-        corners = np.array(np.meshgrid(*self.mesh.bounds.T, indexing="ij")).reshape(3, -1).T
-        pts = corners @ t[:3, :3].T + t[:3, 3]
-        return np.stack([pts.min(axis=0), pts.max(axis=0)])
+        key = np.asarray(self.fixture_pose, dtype=np.float64).tobytes()
+        cached = self.__dict__.get("_bounds_base")
+        if cached is None or cached[0] != key:
+            t = self.object_to_base()
+            corners = np.array(np.meshgrid(*self.mesh.bounds.T, indexing="ij")).reshape(3, -1).T
+            pts = corners @ t[:3, :3].T + t[:3, 3]
+            cached = (key, np.stack([pts.min(axis=0), pts.max(axis=0)]))
+            self.__dict__["_bounds_base"] = cached
+        return cached[1].copy()
 
 
 def _eroded(mask: np.ndarray, cells: int) -> np.ndarray:

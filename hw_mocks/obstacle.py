@@ -17,7 +17,7 @@ REACH_IN_M = 0.035
 #: ... and bulges out at most this far (m): beyond it an object cannot touch the membrane.
 REACH_OUT_M = 0.004
 MARCH_SAMPLES = 9
-BISECTIONS = 5
+BISECTIONS = 3
 
 
 def object_depth(
@@ -55,14 +55,13 @@ def object_depth(
     candidates = np.nonzero(near)[0]
     if len(candidates) == 0:
         return out.reshape(shape)
-    v = v[candidates]
+    v = np.ascontiguousarray(v[candidates].T)  # (3, n)
     t_lo, t_hi = t_lo[candidates], t_hi[candidates]
-    o32 = o.astype(np.float32)
+    ox, oy, oz = (np.float32(c) for c in o)
 
     def above(t: np.ndarray, vv: np.ndarray) -> np.ndarray:
-        """Height of the ray point above the surface (m): > 0 outside the object."""
-        p = o32 + t[:, None] * vv
-        return p[:, 2] - heightmap.sample(p[:, 0], p[:, 1])
+        """Height of the ray points ``o + t*vv`` above the surface (m): > 0 outside the object."""
+        return oz + t * vv[2] - heightmap.sample(ox + t * vv[0], oy + t * vv[1])
 
     steps = np.linspace(0.0, 1.0, MARCH_SAMPLES, dtype=np.float32)
     f_prev = above(t_lo, v)
@@ -78,7 +77,7 @@ def object_depth(
             break
         sel = np.nonzero(open_)[0]
         t = t_lo[sel] + s * (t_hi[sel] - t_lo[sel])
-        f = above(t, v[sel])
+        f = above(t, v[:, sel])
         crossed = f <= 0
         c = sel[crossed]
         hit_lo[c], hit_hi[c] = t_prev[sel][crossed], t[crossed]
@@ -91,7 +90,7 @@ def object_depth(
     if len(brackets):
         a, b = hit_lo[brackets], hit_hi[brackets]
         fa, fb = f_lo[brackets], f_hi[brackets]
-        vv = v[brackets]
+        vv = v[:, brackets]
         for _ in range(BISECTIONS):
             mid = 0.5 * (a + b)
             fm = above(mid, vv)
