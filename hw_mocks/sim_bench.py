@@ -51,8 +51,10 @@ POSE_TOL_M = 2e-5
 POSE_TOL_RAD = 2e-4
 #: Longest look-ahead (s) of a solve along the arm's planned trajectory.
 MAX_LOOKAHEAD_S = 0.1
-#: Farthest extrapolation of the wrench/pressure, in units of the last solve step.
-EXTRAPOLATE_MAX = 3.0
+#: Farthest extrapolation of the wrench/pressure, in units of the last solve step, and the shortest
+#: step (m) worth extrapolating along (shorter steps would amplify the solver's tolerance).
+EXTRAPOLATE_MAX = 2.0
+EXTRAPOLATE_MIN_STEP_M = 1e-4
 
 
 @dataclass(frozen=True)
@@ -216,12 +218,12 @@ class SimBench:
         """``value(state)`` of the latest solution extrapolated to ``pose`` (6,) along the last step."""
         with self._lock:
             solved = list(self._solved)
-        v2 = np.asarray(value(solved[-1].state), dtype=np.float64)
+        v2 = np.array(value(solved[-1].state), dtype=np.float64)  # a copy: callers add to it
         if len(solved) < 2:
             return v2
         step = solved[-1].pose[:3] - solved[0].pose[:3]
         norm2 = float(step @ step)
-        if norm2 < POSE_TOL_M ** 2:
+        if norm2 < EXTRAPOLATE_MIN_STEP_M ** 2:
             return v2
         s = float((np.asarray(pose, dtype=np.float64)[:3] - solved[-1].pose[:3]) @ step) / norm2
         v1 = np.asarray(value(solved[0].state), dtype=np.float64)
