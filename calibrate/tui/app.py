@@ -31,6 +31,7 @@ from textual.worker import Worker, WorkerState
 from calibrate.commission_events import (
     CollectionProgress,
     FaultRaised,
+    Step,
     StepFinished,
     StepProgress,
     StepStarted,
@@ -51,6 +52,8 @@ from collect.errors import HardwareFault, InputError
 
 #: ``flow(config, on_event=..., stop_event=...) -> CommissionResult``
 Flow = Callable[..., object]
+
+HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
 
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
@@ -112,6 +115,7 @@ class BenchApp(App):
         self._worker: Worker | None = None
         self._quit_requested = False
         self._arm_state = "idle"
+        self._bench_open = False  # the flow holds the bench (from the start until collection ends)
         self._connected = False
         self._last_snapshot_at: float | None = None
         self._latest_images = None  # (ir, depth_m) of the latest snapshot
@@ -155,6 +159,7 @@ class BenchApp(App):
         yield Footer()
 
     def on_mount(self) -> None:
+        self.banner.show(HINT, "hint")
         self.set_interval(1.0 / self._refresh_hz, self.refresh_live)
 
     # ------------------------------------------------------------ state query
@@ -194,6 +199,7 @@ class BenchApp(App):
         self._stop_event = threading.Event()
         self._flow_done.clear()
         self._arm_state = "moving"
+        self._bench_open = True
         self.result = None
         self.error = None
         self._worker = self.run_worker(
@@ -215,12 +221,16 @@ class BenchApp(App):
         if not self.running:
             self.notify("Nothing is moving.", timeout=2)
             return
-        self._request_stop("STOP: arm stopping and retracting...")
+        if self._bench_open:
+            self._request_stop("STOP: arm stopping and retracting...")
+        else:
+            self._request_stop("STOP: ending the run (the bench is already closed, the arm is parked)...")
 
     def _request_stop(self, message: str) -> None:
         assert self._stop_event is not None
         self._stop_event.set()
-        self._arm_state = "stopping"
+        if self._bench_open:
+            self._arm_state = "stopping"
         self.banner.show(message, "warning")
         self._update_bench_panel(None)
 
@@ -259,6 +269,8 @@ class BenchApp(App):
         for event in events:
             if isinstance(event, (StepStarted, StepProgress, StepFinished)):
                 steps.apply(event, now)
+                if isinstance(event, StepFinished) and event.step == Step.COLLECT:
+                    self._close_bench_view()
             elif isinstance(event, CollectionProgress):
                 self.collection.apply(event)
             elif isinstance(event, TrainingProgress):
@@ -269,6 +281,14 @@ class BenchApp(App):
             elif isinstance(event, Verdict):
                 self.acceptance.show(event.accepted, event.checks, event.report_path)
         self.training.apply(points)
+
+    def _close_bench_view(self) -> None:
+        """The flow has closed the bench (collection over): the arm is parked, no more snapshots."""
+        self._bench_open = False
+        self._connected = False
+        if self._arm_state == "moving":
+            self._arm_state = "idle"
+        self.collection.complete()
 
     def refresh_live(self) -> None:
         """Timer: show the latest bench snapshot and refresh ETAs (a few times per second)."""
@@ -317,7 +337,7 @@ class BenchApp(App):
             self.result = result = event.worker.result
             if result.stopped or result.fault:
                 self.steps.interrupt(now)
-            self._arm_state = "stopped" if (result.stopped or result.fault) else "idle"
+            self._arm_state = "stopped" if (result.stopped or result.fault) and self._bench_open else "idle"
             session = Path(result.run_dir) / "session.h5"
             if result.stopped:
                 banner.show(f"Stopped by operator: arm retracted. Recorded data kept in {session}", "warning")
@@ -333,13 +353,14 @@ class BenchApp(App):
         else:
             self.error = err = event.worker.error
             self.steps.interrupt(now)
-            self._arm_state = "stopped"
+            self._arm_state = "stopped" if self._bench_open else "idle"
             if isinstance(err, HardwareFault):
                 banner.show(f"FAULT {err.kind}: {err}", "fault")
             elif isinstance(err, InputError):
                 banner.show(f"Input error: {err}", "fault")
             else:
                 banner.show(f"Internal error: {type(err).__name__}: {err}", "fault")
+        self._bench_open = False
         self._update_bench_panel(None)
         self.registry.reload()
         if self._quit_requested:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from textual.widgets import Static
 
-LEVELS = ("fault", "warning", "info")
+LEVELS = ("fault", "warning", "info", "hint")
 
 
 class Banner(Static):
-    """Hidden until ``show``; the level picks the colours (CSS classes ``-fault/-warning/-info``)."""
+    """Hidden until ``show``; the level picks the colours (CSS classes ``-fault/-warning/-info/-hint``)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("", **kwargs)

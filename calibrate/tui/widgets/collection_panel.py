@@ -20,6 +20,7 @@ class CollectionPanel(Vertical):
         self.objects = list(objects)
         self.poses_per_object = poses_per_object
         self.border_title = "Collection"
+        self.last: CollectionProgress | None = None  # the latest event shown
         self.line = Label("waiting for collection", id="collection-line")
         self.bar = ProgressBar(total=max(1, len(self.objects) * poses_per_object), show_eta=False, id="collection-bar")
 
@@ -28,23 +29,33 @@ class CollectionPanel(Vertical):
         yield self.bar
 
     def reset(self) -> None:
+        self.last = None
         self.line.update("waiting for collection")
         self.bar.update(progress=0)
 
+    def complete(self) -> None:
+        """Collection is over: the bar shows every pose done."""
+        self.bar.update(progress=self.bar.total)
+
     def apply(self, event: CollectionProgress) -> None:
-        if event.object_name not in self.objects:
-            self.objects.append(event.object_name)
-        self.poses_per_object = event.poses_per_object
-        total = max(1, len(self.objects) * event.poses_per_object)
-        done = self.objects.index(event.object_name) * event.poses_per_object + max(event.pose_index, 0)
+        self.last = event
+        name = event.object_name
         line = Text()
-        line.append(f"{event.object_name}", style="bold")
-        if event.pose_index < 0:
-            line.append("  reference frames")
+        if not name:  # between objects or after the last one: the arm is free
+            line.append("no object", style="dim")
         else:
-            line.append(f"  pose {event.pose_index + 1}/{event.poses_per_object}")
+            if name not in self.objects:
+                self.objects.append(name)
+            self.poses_per_object = event.poses_per_object
+            total = max(1, len(self.objects) * event.poses_per_object)
+            done = self.objects.index(name) * event.poses_per_object + max(event.pose_index, 0)
+            self.bar.update(total=total, progress=min(done, total))
+            line.append(name, style="bold")
+            if event.pose_index < 0:
+                line.append("  reference frames")
+            else:
+                line.append(f"  pose {event.pose_index + 1}/{event.poses_per_object}")
         line.append("  ")
         line.append(f"{event.phase:<8}", style=_PHASE_STYLES.get(event.phase, ""))
         line.append(f"  frames {event.frames:5d}  |F| {event.force_n:5.2f} N  {event.pressure_hpa:7.1f} hPa")
         self.line.update(line)
-        self.bar.update(total=total, progress=min(done, total))

@@ -28,7 +28,7 @@ class RegistryView(Vertical):
         self.registry_dir = registry_dir
         self.border_title = "Sensor registry"
         self.line = Static("", id="registry-line")
-        self.table = DataTable(id="registry-table", zebra_stripes=True, cursor_type="row")
+        self.table = DataTable(id="registry-table", zebra_stripes=True, cursor_type="none", show_cursor=False)
 
     def compose(self):
         yield self.line
