@@ -9,12 +9,12 @@ installed ur_rtde). Only the constructors differ: they take the simulated contro
 The simulated controller moves the TCP along analytic trapezoidal profiles on the simulated
 clock (position linear, orientation slerped, speed and acceleration bounded as requested),
 so there is no control thread: every RTDE call evaluates the state at the current simulated time.
-The wrench comes from the shared bubble scene (``SimBench.wrench``: the latest membrane solution,
-re-solved when the pose moved, plus an injected force spike), minus the offset stored by
-``zeroFtSensor``. The controller enters protective stop when the raw force exceeds
-``protective_force_n`` or when the fault schedule injects ``protective-stop``; it then holds the
-TCP still and refuses motion (``moveL`` returns False), as a real UR does until the operator
-unlocks it on the pendant.
+The wrench comes from the shared bubble scene (``SimBench.wrench``: the physics thread's latest
+membrane solutions interpolated to the current pose, plus an injected force spike), minus the
+offset stored by ``zeroFtSensor``. The controller enters protective stop when a force read finds
+the raw force above ``protective_force_n``, or at any call once the fault schedule injects
+``protective-stop``; it then holds the TCP still and refuses motion (``moveL`` returns False), as
+a real UR does until the operator unlocks it on the pendant.
 """
 
 from __future__ import annotations
