@@ -177,7 +177,10 @@ def write_markdown(out: Path, speed: dict, accuracy: dict | None, command: str) 
             "",
             "Targets: predicted vs measured median e_x <= 1.0 mm and median e_theta <= 3e-4 (the paper: "
             "1.6 mm and 5e-4); vs the true pose, predicted depth at least as good as the ToF depth. "
-            "Errors vs the true pose are taken modulo the cylinder's symmetry (see docs/pose.md).",
+            "Errors are taken modulo the cylinder's symmetry (see docs/pose.md).",
+            "",
+            "![errors, predicted vs measured](bench_pose_plots/pose_errors.png)",
+            "![errors vs the true pose](bench_pose_plots/pose_vs_true.png)",
             "",
         ]
     out.parent.mkdir(parents=True, exist_ok=True)
