@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from hw_mocks.bubble_sim import BubbleSim
 from hw_mocks.objects import BenchObject, fixture_plate, load_object
 from hw_mocks.obstacle import object_depth
 from hw_mocks.preview import press_pose
-from hw_mocks.sensor_spec import ATMOSPHERE_PA, draw_sensor
+from hw_mocks.sensor_spec import draw_sensor
 from hw_mocks.transforms import invert, pose_to_matrix
 
 
@@ -61,13 +62,10 @@ def test_indentation_is_local_and_never_through_the_object(spec, plate):
     lowered = mask & (sim.rest_depth - state.true_depth > 1e-4)
     # Lowered pixels lie within ~3 dent decay lengths of the contact (physical distance on the membrane).
     pts = sim.grid.rays * sim.rest_depth[..., None]
-    contact_pts = pts[state.contact][::7]
-    far = pts[lowered]
-    nearest = np.min(np.linalg.norm(far[:, None, :2] - contact_pts[None, :, :2], axis=2), axis=1)
-    assert nearest.max() < 0.03
+    to_contact = cKDTree(pts[state.contact][:, :2])
+    assert to_contact.query(pts[lowered][:, :2])[0].max() < 0.03
     # Away from the contact the free membrane bulges out (deeper than rest), never in.
-    d = np.min(np.linalg.norm(pts[mask][:, None, :2] - contact_pts[None, :, :2], axis=2), axis=1)
-    away = d > 0.03
+    away = to_contact.query(pts[mask][:, :2])[0] > 0.03
     change = (state.true_depth - sim.rest_depth)[mask][away]
     assert change.min() >= -1e-6 and change.max() > 2e-4
 
@@ -145,6 +143,3 @@ def test_warm_start_matches_a_cold_solve(spec, plate):
     assert state.wrench[2] == pytest.approx(cold.wrench[2], rel=0.01)
     assert warm.solve(press_pose(top, 0.007), 0.0) is state  # same pose: cached
 
-
-def test_atmosphere_floor(spec):
-    assert spec.rest_pressure_pa > ATMOSPHERE_PA
