@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench_doc import update_section  # noqa: E402
+from trainer.doc_sections import BENCH_TRAINER_HEADER, update_section  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
 from trainer.pretrain import DEFAULT_OBJECTS, collect_one  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
@@ -61,7 +61,7 @@ def main() -> int:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        session = collect_one(work, args.sensor_seed, args.objects, args.poses_per_object, sim_speed=1000.0)
+        session = collect_one(work, args.sensor_seed, args.objects, args.poses_per_object, sim_speed=100.0)
         print(f"session {session} recorded in {time.perf_counter() - t0:.0f} s", flush=True)
         zero_shot = evaluate_model(args.init, [session], latency_repeats=5)
         print(f"zero-shot a1 {zero_shot['a1']:.3f}", flush=True)
@@ -103,7 +103,7 @@ def main() -> int:
         ]
     lines.append("Rerun: `.venv/bin/python benchmarks/bench_finetune.py`")
     if not args.no_doc:
-        update_section(ROOT / "docs" / "bench_trainer.md", "finetune", "Fine-tuning a new sensor (a1 vs minutes)", lines)
+        update_section(ROOT / "docs" / "bench_trainer.md", "finetune", "Fine-tuning a new sensor (a1 vs minutes)", lines, BENCH_TRAINER_HEADER)
     return 0
 
 

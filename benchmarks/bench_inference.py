@@ -28,7 +28,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench_doc import update_section  # noqa: E402
+from trainer.doc_sections import BENCH_TRAINER_HEADER, update_section  # noqa: E402
 from trainer.inference import DepthEstimator  # noqa: E402
 from trainer.model_dir import ModelMetadata, save_model  # noqa: E402
 from trainer.networks import build_network  # noqa: E402
@@ -95,7 +95,7 @@ def main() -> int:
     lines.append("")
     lines.append("Rerun: `.venv/bin/python benchmarks/bench_inference.py`")
     if not args.no_doc:
-        update_section(ROOT / "docs" / "bench_trainer.md", "inference", "Inference latency (batch 1, 224 x 224)", lines)
+        update_section(ROOT / "docs" / "bench_trainer.md", "inference", "Inference latency (batch 1, 224 x 224)", lines, BENCH_TRAINER_HEADER)
     return 0
 
 

@@ -25,11 +25,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from collect.errors import EXIT_BAD_INPUT, InputError
-from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE
+from trainer.doc_sections import update_section
+from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE, load_metadata
 
 #: Upper bound for the committed base model directory (bytes).
 MAX_BASE_MODEL_BYTES = 20 * 1024 * 1024
 DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
+#: The model card, whose "pretraining" section ``train`` rewrites (in a source checkout).
+MODEL_CARD = Path(__file__).resolve().parents[1] / "docs" / "model_card.md"
 
 
 def _bubble(*argv: str) -> None:
@@ -83,6 +86,29 @@ def package_base_model(model_dir: Path, out: Path) -> Path:
     return out
 
 
+def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
+    """Record the pretraining run of ``model_dir`` (data, budget, metrics) in the model card."""
+    meta = load_metadata(model_dir)
+    t, m = meta.training, meta.metrics
+    size = sum(p.stat().st_size for p in model_dir.iterdir() if p.is_file()) / 2**20
+    lines = [
+        f"Command: `{command}`",
+        "",
+        f"* network: `{meta.arch}` width {meta.width}, input {meta.geometry.input_width} x {meta.geometry.input_height}, "
+        f"depth range {meta.min_depth}-{meta.max_depth} m; directory {size:.1f} MB",
+        f"* training data: {len(t['sources'])} simulated sensors ({', '.join(t['sensor_serials'])}), "
+        f"{t['n_train_frames']} frames (contact + 10 % free, frame stride {t['frame_stride']}), objects {', '.join(t['objects'])}",
+        f"* validation: {len(t['val_sources'])} held-out sensors, {t['n_val_frames']} frames",
+        f"* budget: {t['budget']}, done {t['epochs']:.1f} epochs / {t['steps']} steps in {t['train_s'] / 60:.1f} min "
+        f"of training on {t['world_size']} process(es), batch {t['batch_size']}, peak RSS {t['peak_rss_mb']:.0f} MB",
+        f"* held-out sensors (vs ToF): a1 {m['a1']:.3f}, abs_rel {m['abs_rel']:.4f}, rmse {m['rmse'] * 1e3:.2f} mm, "
+        f"rmse_log {m['rmse_log']:.4f}, silog {m['silog']:.3f}",
+        f"* inference: {meta.inference.get('runtime', 'torch')}, ONNX max |ORT - torch| "
+        f"{meta.inference.get('onnx_max_abs_diff_m', float('nan')):.1e} m",
+    ]
+    update_section(card, "pretraining", "Pretraining run (written by `python -m trainer.pretrain train`)", lines)
+
+
 def run_train(args: argparse.Namespace) -> int:
     from trainer.training import TrainConfig, train_model
 
@@ -117,6 +143,8 @@ def run_train(args: argparse.Namespace) -> int:
     if result is None:  # a non-zero torchrun rank
         return 0
     out = package_base_model(result.model_dir, Path(args.out))
+    if args.model_card:
+        write_model_card_section(out, Path(args.model_card), " ".join(sys.argv))
     print(f"base model -> {out}: held-out sensors a1 {result.metrics['a1']:.3f}, abs_rel {result.metrics['abs_rel']:.4f}")
     return 0
 
@@ -129,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--first-seed", type=int, default=1000)
     c.add_argument("--objects", default=DEFAULT_OBJECTS)
     c.add_argument("--poses-per-object", type=int, default=8)
-    c.add_argument("--sim-speed", type=float, default=1000.0, help="simulated clock speed factor")
+    c.add_argument("--sim-speed", type=float, default=100.0, help="simulated clock speed factor (<= 100)")
     c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel")
     c.add_argument("--work", required=True, help="directory of the sessions")
     c.set_defaults(func=run_collect)
@@ -146,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--frame-stride", type=int, default=3)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--resume", action="store_true")
+    t.add_argument("--model-card", default=str(MODEL_CARD) if MODEL_CARD.parent.is_dir() else "",
+                   help="model card whose pretraining section to rewrite ('' = none)")
     t.set_defaults(func=run_train)
     args = parser.parse_args(argv)
     try:

@@ -230,6 +230,11 @@ def train_model(
     network, metadata, init_info = _build(config, train_frames)
     train_t = to_network_tensors(train_frames, metadata.geometry, metadata.normalization)
     val_t = to_network_tensors(val_frames, metadata.geometry, metadata.normalization)
+    sources = [s.to_dict() for s in frames.sources]
+    val_sources = [s.to_dict() for s in val_frames.sources] if config.val_data else []
+    serials = sorted({s.sensor_serial for s in frames.sources})
+    objects = sorted(set(train_frames.object_name) - {""})
+    del frames, train_frames, val_frames  # the native copies; training uses the tensors only
     live_idx = np.linspace(0, len(val_t) - 1, min(config.eval_frames, len(val_t))).round().astype(int)
     live_val = NetworkTensors(val_t.x[live_idx], val_t.depth[live_idx], val_t.content)
 
@@ -331,11 +336,11 @@ def train_model(
         peak = _peak_rss_mb()
         metadata.metrics = {**metrics, "split": split_info["kind"], "n_val_frames": len(val_t)}
         metadata.training = {
-            "sources": [s.to_dict() for s in frames.sources],
-            "val_sources": [s.to_dict() for s in val_frames.sources] if config.val_data else [],
-            "sensor_serials": sorted({s.sensor_serial for s in frames.sources}),
+            "sources": sources,
+            "val_sources": val_sources,
+            "sensor_serials": serials,
             "split": split_info,
-            "objects": sorted(set(train_frames.object_name) - {""}),
+            "objects": objects,
             "n_train_frames": len(train_t),
             "n_val_frames": len(val_t),
             "init": init_info,

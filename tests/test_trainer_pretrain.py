@@ -1,0 +1,26 @@
+"""Pretraining step 2 (train + package the base model) on synthetic sessions of several sensors."""
+
+from conftest import make_synthetic_session
+from trainer.model_dir import WEIGHTS_FILE, load_metadata
+from trainer.pretrain import main
+
+
+def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_path):
+    work = tmp_path / "work"
+    work.mkdir()
+    for i in range(3):
+        make_synthetic_session(work / f"sensor_{i:05d}.h5", height=48, width=64, poses_per_object=1,
+                               sensor_serial=f"SYN-{i}", seed=i)
+    card = tmp_path / "card.md"
+    card.write_text("# Model card\n")
+    out = tmp_path / "base"
+    code = main(["train", "--work", str(work), "--out", str(out), "--val-sensors", "1", "--width", "0.125",
+                 "--epochs", "0.5", "--frame-stride", "2", "--model-card", str(card)])
+    assert code == 0
+    assert sorted(p.name for p in out.iterdir()) == ["metadata.json", "model.onnx", WEIGHTS_FILE]
+    meta = load_metadata(out)
+    assert meta.training["sensor_serials"] == ["SYN-0", "SYN-1"]
+    assert [s["sensor_serial"] for s in meta.training["val_sources"]] == ["SYN-2"]
+    text = card.read_text()
+    assert text.startswith("# Model card") and "<!-- begin:pretraining -->" in text and "SYN-0, SYN-1" in text
+    assert main(["train", "--work", str(tmp_path / "empty"), "--out", str(out)]) == 2
