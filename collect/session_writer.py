@@ -12,8 +12,9 @@ flush. A process killed with SIGKILL leaves a file holding every frame up to the
 opens with ``h5py.File(path, "r", swmr=True)`` (``collect.session_reader`` does that for you) and
 ``resume=True`` continues it.
 
-Compression: LZF with the byte-shuffle filter (see docs/session_format.md and
-docs/bench_recorder.md for the measurements behind this choice).
+Compression: the byte-shuffle + deflate (level 1) HDF5 filters, applied by the writer itself in
+parallel threads and stored with direct chunk writes (see ``IMAGE_COMPRESSION``,
+docs/session_format.md and docs/bench_recorder.md for the measurements behind this choice).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ import os
 import queue
 import threading
 import time
+import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime, timezone
 
@@ -32,9 +35,12 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import HardwareFault, InputError
 
-#: Filters of the per-frame image datasets: fast (well above the camera rate on one core) and
-#: about 1.5x smaller than raw for ToF images; gzip-1+shuffle is ~7 % smaller but ~1.5x slower.
-IMAGE_COMPRESSION = {"compression": "lzf", "shuffle": True}
+#: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
+#: every HDF5 reader decodes (h5py, h5dump, MATLAB, HDFView; LZF is h5py-only). The writer
+#: compresses the chunks itself in ``COMPRESS_THREADS`` threads (zlib releases the GIL) and
+#: stores them with direct chunk writes; docs/bench_recorder.md has the measurements.
+IMAGE_COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+COMPRESS_THREADS = 2
 
 #: Rows per chunk of the 1-D/2-D per-sample datasets (timestamps, poses, streams).
 ROW_CHUNK = 512
@@ -82,6 +88,8 @@ class SessionWriter:
         resume: append to an existing session instead of creating one. Objects already in the file
             keep their index; new ones are appended (``object_indices`` maps the given list).
         flush_interval_s: longest time between flushes while data is arriving, s (<= 1).
+        compression: h5py filter keywords of the image datasets of a new file (default
+            ``IMAGE_COMPRESSION``); a resumed file keeps its own.
 
     Raises:
         InputError: the file exists (without ``resume``), cannot be created, or (with ``resume``) is
@@ -100,6 +108,7 @@ class SessionWriter:
         objects: list[dict],
         resume: bool = False,
         flush_interval_s: float = 0.5,
+        compression: dict | None = None,
     ):
         self.path = os.fspath(path)
         self.simulated = bool(simulated)
@@ -117,7 +126,8 @@ class SessionWriter:
             _write_root_attrs(
                 self._file, sensor_serial, sensor_spec, intrinsics, camera_in_tcp, self.simulated
             )
-            _create_datasets(self._file, self.height, self.width, self.simulated)
+            _create_datasets(self._file, self.height, self.width, self.simulated,
+                             IMAGE_COMPRESSION if compression is None else compression)
         self.object_indices = _merge_objects(self._file, objects)
         self._file.attrs[sf.ATTR_CLOSED] = ""
         self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
@@ -131,6 +141,8 @@ class SessionWriter:
         self._frames = {name: self._file[name] for name in _FRAME_DATASETS}
         if self.simulated:
             self._frames[sf.SIM_TRUE_DEPTH] = self._file[sf.SIM_TRUE_DEPTH]
+        self._images = {name: _ImageDataset(self._frames[name]) for name in _IMAGE_DATASETS if name in self._frames}
+        self._pool = ThreadPoolExecutor(COMPRESS_THREADS, thread_name_prefix="session-compress")
         self._thread = threading.Thread(target=self._run, name="session-writer", daemon=True)
         self._thread.start()
 
@@ -208,6 +220,7 @@ class SessionWriter:
         self._closed = True
         self._queue.put(None)
         self._thread.join()
+        self._pool.shutdown()
         try:
             if self._error is None:
                 self._file.attrs[sf.ATTR_CLOSED] = _now()
@@ -312,6 +325,10 @@ class SessionWriter:
             }
             if self.simulated:
                 columns[sf.SIM_TRUE_DEPTH] = np.stack([f[10] for f in frames])
+            images = {name: columns.pop(name) for name in self._images}
+            encoded = {name: self._images[name].encode(values, self._pool) for name, values in images.items()}
+            for name, values in images.items():
+                self._images[name].append(values, encoded[name])
             for name, values in columns.items():
                 _append_rows(self._frames[name], values)
             self.stats.frames_written += len(frames)
@@ -324,8 +341,46 @@ class SessionWriter:
             _append_rows(self._file[sf.PRESSURE_HPA], np.array([p[2] for p in pressures]))
 
 
+class _ImageDataset:
+    """Appends ``(n,H,W)`` images to a dataset chunked one image per chunk.
+
+    With the shuffle + deflate filters (``IMAGE_COMPRESSION``) the chunks are encoded here, exactly
+    as those HDF5 filters would (byte shuffle, then a zlib stream), in a thread pool, and stored
+    with ``write_direct_chunk``: any reader decodes them with the standard filters. Datasets with
+    other filters (a resumed file from another writer) go through h5py's normal write path.
+    """
+
+    def __init__(self, dataset: h5py.Dataset):
+        self.dataset = dataset
+        plist = dataset.id.get_create_plist()
+        filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+        self.direct = filters == [h5py.h5z.FILTER_SHUFFLE, h5py.h5z.FILTER_DEFLATE]
+        self.level = int(dataset.compression_opts) if self.direct else 0
+        self.itemsize = dataset.dtype.itemsize
+
+    def _encode_one(self, image: np.ndarray) -> bytes:
+        shuffled = np.ascontiguousarray(image).view(np.uint8).reshape(-1, self.itemsize).T.tobytes()
+        return zlib.compress(shuffled, self.level)
+
+    def encode(self, images: np.ndarray, pool: ThreadPoolExecutor):
+        """Start encoding ``images`` (n,H,W); returns futures (or None for the normal write path)."""
+        if not self.direct:
+            return None
+        return [pool.submit(self._encode_one, image) for image in images]
+
+    def append(self, images: np.ndarray, encoded) -> None:
+        if encoded is None:
+            _append_rows(self.dataset, images)
+            return
+        n = self.dataset.shape[0]
+        self.dataset.resize(n + len(images), axis=0)
+        for i, future in enumerate(encoded):
+            self.dataset.id.write_direct_chunk((n + i, 0, 0), future.result(), filter_mask=0)
+
+
 # ---------------------------------------------------------------------- file layout helpers
 _PHASE_VALUES = frozenset(sf.PHASES.values())
+_IMAGE_DATASETS = (sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.SIM_TRUE_DEPTH)
 
 _FRAME_DATASETS = (
     sf.FRAMES_IR,
@@ -398,10 +453,10 @@ def _plain(value):
     return value
 
 
-def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool) -> None:
+def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool, compression: dict) -> None:
     image = dict(shape=(0, height, width), maxshape=(None, height, width), chunks=(1, height, width))
-    f.create_dataset(sf.FRAMES_IR, dtype=np.uint16, **image, **IMAGE_COMPRESSION)
-    depth = f.create_dataset(sf.FRAMES_DEPTH, dtype=np.uint16, **image, **IMAGE_COMPRESSION)
+    f.create_dataset(sf.FRAMES_IR, dtype=np.uint16, **image, **compression)
+    depth = f.create_dataset(sf.FRAMES_DEPTH, dtype=np.uint16, **image, **compression)
     depth.attrs[sf.ATTR_UNIT_M] = sf.DEPTH_UNIT_M
     depth.attrs[sf.ATTR_INVALID] = 0
     for name, dtype, unit in (
@@ -427,7 +482,7 @@ def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool) -> 
         ds = f.create_dataset(name, shape=(0, 6), maxshape=(None, 6), chunks=(ROW_CHUNK, 6), dtype=np.float64)
         ds.attrs[sf.ATTR_UNIT] = unit
     if simulated:
-        true = f.create_dataset(sf.SIM_TRUE_DEPTH, dtype=np.float32, **image, **IMAGE_COMPRESSION)
+        true = f.create_dataset(sf.SIM_TRUE_DEPTH, dtype=np.float32, **image, **compression)
         true.attrs[sf.ATTR_UNIT] = "m"
     for name in (sf.OBJECTS_NAME, sf.OBJECTS_MESH_SHA256, sf.OBJECTS_PRIMITIVE):
         f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(64,), dtype=_STR)

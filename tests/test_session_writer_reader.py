@@ -50,7 +50,8 @@ def test_round_trip_format_and_selection(synthetic_session):
         assert f.attrs[sf.ATTR_FORMAT] == sf.FORMAT_NAME
         assert f.attrs[sf.ATTR_FORMAT_VERSION] == sf.FORMAT_VERSION
         assert json.loads(f[sf.FRAMES_PHASE].attrs[sf.ATTR_PHASE_ENUM]) == sf.PHASES
-        assert f[sf.FRAMES_IR].chunks == (1, 172, 224) and f[sf.FRAMES_IR].compression == "lzf"
+        assert f[sf.FRAMES_IR].chunks == (1, 172, 224) and f[sf.FRAMES_IR].compression == "gzip"
+        assert f[sf.FRAMES_IR].shuffle and f[sf.SIM_TRUE_DEPTH].compression == "gzip"
         assert f[sf.SIM_TRUE_DEPTH].dtype == np.float32
     with Session.open(synthetic_session) as s:
         assert (s.n_frames, s.height, s.width) == (2 * (4 + 4 * 2 * 3), 172, 224)
@@ -229,3 +230,21 @@ def test_truncated_and_non_hdf5_files(tmp_path, synthetic_session):
         Session.open(text)
     with pytest.raises(InputError, match="no such file"):
         Session.open(tmp_path / "missing.h5")
+
+
+@pytest.mark.parametrize("compression", [None, {"compression": "lzf", "shuffle": True}, {}])
+def test_images_read_back_bit_exact_with_any_filters(tmp_path, compression):
+    """Direct chunk writes (default shuffle+gzip) and h5py's own filter path store the same data."""
+    rng = np.random.default_rng(3)
+    ir = rng.integers(0, 65535, (5, H, W), dtype=np.uint16)
+    depth = rng.integers(0, 12000, (5, H, W), dtype=np.uint16)
+    true = rng.uniform(0.05, 0.1, (5, H, W)).astype(np.float32)
+    path = tmp_path / "bits.h5"
+    with SessionWriter(path, sensor_serial="S", sensor_spec={}, intrinsics=INTRINSICS, camera_in_tcp=np.zeros(6),
+                       simulated=True, objects=[], compression=compression) as w:
+        for i in range(5):
+            w.append_frame(ir[i], depth[i], i, i, i, -1, -1, 0, np.zeros(6), true_depth=true[i])
+    with h5py.File(path, "r") as f:
+        np.testing.assert_array_equal(f[sf.FRAMES_IR][()], ir)
+        np.testing.assert_array_equal(f[sf.FRAMES_DEPTH][()], depth)
+        np.testing.assert_array_equal(f[sf.SIM_TRUE_DEPTH][()], true)
