@@ -188,7 +188,7 @@ def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
             assert flow.saw_stop and app.result.stopped and app.arm_state == "stopped"
             banner = app.query_one(Banner)
             assert banner.level == "warning" and "Stopped by operator" in str(banner.content)
-            assert app.query_one("#step-collect").status == "stopped"
+            assert app.steps.row(Step.COLLECT).status == "stopped"
 
     asyncio.run(scenario())
 
@@ -216,7 +216,7 @@ def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
             await wait_for(lambda: app.error is not None, pilot)
             banner = app.query_one(Banner)
             assert banner.level == "fault" and "camera-stall" in str(banner.content)
-            assert app.query_one("#step-collect").status == "stopped" and app.arm_state == "stopped"
+            assert app.steps.row(Step.COLLECT).status == "stopped" and app.arm_state == "stopped"
 
     asyncio.run(scenario())
 

@@ -61,7 +61,7 @@ class BenchPanel(Static):
         grid.add_row("arm", Text(self.arm_state, style=arm_styles.get(self.arm_state, "")))
         if snap is None:
             grid.add_row("", Text("no data yet", style="dim"))
-            self.update(grid)
+            self.update(grid, layout=False)
             return
         x, y, z, rx, ry, rz = (float(v) for v in snap.tcp_pose)
         grid.add_row("TCP", f"x {x * 1e3:8.1f} mm")
@@ -74,7 +74,7 @@ class BenchPanel(Static):
         grid.add_row("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")
         grid.add_row("bubble", f"{snap.pressure_hpa:8.1f} hPa")
         grid.add_row("camera", self._camera_line(snap))
-        self.update(grid)
+        self.update(grid, layout=False)
 
     @staticmethod
     def _camera_line(snap: BenchSnapshot) -> Text:

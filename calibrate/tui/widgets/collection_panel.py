@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
+from rich.console import Group
 from rich.text import Text
-from textual.containers import Vertical
-from textual.widgets import Label, ProgressBar
+from textual.widgets import Static
 
 from calibrate.commission_events import CollectionProgress
+from calibrate.tui.widgets.formatting import text_bar
 
 _PHASE_STYLES = {"press": "bold red", "hold": "bold magenta", "approach": "yellow", "retract": "cyan", "free": "dim"}
 
 
-class CollectionPanel(Vertical):
+class CollectionPanel(Static):
     """Object, pose k/K, contact phase, frames recorded, force and pressure, and a bar over all
     contact poses of the run (``objects`` in plan order, ``poses_per_object`` each)."""
 
@@ -21,21 +22,27 @@ class CollectionPanel(Vertical):
         self.poses_per_object = poses_per_object
         self.border_title = "Collection"
         self.last: CollectionProgress | None = None  # the latest event shown
-        self.line = Label("waiting for collection", id="collection-line")
-        self.bar = ProgressBar(total=max(1, len(self.objects) * poses_per_object), show_eta=False, id="collection-bar")
+        self.line = Text("waiting for collection", style="dim")
+        self.done = 0  # contact poses finished
 
-    def compose(self):
-        yield self.line
-        yield self.bar
+    def on_mount(self) -> None:
+        self._redraw()
+
+    @property
+    def total(self) -> int:
+        """Contact poses planned."""
+        return max(1, len(self.objects) * self.poses_per_object)
 
     def reset(self) -> None:
         self.last = None
-        self.line.update("waiting for collection")
-        self.bar.update(progress=0)
+        self.done = 0
+        self.line = Text("waiting for collection", style="dim")
+        self._redraw()
 
     def complete(self) -> None:
         """Collection is over: the bar shows every pose done."""
-        self.bar.update(progress=self.bar.total)
+        self.done = self.total
+        self._redraw()
 
     def apply(self, event: CollectionProgress) -> None:
         self.last = event
@@ -47,9 +54,7 @@ class CollectionPanel(Vertical):
             if name not in self.objects:
                 self.objects.append(name)
             self.poses_per_object = event.poses_per_object
-            total = max(1, len(self.objects) * event.poses_per_object)
-            done = self.objects.index(name) * event.poses_per_object + max(event.pose_index, 0)
-            self.bar.update(total=total, progress=min(done, total))
+            self.done = min(self.objects.index(name) * event.poses_per_object + max(event.pose_index, 0), self.total)
             line.append(name, style="bold")
             if event.pose_index < 0:
                 line.append("  reference frames")
@@ -58,4 +63,14 @@ class CollectionPanel(Vertical):
         line.append("  ")
         line.append(f"{event.phase:<8}", style=_PHASE_STYLES.get(event.phase, ""))
         line.append(f"  frames {event.frames:5d}  |F| {event.force_n:5.2f} N  {event.pressure_hpa:7.1f} hPa")
-        self.line.update(line)
+        self.line = line
+        self._redraw()
+
+    def _redraw(self) -> None:
+        width = max(self.content_region.width - 14, 10) if self.is_mounted else 40
+        bar = text_bar(self.done / self.total, width, "dodger_blue1")
+        bar.append(f" {self.done}/{self.total} poses")
+        self.update(Group(self.line, bar), layout=False)
+
+    def on_resize(self) -> None:
+        self._redraw()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from rich.text import Text
+
 
 def duration(seconds: float | None) -> str:
     """``m:ss`` (or ``h:mm:ss``) for a duration in s; ``--:--`` when unknown."""
@@ -24,3 +26,16 @@ def number(value: object) -> str:
     if isinstance(value, float):
         return f"{value:.4g}"
     return str(value)
+
+
+def text_bar(fraction: float, width: int, style: str, empty_style: str = "grey23") -> Text:
+    """A progress bar of ``width`` cells: filled ``━`` in ``style``, the rest in ``empty_style``;
+    a half cell ``╸`` shows the remainder."""
+    fraction = min(max(float(fraction), 0.0), 1.0)
+    halves = int(round(fraction * width * 2))
+    full, half = divmod(halves, 2)
+    bar = Text("━" * full, style=style)
+    if half:
+        bar.append("╸", style=style)
+    bar.append("━" * (width - full - half), style=empty_style)
+    return bar

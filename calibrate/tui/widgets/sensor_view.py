@@ -26,6 +26,7 @@ class HalfBlockImage(Widget):
         self.scaled: Scaled | None = None
         self._strips: list[Strip] = []
         self._strips_for: tuple[int, int] | None = None
+        self._blank = Strip.blank(0)
 
     def set_image(self, scaled: Scaled | None) -> None:
         """Show an image mapped to colour indices (see ``halfblock.scale_image``)."""
@@ -34,24 +35,24 @@ class HalfBlockImage(Widget):
         self.refresh()
 
     def _build(self, size: Size) -> None:
+        """Cache one strip per line for ``size`` (cells)."""
+        style = self.rich_style
         self._strips = []
+        self._blank = Strip.blank(size.width, style)
         self._strips_for = (size.width, size.height)
         if self.scaled is None:
             return
         cols, rows = fit_cells(self.scaled.index.shape, size.width, size.height)
         pad = (size.width - cols) // 2
-        style = self.rich_style
         left = [Segment(" " * pad, style)] if pad else []
         for segments in halfblock_rows(self.scaled.index, cols, rows, self.colormap):
-            self._strips.append(Strip(left + segments, pad + cols))
+            self._strips.append(Strip(left + segments, pad + cols).extend_cell_length(size.width, style))
 
     def render_line(self, y: int) -> Strip:
         size = self.size
         if self._strips_for != (size.width, size.height):
             self._build(size)
-        if y < len(self._strips):
-            return self._strips[y].extend_cell_length(size.width, self.rich_style)
-        return Strip.blank(size.width, self.rich_style)
+        return self._strips[y] if y < len(self._strips) else self._blank
 
 
 class SensorView(Vertical):
@@ -87,10 +88,10 @@ class SensorView(Vertical):
         if ir is not None:
             scaled = scale_image(np.asarray(ir, dtype=np.float32))
             self.ir_image.set_image(scaled)
-            self.ir_caption.update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}")
+            self.ir_caption.update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}", layout=False)
         if depth_m is not None:
             depth = np.asarray(depth_m, dtype=np.float32)
             scaled = scale_image(depth, valid=depth > 0)
             self.depth_image.set_image(scaled)
-            self.depth_caption.update(f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm")
-            self.legend.update(self._legend_text(f" {scaled.invalid_fraction * 100:.0f} %"))
+            self.depth_caption.update(f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm", layout=False)
+            self.legend.update(self._legend_text(f" {scaled.invalid_fraction * 100:.0f} %"), layout=False)

@@ -1,12 +1,19 @@
-"""Commissioning steps, each with a status mark, progress bar, ETA / duration and summary."""
+"""Commissioning steps, each with a status mark, progress bar, ETA / duration and summary.
+
+One widget draws every step as a row of a table (no child widgets): the panel is updated many
+times a second during a run and must stay cheap to lay out and render.
+"""
 
 from __future__ import annotations
 
-from textual.containers import Horizontal, Vertical
-from textual.widgets import Label, ProgressBar
+from dataclasses import dataclass
+
+from rich.table import Table
+from rich.text import Text
+from textual.widgets import Static
 
 from calibrate.commission_events import STEPS, Step, StepFinished, StepProgress, StepStarted
-from calibrate.tui.widgets.formatting import duration
+from calibrate.tui.widgets.formatting import duration, text_bar
 
 STEP_TITLES = {
     Step.CONNECT: "Connect",
@@ -20,93 +27,36 @@ STEP_TITLES = {
     Step.VERDICT: "Verdict",
 }
 
-#: status -> (mark, CSS class)
-_MARKS = {
-    "pending": ("·", "-pending"),
-    "running": ("▶", "-running"),
-    "ok": ("✔", "-ok"),
-    "failed": ("✘", "-failed"),
-    "stopped": ("■", "-stopped"),
-    "resumed": ("↺", "-ok"),
-    "skipped": ("–", "-pending"),
+#: status -> (mark, title style, bar style)
+_LOOK = {
+    "pending": ("·", "dim", "grey35"),
+    "running": ("▶", "bold yellow", "dodger_blue1"),
+    "ok": ("✔", "green", "green"),
+    "failed": ("✘", "bold red", "red"),
+    "stopped": ("■", "yellow", "yellow"),
+    "resumed": ("↺", "green", "green"),
+    "skipped": ("–", "dim", "grey35"),
 }
 
 #: Below this fraction the ETA comes from the step's announced duration, not from its progress.
 _MIN_FRACTION_FOR_RATE = 0.05
+BAR_WIDTH = 24
 
 
-class StepRow(Horizontal):
-    """One step: ``mark title  [bar] pct  ETA m:ss  summary``."""
+@dataclass
+class StepState:
+    """What the panel knows of one step; times in s of the app's clock."""
 
-    def __init__(self, step: Step) -> None:
-        super().__init__(id=f"step-{step.value}", classes="step-row -pending")
-        self.step = step
-        self.status = "pending"
-        self.started_at: float | None = None
-        self.finished_at: float | None = None
-        self.eta_s: float | None = None
-        self.fraction = 0.0
-        self.title_label = Label(f"· {STEP_TITLES[step]}", classes="step-title")
-        self.bar = ProgressBar(total=1.0, show_eta=False, classes="step-bar")
-        self.time_label = Label("", classes="step-time")
-        self.summary_label = Label("", classes="step-summary")
+    step: Step
+    status: str = "pending"  # a key of _LOOK
+    started_at: float | None = None
+    finished_at: float | None = None
+    eta_s: float | None = None
+    fraction: float = 0.0
+    summary: str = ""
 
-    def compose(self):
-        yield self.title_label
-        yield self.bar
-        yield self.time_label
-        yield self.summary_label
-
-    def _set_status(self, status: str) -> None:
-        old_class = _MARKS[self.status][1]
-        self.status = status
-        mark, new_class = _MARKS[status]
-        self.remove_class(old_class)
-        self.add_class(new_class)
-        self.title_label.update(f"{mark} {STEP_TITLES[self.step]}")
-
-    def reset(self) -> None:
-        """Back to pending, for a new run."""
-        self.started_at = self.finished_at = self.eta_s = None
-        self.fraction = 0.0
-        self._set_status("pending")
-        self.bar.update(progress=0.0)
-        self.time_label.update("")
-        self.summary_label.update("")
-
-    def start(self, now: float, eta_s: float | None) -> None:
-        self.started_at, self.finished_at, self.eta_s, self.fraction = now, None, eta_s, 0.0
-        self._set_status("running")
-        self.bar.update(progress=0.0)
-        self.summary_label.update("")
-
-    def progress(self, fraction: float, message: str) -> None:
-        self.fraction = min(max(float(fraction), 0.0), 1.0)
-        self.bar.update(progress=self.fraction)
-        if message:
-            self.summary_label.update(message)
-
-    def finish(self, now: float, ok: bool, summary: str, resumed: bool, skipped: bool = False) -> None:
-        self.finished_at = now
-        if skipped:
-            self._set_status("skipped")
-            self.summary_label.update(("skipped: " + summary) if summary else "skipped")
-            return
-        self._set_status("resumed" if resumed and ok else ("ok" if ok else "failed"))
-        if ok:
-            self.fraction = 1.0
-            self.bar.update(progress=1.0)
-        self.summary_label.update(("resumed: " if resumed else "") + summary)
-
-    def interrupt(self, now: float) -> None:
-        """The run ended (stop or fault) while this step was running."""
-        if self.status == "running":
-            self.finished_at = now
-            self._set_status("stopped")
-
-    def tick(self, now: float) -> None:
-        """Refresh the time column: ETA while running, duration when done."""
-        label = self.time_label
+    def time_text(self, now: float) -> str:
+        """ETA while running, duration when done, blank otherwise."""
         if self.status == "running" and self.started_at is not None:
             elapsed = now - self.started_at
             if self.fraction >= _MIN_FRACTION_FOR_RATE:
@@ -115,50 +65,81 @@ class StepRow(Horizontal):
                 remaining = max(self.eta_s - elapsed, 0.0)
             else:
                 remaining = None
-            label.update(f"ETA {duration(remaining)}")
-        elif self.status == "skipped":
-            label.update("")
-        elif self.started_at is not None and self.finished_at is not None:
-            label.update(f"took {duration(self.finished_at - self.started_at)}")
-        elif self.status == "resumed":
-            label.update("")
+            return f"ETA {duration(remaining)}"
+        if self.status in ("skipped", "resumed") or self.started_at is None or self.finished_at is None:
+            return ""
+        return f"took {duration(self.finished_at - self.started_at)}"
 
 
-class StepsPanel(Vertical):
+class StepsPanel(Static):
     """All commissioning steps in order; consumes ``StepStarted/StepProgress/StepFinished``."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         self.border_title = "Commissioning steps"
-        self.rows = {step: StepRow(step) for step in STEPS}
+        self.rows = {step: StepState(step) for step in STEPS}
+        self._now = 0.0
 
-    def compose(self):
-        yield from self.rows.values()
+    def on_mount(self) -> None:
+        self._redraw()
 
-    def row(self, step: Step) -> StepRow:
+    def row(self, step: Step) -> StepState:
         return self.rows[Step(step)]
 
     def apply(self, event: object, now: float) -> None:
-        """Apply one step event (others are ignored)."""
+        """Apply one step event (others are ignored); redraws."""
         if isinstance(event, StepStarted):
-            self.row(event.step).start(now, event.eta_s)
+            self.rows[Step(event.step)] = StepState(event.step, "running", started_at=now, eta_s=event.eta_s)
         elif isinstance(event, StepProgress):
-            self.row(event.step).progress(event.fraction, event.message)
+            row = self.row(event.step)
+            row.fraction = min(max(float(event.fraction), 0.0), 1.0)
+            if event.message:
+                row.summary = event.message
         elif isinstance(event, StepFinished):
-            self.row(event.step).finish(now, event.ok, event.summary, event.resumed, event.skipped)
+            row = self.row(event.step)
+            row.finished_at = now
+            if event.skipped:
+                row.status = "skipped"
+                row.summary = event.summary or "skipped"
+            else:
+                row.status = "resumed" if event.resumed and event.ok else ("ok" if event.ok else "failed")
+                row.summary = ("resumed: " if event.resumed else "") + event.summary
+                if event.ok:
+                    row.fraction = 1.0
         else:
             return
         self.tick(now)
 
     def reset(self) -> None:
-        for row in self.rows.values():
-            row.reset()
+        self.rows = {step: StepState(step) for step in STEPS}
+        self._redraw()
 
     def interrupt(self, now: float) -> None:
+        """The run ended (stop or fault): a running step is marked stopped."""
         for row in self.rows.values():
-            row.interrupt(now)
+            if row.status == "running":
+                row.status, row.finished_at = "stopped", now
         self.tick(now)
 
     def tick(self, now: float) -> None:
+        """Redraw with ETAs and durations at ``now``."""
+        self._now = now
+        self._redraw()
+
+    def _redraw(self) -> None:
+        grid = Table.grid(padding=(0, 1), expand=True)
+        grid.add_column(width=15, no_wrap=True)
+        grid.add_column(width=BAR_WIDTH, no_wrap=True)
+        grid.add_column(width=4, justify="right", no_wrap=True)
+        grid.add_column(width=9, no_wrap=True)
+        grid.add_column(ratio=1, no_wrap=True, overflow="ellipsis")
         for row in self.rows.values():
-            row.tick(now)
+            mark, title_style, bar_style = _LOOK[row.status]
+            grid.add_row(
+                Text(f"{mark} {STEP_TITLES[row.step]}", style=title_style),
+                text_bar(row.fraction, BAR_WIDTH, bar_style),
+                f"{row.fraction * 100:.0f}%",
+                Text(row.time_text(self._now), style="dim"),
+                Text(row.summary, style="dim"),
+            )
+        self.update(grid, layout=False)

@@ -6,7 +6,7 @@ import numpy as np
 from rich.text import Text
 from textual.containers import Vertical
 from textual.widget import Widget
-from textual.widgets import Label
+from textual.widgets import Static
 
 from calibrate.commission_events import TrainingProgress
 from calibrate.tui.widgets.formatting import duration
@@ -91,7 +91,7 @@ class TrainingCurve(Vertical):
         self.loss: list[float] = []
         self.a1: list[float] = []
         self.last: TrainingProgress | None = None
-        self.line = Label("waiting for fine-tuning", id="training-line")
+        self.line = Static("waiting for fine-tuning", id="training-line")
         self.loss_plot = CurvePlot("loss (m)", "{:.5f}", "bold yellow", id="loss-plot")
         self.a1_plot = CurvePlot("val δ<1.05", "{:.3f}", "bold green", id="a1-plot")
 
@@ -102,7 +102,7 @@ class TrainingCurve(Vertical):
 
     def reset(self) -> None:
         self.loss, self.a1, self.last = [], [], None
-        self.line.update("waiting for fine-tuning")
+        self.line.update("waiting for fine-tuning", layout=False)
         self.loss_plot.set_values([])
         self.a1_plot.set_values([])
 
@@ -116,7 +116,8 @@ class TrainingCurve(Vertical):
                 self.a1.append(float(point.a1))
         self.last = points[-1]
         self.line.update(
-            f"step {self.last.step}  elapsed {duration(self.last.elapsed_s)}  ETA {duration(self.last.eta_s)}"
+            f"step {self.last.step}  elapsed {duration(self.last.elapsed_s)}  ETA {duration(self.last.eta_s)}",
+            layout=False,
         )
         self.loss_plot.set_values(self.loss)
         self.a1_plot.set_values(self.a1)
