@@ -116,7 +116,7 @@ class BubbleSim:
 
         self.texture = albedo_texture(spec, self.dome, self.grid, depth, mask)
         self.ir = IrRenderer(spec, self.grid.rays, self.housing_depth)
-        self.tof = TofRenderer(spec, self.grid.rays, mask, self.housing_depth)
+        self.tof = TofRenderer(spec, self.grid.rays, mask, self.housing_depth, self.rest_depth)
         self._rays32 = self.grid.rays.astype(np.float32)
         self._cache_key = None
         self._cache_state: MembraneState | None = None
@@ -236,16 +236,32 @@ class BubbleSim:
         return np.concatenate([force, torque])
 
     def _material_flow(self, u: np.ndarray) -> np.ndarray:
-        """Image motion ``(H,W,2) float32 px`` of the membrane material: each material point moves
-        along its rest normal until it reaches the new depth along its rest ray."""
-        rays, n0, d0 = self.physics.rays, self._n0_phys, self._d_phys
+        """Image motion ``(H,W,2) float32 px`` of the membrane material, relative to rest.
+
+        Two parts: each material point moves along its rest normal to the new depth along its rest
+        ray, and in-plane the membrane is drawn into dents: the extra area ``|grad u|^2 / 2`` of a
+        dent comes from its surroundings (uniform strain), which gives the in-plane displacement
+        ``-grad(phi)`` with ``lap(phi) = |grad u|^2/2 - mean`` and ``phi = 0`` at the rim.
+        """
+        if not u.any():
+            return np.zeros((self.spec.height, self.spec.width, 2), dtype=np.float32)
+        rays, n0, d0, m = self.physics.rays, self._n0_phys, self._d_phys, self._m_phys
         s = u / np.maximum(n0[..., 2], 0.3)
         x = rays * d0[..., None] + s[..., None] * n0
         z = np.maximum(x[..., 2], 1e-3)
-        flow_u = np.where(self._m_phys, self.spec.fx * (x[..., 0] / z - rays[..., 0]), 0.0).astype(np.float32)
-        flow_v = np.where(self._m_phys, self.spec.fy * (x[..., 1] / z - rays[..., 1]), 0.0).astype(np.float32)
-        fu = cv2.remap(flow_u, self._map_x, self._map_y, cv2.INTER_LINEAR)
-        fv = cv2.remap(flow_v, self._map_x, self._map_y, cv2.INTER_LINEAR)
+        fx, fy = self.spec.fx / PHYSICS_STEP, self.spec.fy / PHYSICS_STEP
+        hx, hy = np.where(m, d0, 1.0) / fx, np.where(m, d0, 1.0) / fy  # m per physics pixel
+        gx, gy = np.gradient(u, axis=1) / hx, np.gradient(u, axis=0) / hy
+        excess = np.where(m, 0.5 * (gx * gx + gy * gy), 0.0)
+        area = self.solver.area
+        excess = np.where(m, excess - (excess * area).sum() / area.sum(), 0.0)
+        phi = self.solver.poisson(excess)
+        drawn_x = -np.gradient(phi, axis=1) / hx  # m, in-plane material displacement
+        drawn_y = -np.gradient(phi, axis=0) / hy
+        flow_u = np.where(m, self.spec.fx * (x[..., 0] / z - rays[..., 0]) + drawn_x * self.spec.fx / d0.clip(1e-3), 0.0)
+        flow_v = np.where(m, self.spec.fy * (x[..., 1] / z - rays[..., 1]) + drawn_y * self.spec.fy / d0.clip(1e-3), 0.0)
+        fu = cv2.remap(flow_u.astype(np.float32), self._map_x, self._map_y, cv2.INTER_LINEAR)
+        fv = cv2.remap(flow_v.astype(np.float32), self._map_x, self._map_y, cv2.INTER_LINEAR)
         return np.stack([fu, fv], axis=-1)
 
     # ---- rendering -------------------------------------------------------------------------------

@@ -101,30 +101,43 @@ class MembraneSolver:
                 )
             )
         self._ii, self._jj, self._flat = ii, jj, flat
+        self._poisson = None
         self.unit_response = self._solve_unit_pressure()  # b: m per Pa
         self.unit_volume = float((self.unit_response * self.area).sum())  # m^3 per Pa
         self._w = np.zeros(self._pshape).ravel()
         self._w_prev = self._w.copy()
 
     # ---- setup ---------------------------------------------------------------------------------
-    def _solve_unit_pressure(self) -> np.ndarray:
-        """``b``: solution of ``T lap b - k b = -1`` (1 Pa pressure rise), 0 at the rim."""
+    def _operator(self, stiffness: float) -> sp.csc_matrix:
+        """Sparse ``-(T lap) + stiffness`` on the free pixels (Pa/m), Dirichlet 0 outside the mask."""
         ii, jj = self._ii, self._jj
         n = len(ii)
         index = -np.ones(self.shape, dtype=np.int64)
         index[ii, jj] = np.arange(n)
         ax, ay = self.ax[ii, jj], self.ay[ii, jj]
-        rows, cols, vals = [np.arange(n)], [np.arange(n)], [2 * ax + 2 * ay + self.stiffness]
+        rows, cols, vals = [np.arange(n)], [np.arange(n)], [2 * ax + 2 * ay + stiffness]
         for di, dj, coef in ((0, 1, ax), (0, -1, ax), (1, 0, ay), (-1, 0, ay)):
             nb = index[ii + di, jj + dj]
             ok = nb >= 0
             rows.append(np.arange(n)[ok])
             cols.append(nb[ok])
             vals.append(-coef[ok])
-        a = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+        return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+
+    def _solve_unit_pressure(self) -> np.ndarray:
+        """``b``: solution of ``T lap b - k b = -1`` (1 Pa pressure rise), 0 at the rim."""
         b = np.zeros(self.shape)
-        b[ii, jj] = spla.spsolve(a, np.ones(n))
+        b[self._ii, self._jj] = spla.spsolve(self._operator(self.stiffness), np.ones(len(self._ii)))
         return b
+
+    def poisson(self, source: np.ndarray) -> np.ndarray:
+        """``phi (rows,cols)`` with ``lap(phi) = source`` (physical units, ``source`` per m^2 times
+        m^2 -> m^2) on the free pixels, 0 at the rim; the factorization is built on first use."""
+        if self._poisson is None:
+            self._poisson = spla.factorized(self._operator(0.0) / self.tension)
+        phi = np.zeros(self.shape)
+        phi[self._ii, self._jj] = -self._poisson(np.ascontiguousarray(source[self._ii, self._jj], dtype=np.float64))
+        return phi
 
     # ---- solve ---------------------------------------------------------------------------------
     def reset(self) -> None:

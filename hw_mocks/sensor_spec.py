@@ -87,7 +87,7 @@ class SensorSpec:
     valid_fov_rad: float
     #: smallest incidence cosine with a valid depth (grazing angles drop out).
     min_incidence_cos: float
-    #: depth kink (|4-neighbour Laplacian| of the true depth, m) above which flying pixels appear.
+    #: growth of the 3x3 depth spread over its rest value (m) above which flying pixels appear.
     flying_pixel_jump_m: float
     # Defects.
     leak_hpa_per_s: float = 0.0
@@ -320,13 +320,13 @@ def draw_sensor(seed: int, defect: str | None = None) -> SensorSpec:
         read_noise=vary(40.0, 0.2),
         shot_noise_gain=vary(0.8, 0.2),
         saturation_amplitude=vary(56000.0, 0.03),
-        min_amplitude=vary(900.0, 0.15),
+        min_amplitude=vary(2800.0, 0.10),
         depth_noise_m=vary(5e-5, 0.15),
         depth_bias_m=jitter(1.5e-4),
         depth_bias_radial_m=jitter(2e-4),
         valid_fov_rad=math.radians(vary(41.0, 0.03)),
         min_incidence_cos=vary(0.25, 0.1),
-        flying_pixel_jump_m=vary(0.0005, 0.1),
+        flying_pixel_jump_m=vary(0.00025, 0.1),
         defect=defect,
     )
     if defect == "leak":

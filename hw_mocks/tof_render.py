@@ -4,7 +4,7 @@ From the true z-depth and the noise-free amplitude: noise growing as 1/amplitude
 (``depth_noise_m`` at ``emitter_amplitude``), a systematic bias (offset + radial term),
 dropouts (0) where the amplitude saturates (close range) or is too weak, at grazing incidence,
 outside the valid field of view and on the housing; flying pixels (mixtures of foreground and
-background depth) at depth kinks and steps such as contact edges; stuck dead pixels.
+background depth) where the depth gets steeper than at rest, i.e. at contact edges; stuck dead pixels.
 Output in ``collect.session_format.DEPTH_UNIT_M``, 0 = invalid.
 """
 
@@ -24,10 +24,15 @@ _KERNEL = np.ones((3, 3), np.uint8)
 class TofRenderer:
     """Depth rendering for one sensor on the full image grid (``rays (H,W,3)``, z = 1)."""
 
-    def __init__(self, spec: SensorSpec, rays: np.ndarray, membrane_mask: np.ndarray, housing_depth: np.ndarray):
+    def __init__(
+        self, spec: SensorSpec, rays: np.ndarray, membrane_mask: np.ndarray, housing_depth: np.ndarray, rest_depth: np.ndarray
+    ):
         self.spec = spec
         self.membrane_mask = membrane_mask
         self.housing_depth = housing_depth.astype(np.float32)
+        rest = np.where(membrane_mask, rest_depth, self.housing_depth).astype(np.float32)
+        #: 3x3 depth spread of the rest membrane (m): the smooth dome's own slope.
+        self.rest_spread = cv2.dilate(rest, _KERNEL) - cv2.erode(rest, _KERNEL)
         r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2
         field_angle = np.arctan(np.sqrt(r2))
         #: pixels that can hold a valid depth at all: membrane inside the valid field of view.
@@ -49,15 +54,14 @@ class TofRenderer:
         sigma = spec.depth_noise_m * spec.emitter_amplitude / np.maximum(amplitude, spec.min_amplitude)
         measured = depth + self.bias + sigma * rng.standard_normal(depth.shape, dtype=np.float32)
 
-        # Flying pixels: where the depth has a kink or step (a large 4-neighbour Laplacian, zero
-        # on the smooth dome), the pixel mixes foreground and background of its 3x3 neighbourhood.
+        # Flying pixels: where the depth spread of the 3x3 neighbourhood exceeds its spread at rest
+        # (steep dent walls and creases at contact edges), the pixel mixes near and far depths.
         filled = np.where(self.membrane_mask, depth, self.housing_depth).astype(np.float32)
-        kink = np.abs(cv2.Laplacian(filled, cv2.CV_32F, ksize=1))
-        flying = self.valid_fov & (kink > spec.flying_pixel_jump_m)
+        hi_all, lo_all = cv2.dilate(filled, _KERNEL), cv2.erode(filled, _KERNEL)
+        flying = self.valid_fov & (hi_all - lo_all - self.rest_spread > spec.flying_pixel_jump_m)
         if flying.any():
             n = int(flying.sum())
-            hi = cv2.dilate(filled, _KERNEL)[flying]
-            lo = cv2.erode(filled, _KERNEL)[flying]
+            hi, lo = hi_all[flying], lo_all[flying]
             measured[flying] = lo + rng.uniform(0.0, 1.0, n).astype(np.float32) * (hi - lo)
             dropped = np.zeros(depth.shape, dtype=bool)
             dropped[flying] = rng.uniform(0.0, 1.0, n) < FLYING_PIXEL_DROP
