@@ -43,7 +43,7 @@ STOP_DECEL_M_S2 = 4.0
 ARRIVAL_TOL_M = 2e-4
 ARRIVAL_TOL_RAD = 2e-3
 ARRIVAL_SPEED_M_S = 2e-3
-#: Extra seconds allowed beyond the planned duration of a move before ``arm-timeout``.
+#: Extra seconds (bench clock) allowed beyond the planned duration of a move before ``arm-timeout``.
 MOVE_TIMEOUT_MARGIN_S = 2.0
 
 
@@ -159,8 +159,9 @@ class Arm:
                           f"({'sudden jump' if jumped else 'ramped up'}); arm stopped"))
             prev_force = force
             with self._cond:
+                if self._latest is None or sample.t > self._latest.t:  # a paused (simulated) clock adds nothing
+                    self._stream.append(sample)
                 self._latest = sample
-                self._stream.append(sample)
                 self._cond.notify_all()
             next_t += self._period
             delay = next_t - time.monotonic()
@@ -218,9 +219,9 @@ class Arm:
 
     # ------------------------------------------------------------------ motions
     def stop(self) -> None:
-        """Decelerate the TCP to rest (stopL); safe to call at any time."""
+        """Start decelerating the TCP to rest (asynchronous stopL); safe to call at any time, from any thread."""
         with self._ctl_lock:
-            self._ctl.stopL(STOP_DECEL_M_S2, False)
+            self._ctl.stopL(STOP_DECEL_M_S2, True)
 
     def _send_move(self, target: np.ndarray, speed: float, accel: float, check_faults: bool) -> None:
         if check_faults:
@@ -246,7 +247,7 @@ class Arm:
         distance = float(np.linalg.norm(target[:3] - start.tcp_pose[:3]))
         budget = move_duration_s(distance, speed, accel) + MOVE_TIMEOUT_MARGIN_S
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
-        t_end = time.monotonic() + budget
+        t_end = self.clock() + budget
         while True:
             sample = self._next_sample()
             if not ignore_faults and self._fault is not None:
@@ -259,16 +260,16 @@ class Arm:
                     and _rotation_gap_rad(sample.tcp_pose, target) < ARRIVAL_TOL_RAD
                     and np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S):
                 return sample, False
-            if time.monotonic() > t_end:
+            if self.clock() > t_end:
                 self.stop()
                 raise HardwareFault("arm-timeout", f"arm: move did not finish within {budget:.1f} s")
 
     def _settle(self) -> ArmState:
         """Wait until the TCP is at rest after a stop; returns the sample at rest."""
-        t_end = time.monotonic() + 1.0
+        t_end = self.clock() + 1.0
         while True:
             sample = self._next_sample()
-            if np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S or time.monotonic() > t_end:
+            if np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S or self.clock() > t_end:
                 return sample
 
     def move_to(self, pose, speed: float | None = None, accel: float | None = None) -> ArmState:

@@ -129,13 +129,13 @@ def _placed_objects(names, plate_pose=None) -> list:
 
 def workspace_limits(objects, base: SafetyLimits = SafetyLimits()) -> SafetyLimits:
     """``base`` limits with the workspace box fitted around ``objects``: 150 mm around their
-    footprints, from 5 mm above the plate (the membrane apex never reaches the plate) to 250 mm
-    above the tallest."""
+    footprints, from the plate top (the membrane apex may reach down to it around a flat object;
+    the force limit guards the press) to 250 mm above the tallest."""
     lo = np.min([o.bounds_base()[0] for o in objects], axis=0)
     hi = np.max([o.bounds_base()[1] for o in objects], axis=0)
     plate_z = min(o.fixture_pose[2] for o in objects)
     return SafetyLimits(
-        workspace_min=(float(lo[0] - 0.15), float(lo[1] - 0.15), float(plate_z + 0.005)),
+        workspace_min=(float(lo[0] - 0.15), float(lo[1] - 0.15), float(plate_z)),
         workspace_max=(float(hi[0] + 0.15), float(hi[1] + 0.15), float(hi[2] + 0.25)),
         max_speed_m_s=base.max_speed_m_s, max_accel_m_s2=base.max_accel_m_s2,
         force_limit_n=base.force_limit_n, max_tilt_deg=base.max_tilt_deg)

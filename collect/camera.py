@@ -14,7 +14,8 @@ Timestamps: ``t_device`` s on the camera's monotonic clock, ``t_host`` s on the 
 (depthai's host-synchronized timestamp is on ``time.monotonic``, the real bench clock).
 
 Stall detection: ``get_frame`` raises ``HardwareFault('camera-stall')`` when no complete frame
-arrives within ``stall_timeout_s`` (0.5 s by default).
+arrives within ``stall_timeout_s`` (0.5 s by default) on the bench clock (simulated time for the
+twin, which may run slower than real time on a loaded machine).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import datetime
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +34,8 @@ from collect.session_format import DEPTH_UNIT_M
 #: Unit of the depth frames the OAK ToF node outputs.
 DEPTHAI_TOF_DEPTH_UNIT_M = 1e-3
 STALL_TIMEOUT_S = 0.5
+#: Longest single wait on a queue (s of real time) before the deadline is checked again.
+POLL_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -105,9 +109,11 @@ class QueueToFCamera(ToFCamera):
     (messages discarded because their partner never came).
     """
 
-    def __init__(self, depth_unit_m: float, stall_timeout_s: float = STALL_TIMEOUT_S):
+    def __init__(self, depth_unit_m: float, stall_timeout_s: float = STALL_TIMEOUT_S,
+                 clock: Callable[[], float] = time.monotonic):
         self.depth_unit_m = depth_unit_m
         self.stall_timeout_s = stall_timeout_s
+        self.clock = clock
         self._depth_q = None
         self._amp_q = None
         self._last_seq: int | None = None
@@ -121,17 +127,20 @@ class QueueToFCamera(ToFCamera):
         self._last_seq = None
 
     def _get(self, queue, deadline: float, timeout_s: float):
-        remaining = deadline - time.monotonic()
-        msg = queue.get(datetime.timedelta(seconds=max(remaining, 0.0))) if remaining > 0 else queue.tryGet()
-        if msg is None:
-            raise HardwareFault("camera-stall", f"camera: no frame for {timeout_s:.2f} s")
+        """Next message of ``queue``; ``camera-stall`` once the bench clock passes ``deadline``."""
+        msg = queue.tryGet()
+        while msg is None:
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                raise HardwareFault("camera-stall", f"camera: no frame for {timeout_s:.2f} s")
+            msg = queue.get(datetime.timedelta(seconds=min(remaining, POLL_S)))
         return msg
 
     def get_frame(self, timeout_s: float | None = None) -> CameraFrame:
         if self._depth_q is None:
             raise HardwareFault("camera-not-started", "camera: get_frame() before start()")
         timeout_s = self.stall_timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + timeout_s
+        deadline = self.clock() + timeout_s
         depth_msg = self._get(self._depth_q, deadline, timeout_s)
         amp_msg = self._get(self._amp_q, deadline, timeout_s)
         while depth_msg.getSequenceNum() != amp_msg.getSequenceNum():
@@ -160,7 +169,7 @@ class DepthaiToFCamera(QueueToFCamera):
 
     def __init__(self, device_id: str | None = None, fps: float = 45.0, profile: str = "LOW_RANGE",
                  stall_timeout_s: float = STALL_TIMEOUT_S):
-        super().__init__(DEPTHAI_TOF_DEPTH_UNIT_M, stall_timeout_s)
+        super().__init__(DEPTHAI_TOF_DEPTH_UNIT_M, stall_timeout_s, time.monotonic)
         self.device_id = device_id
         self.fps = fps
         self.profile = profile

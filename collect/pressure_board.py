@@ -15,7 +15,7 @@ Host commands are plain ASCII lines ending in ``\\n``: ``ID?``, ``VER?``, ``LED 
 bad checksums are counted (``stats``) and skipped, never fatal; a burst of them is logged once
 with a recovery line. ``check()`` raises ``HardwareFault('serial-unplug')`` once the port
 vanished (read error), and ``HardwareFault('serial-timeout')`` when no valid reading came for
-``stale_timeout_s``.
+``stale_timeout_s`` on the bench clock.
 """
 
 from __future__ import annotations
@@ -104,7 +104,7 @@ class PressureBoard:
         except (serial.SerialException, OSError) as err:
             raise HardwareFault("serial-missing", f"pressure board: cannot open {self.port}: {err}") from err
         self._serial.reset_input_buffer()
-        self._last_valid = time.monotonic()
+        self._last_valid = self._clock()
         self._thread = threading.Thread(target=self._reader, name="pressure-reader", daemon=True)
         self._thread.start()
 
@@ -183,7 +183,7 @@ class PressureBoard:
         self._bad_run += 1
 
     def _good(self) -> None:
-        self._last_valid = time.monotonic()
+        self._last_valid = self._clock()
         if self._bad_run:
             log.warning("pressure board: recovered after %d corrupt lines", self._bad_run)
             self._bad_run = 0
@@ -197,7 +197,7 @@ class PressureBoard:
     # ------------------------------------------------------------------ API
     def check(self) -> None:
         """Raise the fault of the board: unplugged, or no valid reading for ``stale_timeout_s``."""
-        if self._fault is None and self._thread is not None and time.monotonic() - self._last_valid > self.stale_timeout_s:
+        if self._fault is None and self._thread is not None and self._clock() - self._last_valid > self.stale_timeout_s:
             self._set_fault(HardwareFault(
                 "serial-timeout", f"pressure board: no valid reading for {self.stale_timeout_s:.1f} s on {self.port}"))
         if self._fault is not None:

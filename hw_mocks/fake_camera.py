@@ -119,7 +119,7 @@ class SimToFCamera(QueueToFCamera):
     """``ToFCamera`` of the simulated bench: serial and intrinsics from the sensor spec."""
 
     def __init__(self, scene, seed: int = 0, stall_timeout_s: float = STALL_TIMEOUT_S):
-        super().__init__(DEPTH_UNIT_M, stall_timeout_s)
+        super().__init__(DEPTH_UNIT_M, stall_timeout_s, scene.clock)
         self.scene = scene
         self.serial = f"SIM-TOF-{scene.spec.serial}"
         self.device = SimCameraDevice(scene, seed)

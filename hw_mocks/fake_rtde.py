@@ -89,6 +89,7 @@ class _LinearMove:
         self.t0, self.s_from = t0, s_from
         s_to = self.length if s_to is None else s_to
         self.profile = _Profile(max(s_to - s_from, 0.0), v0, speed, accel)
+        self.t_end = t0 + self.profile.duration
 
     def state(self, t: float) -> tuple[np.ndarray, float, np.ndarray]:
         """Pose (6,), path position (m) and TCP velocity (6,) at time ``t``."""
@@ -130,6 +131,10 @@ class SimURController:
         self._move = _LinearMove(pose, pose, scene.now(), 1.0, 1.0)
         self._ft_offset = np.zeros(6)
         self._protective = False
+
+    def moving_until(self) -> float:
+        """Simulated time (s) at which the current move ends (lock-free: read by the clock)."""
+        return self._move.t_end
 
     def pose_at(self, t: float) -> np.ndarray:
         """TCP pose (6,) at simulated time ``t`` along the current move (for the camera twin)."""

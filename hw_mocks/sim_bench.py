@@ -5,20 +5,21 @@
 * the ``BubbleSim`` scene (one sensor, the objects on the fixture plate);
 * the simulated UR controller (``hw_mocks.fake_rtde.SimURController``) whose TCP trajectory
   places the bubble in the scene;
-* the membrane state cache, so that the twins share one physics solution;
+* the latest membrane solutions, shared by the twins;
 * the fault schedule (``--sim-fault KIND@SECONDS``).
 
 Physics budget: a solve costs ~10-50 ms (more on a loaded machine), far too slow for the arm's
 125-500 Hz state reads, so nobody solves on demand. A physics thread (the "bubble") re-solves the
-membrane at most ``spec.fps`` times a second, when the pose moved (or every ``REST_REFRESH_S`` at
-rest, for slow effects such as a leak), at the pose the arm's planned trajectory reaches when the
-solve completes (look-ahead = the recent solve duration), so that its result is current rather
-than one solve old. Readers never block on it:
-* the camera twin renders each frame from the latest solution (its pose is at most one solve old);
-* the arm's wrench and the board's pressure are the latest solution extrapolated to the current
-  pose along the direction of motion (linear between the last two solutions, extrapolated at most
-  ``EXTRAPOLATE_MAX`` solve steps beyond), so a press ramps smoothly between solves, and a stop
-  short of the look-ahead pose interpolates back.
+membrane at most ``spec.fps`` times a second (real time) when the pose moved, or every
+``REST_REFRESH_S`` at rest (slow effects such as a leak), at the pose the arm's planned trajectory
+reaches ``LOOKAHEAD_S`` later. Lock-step: while the arm moves, simulated time may not run more than
+``LOOKAHEAD_S`` past the latest solution; on a slow or loaded machine the simulated clock slows
+down instead of the physics falling behind the arm. Readers never block on a solve:
+* the camera twin renders each frame from the latest solution;
+* the arm's wrench and the board's pressure are the latest two solutions interpolated to the
+  current pose along the direction of motion (extrapolated at most ``EXTRAPOLATE_MAX`` solve steps
+  beyond), so a press ramps smoothly between solves and a stop short of the look-ahead pose
+  interpolates back.
 """
 
 from __future__ import annotations
@@ -49,8 +50,9 @@ REST_REFRESH_S = 0.25
 #: Pose change (m, rad) below which the latest solution still counts as "at this pose".
 POSE_TOL_M = 2e-5
 POSE_TOL_RAD = 2e-4
-#: Longest look-ahead (s) of a solve along the arm's planned trajectory.
-MAX_LOOKAHEAD_S = 0.1
+#: How far ahead (s) along the arm's planned trajectory the physics solves, and how far simulated
+#: time may run past the latest solution while the arm moves (time pauses beyond: lock-step).
+LOOKAHEAD_S = 0.03
 #: Farthest extrapolation of the wrench/pressure, in units of the last solve step, and the shortest
 #: step (m) worth extrapolating along (shorter steps would amplify the solver's tolerance).
 EXTRAPOLATE_MAX = 2.0
@@ -91,33 +93,47 @@ def parse_sim_fault(text: str) -> SimFault:
 
 
 class SimClock:
-    """Simulated time in seconds since creation, running ``speed`` times faster than real time."""
+    """Simulated time in seconds since creation, running ``speed`` times faster than real time.
+
+    ``limit`` (set by ``SimBench``): a lock-free callable giving the latest simulated time the
+    clock may show, or None. When the clock would pass it, simulated time pauses (the pause is
+    remembered, so time never jumps) until the limit moves on.
+    """
 
     def __init__(self, speed: float = 1.0):
         if not (np.isfinite(speed) and 0.1 <= speed <= 100.0):
             raise InputError(f"simulation speed {speed} must be within 0.1..100")
         self.speed = float(speed)
         self._t0 = time.monotonic()
+        self._paused = 0.0
+        self._last = 0.0
+        self._lock = threading.Lock()
+        self.limit = None
+        self.paused_s = 0.0
 
     def now(self) -> float:
-        return (time.monotonic() - self._t0) * self.speed
+        limit = self.limit() if self.limit is not None else None
+        with self._lock:
+            t = (time.monotonic() - self._t0) * self.speed - self._paused
+            if limit is not None and t > limit:
+                self._paused += t - max(limit, self._last)
+                t = max(limit, self._last)
+            self._last = max(t, self._last)
+            return self._last
 
     def __call__(self) -> float:
         return self.now()
 
-    def real_seconds(self, sim_seconds: float) -> float:
-        """Real duration (s) of ``sim_seconds`` of simulated time."""
-        return sim_seconds / self.speed
-
     def sleep_until(self, t_sim: float, stop: threading.Event | None = None) -> bool:
         """Sleep until simulated time ``t_sim``; returns False when ``stop`` was set meanwhile."""
-        delay = (t_sim - self.now()) / self.speed
-        if delay <= 0:
-            return not (stop is not None and stop.is_set())
-        if stop is None:
-            time.sleep(delay)
-            return True
-        return not stop.wait(delay)
+        while True:
+            delay = (t_sim - self.now()) / self.speed
+            if delay <= 0:
+                return not (stop is not None and stop.is_set())
+            if stop is None:
+                time.sleep(min(delay, 0.05))
+            elif stop.wait(min(delay, 0.05)):
+                return False
 
 
 @dataclass(frozen=True)
@@ -155,8 +171,8 @@ class SimBench:
         self.arm = SimURController(self, self.home_pose, protective_force_n)
         self._solved: list[_Solved] = []  # the last two solutions, oldest first
         self.solves = 0
-        self._lookahead_s = 0.0
         self._solve_now()
+        self.clock.limit = self._time_limit
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -175,26 +191,34 @@ class SimBench:
             self._thread = None
 
     def _solve_now(self) -> None:
-        """Solve at the pose the arm will have when the solve is done (``_lookahead_s`` ahead)."""
-        t0 = self.now()
-        t = t0 + self._lookahead_s
+        """Solve at the pose the arm's trajectory reaches ``LOOKAHEAD_S`` from now."""
+        t = self.now() + LOOKAHEAD_S
         pose = self.arm.pose_at(t)
         state = self.sim.solve(pose, t)
-        took = self.now() - t0
         with self._lock:
             self._solved = (self._solved + [_Solved(pose, t, state)])[-2:]
             self.solves += 1
-            self._lookahead_s = min(0.7 * self._lookahead_s + 0.3 * took, MAX_LOOKAHEAD_S)
+
+    def _time_limit(self) -> float | None:
+        """While the arm moves, simulated time may not pass the latest solution by more than
+        ``LOOKAHEAD_S``: on a slow or loaded machine the simulation slows down instead of the
+        wrench lagging the pose. Lock-free (called by the clock)."""
+        solved = self._solved[-1]
+        if solved.t >= self.arm.moving_until():
+            return None
+        return solved.t + LOOKAHEAD_S
 
     def _physics(self) -> None:
-        period = 1.0 / float(self.spec.fps)
-        t_next = self.now()
-        while self.clock.sleep_until(t_next, self._stop):
+        period_real = 1.0 / (float(self.spec.fps) * self.clock.speed)
+        while not self._stop.is_set():
+            started = time.monotonic()
             t = self.now()
             last = self.latest()
-            if t - last.t >= REST_REFRESH_S or not _same_pose(last.pose, self.arm.pose_at(t + self._lookahead_s)):
+            limit = self._time_limit()
+            held = limit is not None and t >= limit - 1e-6
+            if held or t - last.t >= REST_REFRESH_S or not _same_pose(last.pose, self.arm.pose_at(t + LOOKAHEAD_S)):
                 self._solve_now()
-            t_next = max(t_next + period, self.now())
+            self._stop.wait(max(0.0, period_real - (time.monotonic() - started)))
 
     def now(self) -> float:
         """Simulated time (s)."""
