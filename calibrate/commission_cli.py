@@ -33,6 +33,7 @@ def register(subparsers) -> None:
     p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
     p.add_argument("--finetune-minutes", type=float, default=2.5, metavar="M", help="fine-tuning time budget (default 2.5)")
+    p.add_argument("--leak-hold-s", type=float, default=10.0, metavar="S", help="leak-test hold, s of bench time (default 10)")
     p.add_argument("--objects", default=DEFAULT_OBJECTS, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS})")
     p.add_argument("--poses-per-object", type=int, default=8, metavar="K")
     p.add_argument("--seed", type=int, default=0, help="seed of the pose plan and of the simulated sensor")
@@ -124,6 +125,7 @@ def run_commission(args) -> int:
         seed=args.seed,
         sim_faults=tuple(args.sim_fault),
         sim_speed=args.sim_speed,
+        leak_hold_s=args.leak_hold_s,
     )
     stop = threading.Event()
     printer = (lambda e: None) if args.quiet else ProgressPrinter()

@@ -959,5 +959,10 @@ def run_commissioning(
     _validate_config(config)
     thresholds = acceptance.load_thresholds(config.thresholds)
     spec = _load_sensor_spec(config) if config.simulated else None
+    if config.base_model is None:
+        from trainer.model_dir import BASE_MODEL_DIR
+
+        if not BASE_MODEL_DIR.is_dir():
+            raise InputError(f"the packaged base model {BASE_MODEL_DIR} is missing; give --base-model MODEL_DIR")
     flow = _Flow(config, on_event, stop_event or threading.Event(), thresholds, spec)
     return flow.run()

@@ -1,0 +1,213 @@
+"""Commissioning benchmark: `bubble commission --sim` end to end for new sensors, writes docs/bench_commission.md.
+
+    .venv/bin/python benchmarks/bench_commission.py                       # 3 sensors, default settings
+    .venv/bin/python benchmarks/bench_commission.py --seeds 101,202,303,404 --work runs/bench_commission
+
+For each seed (sensors the base model never saw: pretraining uses seeds 1000 and up):
+
+1. draw the sensor (``draw_sensor(seed)``) and commission it with the product's defaults (4 objects
+   x 8 poses, 2.5 min fine-tune, real-time simulated clock) through ``run_commissioning``, timing
+   every step from its events (wall clock);
+2. commissioned model on objects it never saw: record a small session on meshes that are not in
+   the calibration set (a sphere and a capsule, written as STL files and pressed through the same
+   ``bubble collect`` code) and evaluate the commissioned model on it (``trainer.evaluation``).
+
+Targets: end to end <= 5 min wall on the 2-core CPU, fine-tune step <= 3 min, held-out a1 >= 0.95.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
+from calibrate.commissioning import CommissionConfig, run_commissioning  # noqa: E402
+
+TARGET_TOTAL_S = 300.0
+TARGET_FINETUNE_S = 180.0
+TARGET_A1 = 0.95
+UNSEEN_POSES = 6
+
+
+def unseen_meshes(work: Path) -> list[Path]:
+    """STL files of objects absent from the calibration set (metres, +z up, origin at the base)."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.03)
+    sphere.apply_translation([0, 0, 0.03])
+    capsule = trimesh.creation.capsule(height=0.06, radius=0.018, count=[32, 32])
+    capsule.apply_transform(trimesh.transformations.rotation_matrix(1.5708, [0, 1, 0]))
+    capsule.apply_translation([0, 0, 0.018 - capsule.bounds[0][2]])
+    paths = []
+    for name, mesh in (("sphere", sphere), ("capsule", capsule)):
+        path = work / f"unseen_{name}.stl"
+        mesh.export(path)
+        paths.append(path)
+    return paths
+
+
+def record_unseen(spec_path: Path, meshes: list[Path], seed: int, out: Path) -> Path:
+    """A session on ``meshes`` with the commissioned sensor (the code path of ``bubble collect --sim``)."""
+    from collect.bench import BenchConfig, open_bench
+    from collect.collection import run_collection, session_metadata
+    from collect.pose_planner import PlanSettings, plan_collection
+    from collect.session_writer import SessionWriter
+
+    config = BenchConfig.create("sim", objects=tuple(str(m) for m in meshes), sensor=spec_path, seed=seed, speed=1.0)
+    with open_bench(config) as bench:
+        plan = plan_collection(bench.objects, bench.limits, PlanSettings(poses_per_object=UNSEEN_POSES, seed=seed))
+        with SessionWriter(out, **session_metadata(bench, plan.objects)) as writer:
+            run_collection(bench, plan, writer, None, threading.Event())
+    return out
+
+
+def commission_one(seed: int, work: Path, minutes: float) -> dict:
+    from hw_mocks.sensor_spec import draw_sensor
+
+    spec = draw_sensor(seed)
+    spec_path = work / f"sensor_{seed}.yaml"
+    spec.to_yaml(spec_path)
+    starts: dict[str, float] = {}
+    durations: dict[str, float] = {}
+
+    def on_event(event) -> None:
+        now = time.perf_counter()
+        if isinstance(event, StepStarted):
+            starts.setdefault(event.step.value, now)
+        elif isinstance(event, StepFinished) and event.step.value in starts:
+            durations[event.step.value] = now - starts[event.step.value]
+
+    config = CommissionConfig(
+        run_dir=work / f"run_{seed}",
+        sensor_spec=spec_path,
+        registry_dir=work / "registry",
+        finetune_minutes=minutes,
+        seed=seed,
+    )
+    t0 = time.perf_counter()
+    result = run_commissioning(config, on_event)
+    total = time.perf_counter() - t0
+    import json
+
+    doc = json.loads((config.run_dir / "acceptance.json").read_text())
+    checks = {c["name"]: c["value"] for c in doc["checks"]}
+    row = {
+        "seed": seed, "serial": spec.serial, "accepted": result.accepted, "reason": result.reason, "total_s": total,
+        "steps": durations, "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
+        "ratio": checks.get("model_vs_tof_abs_rel_ratio"), "pose_e_x": checks.get("pose_e_x_median_mm"),
+        "tof_a1": (doc.get("vs_true") or {}).get("tof", {}).get("a1"),
+        "model_true_a1": (doc.get("vs_true") or {}).get("model_on_tof_valid", {}).get("a1"),
+        "dropout_a1": (doc.get("vs_true") or {}).get("model_on_tof_dropout", {}).get("a1"),
+    }
+    print(f"seed {seed}: {'ACCEPTED' if result.accepted else 'REJECTED'} in {total:.0f} s, a1 {row['a1']:.3f} "
+          f"{result.reason}", flush=True)
+    if result.accepted or (config.run_dir / "model" / "metadata.json").is_file():
+        from trainer.evaluation import evaluate_model
+
+        session = record_unseen(spec_path, unseen_meshes(work), seed, work / f"unseen_{seed}.h5")
+        unseen = evaluate_model(config.run_dir / "model", [session], latency_repeats=5)
+        row["unseen_a1"] = unseen["a1"]
+        row["unseen_per_object"] = {k: v["a1"] for k, v in unseen["per_object"].items()}
+        print(f"seed {seed}: a1 on unseen meshes {unseen['a1']:.3f} {row['unseen_per_object']}", flush=True)
+    return row
+
+
+def _f(value, fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def _spread(values: list[float], fmt: str) -> str:
+    values = [v for v in values if v is not None]
+    if not values:
+        return "-"
+    return f"{format(min(values), fmt)} / {format(statistics.median(values), fmt)} / {format(max(values), fmt)}"
+
+
+def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
+    steps = [s.value for s in Step]
+    lines = [
+        "# Benchmark: `bubble commission --sim` end to end",
+        "",
+        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} CPUs, load average {load[0]:.1f} -> {load[1]:.1f}"
+        + (" (other processes were running: provisional numbers)." if load[0] > 1.5 else "."),
+        "",
+        f"Each sensor is new (`draw_sensor(seed)`, seeds unused by pretraining) and commissioned with the product's "
+        f"defaults: 4 objects x 8 poses, {args.minutes} min fine-tune from the packaged base model, real-time "
+        f"simulated clock. Targets: total <= {TARGET_TOTAL_S / 60:.0f} min, fine-tune step <= "
+        f"{TARGET_FINETUNE_S / 60:.0f} min, held-out a1 >= {TARGET_A1}.",
+        "",
+        "| seed | verdict | total (s) | " + " | ".join(steps) + " | held-out a1 | abs_rel | rmse (mm) | "
+        "model/ToF abs_rel vs truth | a1 on ToF dropouts | pose e_x (mm) | a1 unseen meshes |",
+        "|---" * (10 + len(steps)) + "|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['seed']} | {'accepted' if r['accepted'] else 'rejected'} | {r['total_s']:.0f} | "
+            + " | ".join(_f(r["steps"].get(s), ".0f") for s in steps)
+            + f" | {_f(r['a1'], '.3f')} | {_f(r['abs_rel'], '.4f')} | {_f(r['rmse'] and r['rmse'] * 1e3, '.3f')} | "
+            f"{_f(r['ratio'], '.2f')} | {_f(r['dropout_a1'], '.3f')} | {_f(r['pose_e_x'], '.2f')} | "
+            f"{_f(r.get('unseen_a1'), '.3f')} |"
+        )
+    lines += [
+        "",
+        "Spread over the seeds (min / median / max):",
+        "",
+        f"* total wall: {_spread([r['total_s'] for r in rows], '.0f')} s",
+        f"* fine-tune step (training + model export): {_spread([r['steps'].get('finetune') for r in rows], '.0f')} s",
+        f"* held-out a1: {_spread([r['a1'] for r in rows], '.3f')}",
+        f"* a1 on unseen meshes (sphere, capsule): {_spread([r.get('unseen_a1') for r in rows], '.3f')}",
+        f"* accepted: {sum(r['accepted'] for r in rows)} of {len(rows)}",
+        "",
+    ]
+    for r in rows:
+        if not r["accepted"]:
+            lines.append(f"* seed {r['seed']} rejected: {r['reason']}")
+        if r.get("unseen_per_object"):
+            per = ", ".join(f"{k} {v:.3f}" for k, v in r["unseen_per_object"].items())
+            lines.append(f"* seed {r['seed']} unseen meshes: {per}")
+    lines += [
+        "",
+        "Columns per step are wall seconds from the step's start event to its finish event. "
+        "\"model/ToF abs_rel vs truth\" is the model's Abs.Rel against the simulator's true depth divided by "
+        "the ToF's, on the pixels where the ToF is valid (< 1: the model beats its own supervision); "
+        "\"a1 on ToF dropouts\" is the model's a1 against the truth where the ToF gave no depth.",
+        "",
+        f"Rerun: `.venv/bin/python benchmarks/bench_commission.py --seeds {args.seeds}`",
+        "",
+    ]
+    path = ROOT / "docs" / "bench_commission.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="101,202,303", help="comma-separated sensor seeds (default 101,202,303)")
+    parser.add_argument("--minutes", type=float, default=CommissionConfig.finetune_minutes, help="fine-tune budget")
+    parser.add_argument("--work", help="keep the runs here (default: a temporary directory)")
+    parser.add_argument("--no-doc", action="store_true", help="print only, do not write docs/bench_commission.md")
+    args = parser.parse_args()
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    load_before = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.work or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        rows = [commission_one(seed, work, args.minutes) for seed in seeds]
+    if not args.no_doc:
+        print(f"wrote {write_doc(rows, args, (load_before, os.getloadavg()[0]))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

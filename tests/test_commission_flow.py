@@ -1,0 +1,240 @@
+"""The commissioning flow end to end on the simulated bench, at tiny size.
+
+One module-scoped run is interrupted by a camera fault in the middle, then resumed to an accepted
+verdict; the tests below inspect its events and its run directory. The thresholds of the
+held-out model checks are relaxed in a lab override file (a 3 s fine-tune cannot reach the real
+ones; the benchmark measures those), every hardware and data check keeps its packaged value.
+"""
+
+import dataclasses
+import json
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from calibrate.cli import main
+from calibrate.commission_events import (
+    STEPS,
+    BenchSnapshot,
+    CollectionProgress,
+    FaultRaised,
+    Step,
+    StepFinished,
+    StepStarted,
+    TrainingProgress,
+    Verdict,
+)
+from calibrate.commissioning import CommissionConfig, run_commissioning
+from calibrate.sensor_registry import SensorRegistry
+from collect.session_reader import Session
+from trainer.metrics import METRIC_KEYS
+
+#: Model to fine-tune from: None = the packaged base model (trainer/base_model).
+BASE_MODEL = None
+
+LENIENT_MODEL_CHECKS = """version: 1
+checks:
+  heldout_a1: {min: 0.0}
+  heldout_abs_rel: {max: 10.0}
+  heldout_rmse_mm: {max: 1000.0}
+  model_vs_tof_abs_rel_ratio: {max: 1000000.0}
+"""
+
+
+def tiny_config(root, **changes) -> CommissionConfig:
+    """One object, two poses, a 3 s fine-tune, a 2 s leak test on a 2x simulated clock."""
+    thresholds = root / "lenient.yaml"
+    thresholds.write_text(LENIENT_MODEL_CHECKS)
+    config = CommissionConfig(
+        run_dir=root / "run",
+        objects=("box",),
+        poses_per_object=2,
+        finetune_minutes=0.05,
+        seed=3,
+        sim_speed=2.0,
+        leak_hold_s=2.0,
+        thresholds=thresholds,
+        registry_dir=root / "registry",
+        base_model=BASE_MODEL,
+    )
+    return dataclasses.replace(config, **changes)
+
+
+@pytest.fixture(scope="module")
+def faulted_then_resumed(tmp_path_factory):
+    root = tmp_path_factory.mktemp("commission")
+    config = tiny_config(root, sim_faults=("camera-stall@6",))
+    first_events: list = []
+    first = run_commissioning(config, first_events.append)
+    state_after_fault = json.loads((config.run_dir / "state.json").read_text())
+    files_after_fault = {p.name: p.stat().st_size for p in config.run_dir.iterdir()}
+    resumed_config = dataclasses.replace(config, sim_faults=())
+    events: list = []
+    result = run_commissioning(resumed_config, events.append)
+    return {
+        "config": resumed_config, "first": first, "first_events": first_events, "state_after_fault": state_after_fault,
+        "files_after_fault": files_after_fault, "result": result, "events": events,
+    }
+
+
+def test_fault_rejects_the_run_and_keeps_its_data(faulted_then_resumed):
+    first = faulted_then_resumed["first"]
+    assert not first.accepted and first.fault.startswith("camera-stall")
+    assert first.reason.startswith("hardware fault camera-stall")
+    faults = [e for e in faulted_then_resumed["first_events"] if isinstance(e, FaultRaised)]
+    assert [f.kind for f in faults] == ["camera-stall"]
+    done = list(faulted_then_resumed["state_after_fault"]["steps"])
+    assert done == [s.value for s in STEPS[: len(done)]] and "verdict" not in done and "connect" in done
+    files = faulted_then_resumed["files_after_fault"]
+    assert {"state.json", "acceptance.json", "report.html"} <= set(files)
+    for step, name in (("leak_test", "leak_test.npz"), ("camera_health", "camera_health.npz"), ("reference", "reference.h5")):
+        assert step not in done or files[name] > 0
+    verdict = [e for e in faulted_then_resumed["first_events"] if isinstance(e, Verdict)]
+    assert len(verdict) == 1 and not verdict[0].accepted
+
+
+def test_rerun_resumes_after_the_last_completed_step(faulted_then_resumed):
+    events = faulted_then_resumed["events"]
+    done_before = set(faulted_then_resumed["state_after_fault"]["steps"])
+    finished = {e.step.value: e for e in events if isinstance(e, StepFinished)}
+    started = {e.step.value for e in events if isinstance(e, StepStarted)}
+    assert set(finished) == {s.value for s in STEPS}
+    for name, event in finished.items():
+        assert event.resumed == (name in done_before)
+        assert (name in started) == (name not in done_before)
+    result = faulted_then_resumed["result"]
+    assert result.accepted and result.fault is None and not result.stopped, result.reason
+    assert finished["pose_check"].skipped  # no mug in this calibration set
+
+
+def test_live_events_reach_the_consumer(faulted_then_resumed):
+    events = faulted_then_resumed["first_events"] + faulted_then_resumed["events"]
+    snapshots = [e for e in events if isinstance(e, BenchSnapshot)]
+    assert snapshots and all(len(s.tcp_pose) == 6 and len(s.wrench) == 6 for s in snapshots)
+    assert any(s.ir is not None and s.ir.dtype == np.uint16 and s.depth_m.dtype == np.float32 for s in snapshots)
+    collection = [e for e in events if isinstance(e, CollectionProgress)]
+    assert {"press", "hold"} <= {e.phase for e in collection}
+    assert any(e.force_n > 0.5 for e in collection if e.phase == "hold")
+    training = [e for e in events if isinstance(e, TrainingProgress)]
+    assert training and all(np.isfinite(e.loss) for e in training)
+
+
+def test_run_directory_holds_the_contract_files(faulted_then_resumed):
+    run_dir = faulted_then_resumed["config"].run_dir
+    with Session.open(run_dir / "session.h5") as s:
+        assert s.simulated and len(np.unique(s.pose_id[s.pose_id >= 0])) == 2
+    assert (run_dir / "model" / "metadata.json").is_file() and (run_dir / "model" / "model.safetensors").is_file()
+    doc = json.loads((run_dir / "acceptance.json").read_text())
+    assert doc["accepted"] is True
+    for key in METRIC_KEYS:
+        assert isinstance(doc[key], float) and np.isfinite(doc[key])
+    names = [c["name"] for c in doc["checks"]]
+    for required in ("leak_rate_hpa_per_min", "dead_pixels", "dot_count", "valid_depth_coverage",
+                     "poses_completed_fraction", "heldout_a1", "model_vs_tof_abs_rel_ratio"):
+        assert required in names
+    for check in doc["checks"]:
+        assert {"value", "threshold", "verdict", "passed", "reason"} <= set(check)
+        assert check["verdict"] == "pass"
+    leak = next(c for c in doc["checks"] if c["name"] == "leak_rate_hpa_per_min")
+    assert leak["threshold"] == 1.0  # hardware checks keep the packaged thresholds
+    assert doc["vs_true"]["tof"]["n_pixels"] > 0
+    html = (run_dir / "report.html").read_text()
+    assert html.index("ACCEPTED") < html.index("Acceptance checks") and "Fig. 5" in html and "Fig. 6" in html
+
+
+def test_report_of_the_run_renders_in_headless_chromium(faulted_then_resumed, tmp_path):
+    from test_commission_report import screenshot
+
+    image = screenshot(faulted_then_resumed["config"].run_dir / "report.html", tmp_path / "run.png", tmp_path)
+    green = np.all(np.abs(image.astype(int) - (50, 125, 46)) <= 3, axis=2)
+    assert green[:300].sum() > 5000
+
+
+def test_registry_records_both_commissionings_and_lists_them(faulted_then_resumed, capsys):
+    registry_dir = faulted_then_resumed["config"].registry_dir
+    (profile,) = SensorRegistry(registry_dir).profiles()
+    assert profile.status == "accepted" and profile.model_dir is not None
+    assert [h["accepted"] for h in profile.history] == [False, True]
+    assert "camera-stall" in profile.history[0]["reason"]
+    assert (profile.path / "reference.npz").is_file()
+    assert main(["sensors", "--registry", str(registry_dir)]) == 0
+    out = capsys.readouterr().out
+    assert profile.serial in out and "accepted" in out
+    assert main(["sensors", profile.serial, "--registry", str(registry_dir)]) == 0
+    assert "rejected" in capsys.readouterr().out
+
+
+def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
+    config = faulted_then_resumed["config"]
+    events: list = []
+    start = time.monotonic()
+    result = run_commissioning(config, events.append)
+    assert time.monotonic() - start < 10.0
+    assert result.accepted
+    assert all(e.resumed for e in events if isinstance(e, StepFinished))
+    assert not [e for e in events if isinstance(e, StepStarted)]
+    assert len(SensorRegistry(config.registry_dir).profiles()[0].history) == 2
+
+
+def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
+    stop = threading.Event()
+
+    def on_event(event):
+        if isinstance(event, CollectionProgress) and event.phase == "press":
+            stop.set()
+
+    config = tiny_config(tmp_path, poses_per_object=1)
+    result = run_commissioning(config, on_event, stop)
+    assert result.stopped and not result.accepted
+    state = json.loads((config.run_dir / "state.json").read_text())
+    assert "reference" in state["steps"] and "collect" not in state["steps"]
+    with Session.open(config.run_dir / "session.h5") as s:
+        assert s.n_frames > 0 and "press" in set(s.phase_name(np.arange(s.n_frames)))
+    assert json.loads((config.run_dir / "acceptance.json").read_text())["stopped"] is True
+    assert SensorRegistry(config.registry_dir).profiles() == []
+
+
+@pytest.mark.parametrize(
+    "defect, failing",
+    [("leak", "leak_rate_hpa_per_min"), ("dead-pixels", "dead_pixels"), ("no-dots", "dot_count")],
+)
+def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, failing):
+    from hw_mocks.sensor_spec import draw_sensor
+
+    spec = tmp_path / "spec.yaml"
+    draw_sensor(11, defect).to_yaml(spec)
+    code = main(["commission", "--sim", "--sensor", str(spec), "--out", str(tmp_path / "run"), "--objects", "box",
+                 "--registry", str(tmp_path / "registry"), "--sim-speed", "2", "--leak-hold-s", "2", "--quiet"]
+                + (["--base-model", str(BASE_MODEL)] if BASE_MODEL else []))
+    assert code == 1
+    verdict_line = capsys.readouterr().out.splitlines()[0]
+    assert verdict_line.startswith("REJECTED: ") and f"{failing} " in verdict_line
+    doc = json.loads((tmp_path / "run" / "acceptance.json").read_text())
+    assert not doc["accepted"] and failing in [c["name"] for c in doc["checks"] if not c["passed"]]
+    assert not (tmp_path / "run" / "session.h5").exists()  # a failed hardware check stops before collecting
+    assert SensorRegistry(tmp_path / "registry").get(draw_sensor(11, defect).serial).status == "rejected"
+
+
+@pytest.mark.parametrize(
+    "setup, args, fragment",
+    [
+        (None, ["--sensor", "{tmp}/absent.yaml"], "cannot read sensor spec"),
+        ("spec: [unclosed", ["--sensor", "{tmp}/given"], "sensor spec"),
+        ("a file", ["--out", "{tmp}/given"], "not a directory"),
+        (None, ["--sim-fault", "meteor@3"], "unknown fault"),
+        (None, ["--objects", "teapot"], "teapot"),
+        ("version: 1\nchecks: {heldout_a1: {min: x}}\n", ["--thresholds", "{tmp}/given"], "finite number"),
+        (None, ["--poses-per-object", "0"], "poses per object"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragment):
+    if setup is not None:
+        (tmp_path / "given").write_text(setup)
+    argv = ["commission", "--sim", "--out", str(tmp_path / "run"), "--registry", str(tmp_path / "registry")]
+    argv += [a.format(tmp=tmp_path) for a in args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: error: ") and err.count("\n") == 1 and fragment in err
+    assert not (tmp_path / "registry").exists()
