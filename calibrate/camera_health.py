@@ -114,8 +114,7 @@ def assess_camera(ir: np.ndarray, depth: np.ndarray) -> CameraHealth:
     # runs off the membrane (the housing would look like a dark blob).
     core = ndimage.binary_erosion(lit, iterations=BACKGROUND_WINDOW // 2) & ~dead & ~stuck
     ratio = np.where(core, ir_mean / np.maximum(background, 1.0), 1.0)
-    dot_mask = np.zeros_like(lit)
-    n_labels, labels, stats, _ = cv2.connectedComponentsWithStats((core & (ratio < DOT_RATIO)).astype(np.uint8), connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats((core & (ratio < DOT_RATIO)).astype(np.uint8), connectivity=8)
     areas = stats[1:, cv2.CC_STAT_AREA]
     dots = np.flatnonzero((areas >= DOT_MIN_AREA) & (areas <= DOT_MAX_AREA)) + 1
     dot_mask = np.isin(labels, dots)

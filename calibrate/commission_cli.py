@@ -79,7 +79,7 @@ class ProgressPrinter:
             self._print(f"[{event.step.value}] started{eta}")
         elif isinstance(event, ev.StepFinished):
             tag = "resumed" if event.resumed else ("ok" if event.ok else "FAILED")
-            if getattr(event, "skipped", False):
+            if event.skipped:
                 tag = "skipped"
             self._print(f"[{event.step.value}] {tag}: {event.summary}")
         elif isinstance(event, ev.StepProgress) and event.message and self._due():

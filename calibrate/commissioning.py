@@ -232,7 +232,6 @@ class _Flow:
         self._latest_frame = None
         self._snapshot_stop = threading.Event()
         self._snapshot_thread: threading.Thread | None = None
-        self._started = time.monotonic()
 
     # ------------------------------------------------------------------ events and helpers
     def emit(self, event: CommissionEvent) -> None:
@@ -330,6 +329,7 @@ class _Flow:
 
         self.open_bench()
         b = self.bench
+        b.arm.move_to(b.home_pose)  # free air above the plate: nothing touches the bubble
         firmware = b.pressure.firmware_version()
         serial = b.sensor_serial
         prior = self.state.data.get("serial")
@@ -562,7 +562,7 @@ class _Flow:
         from calibrate.pose_check import run_pose_check
 
         if "mug" not in self.config.objects:
-            return {"summary": "skipped: the mug is not in the calibration set", "skipped": True}
+            return {"summary": "not run: the mug is not in the calibration set", "skipped": True}
         self.progress(Step.POSE_CHECK, 0.1, "mug poses from predicted and measured depth")
         th = self.thresholds
         try:
@@ -735,11 +735,11 @@ class _Flow:
             for step in STEPS[:-1]:
                 if self.state.done(step):
                     rec = self.state.get(step)
-                    self.emit(StepFinished(step, rec.get("ok", True), rec.get("summary", ""), resumed=True))
+                    self.emit(StepFinished(step, rec["ok"], rec["summary"], resumed=True, skipped=bool(rec.get("skipped"))))
                     gate_failure = gate_failure or _gate_failure(rec)
                     continue
                 if gate_failure is not None:
-                    self.emit(StepFinished(step, False, f"skipped: {gate_failure}", skipped=True))
+                    self.emit(StepFinished(step, False, f"not run: {gate_failure}", skipped=True))
                     continue
                 self.check_stop()
                 if step != Step.COLLECT:
@@ -771,8 +771,11 @@ class _Flow:
     def _finished_before(self) -> CommissionResult:
         """The verdict of a run that already finished in this directory (nothing runs again)."""
         for step in STEPS:
-            rec = self.state.get(step)
-            self.emit(StepFinished(step, rec.get("ok", True), rec.get("summary", ""), resumed=True))
+            if self.state.done(step):
+                rec = self.state.get(step)
+                self.emit(StepFinished(step, rec["ok"], rec["summary"], resumed=True, skipped=bool(rec.get("skipped"))))
+            else:  # not run: a hardware check failed before it
+                self.emit(StepFinished(step, False, "not run", resumed=True, skipped=True))
         doc = json.loads((self.run_dir / ACCEPTANCE_FILE).read_text())
         report = self.run_dir / REPORT_FILE
         self.emit(Verdict(doc["accepted"], doc["checks"], str(report)))
@@ -787,7 +790,7 @@ def _gate_failure(rec: dict) -> str | None:
     """The reason of the first failed gating check of a step result, or None."""
     for c in rec.get("checks", []):
         if c.get("gate") and not c["passed"]:
-            return f"{c['name']} failed"
+            return f"the {c['name']} check failed"
     return None
 
 
@@ -885,18 +888,21 @@ def _nocontact_maps(estimator, reference_path: Path) -> dict:
 
 
 def _pick_examples(frames, reference_depth: np.ndarray) -> np.ndarray:
-    """Indices of up to ``EXAMPLE_FRAMES`` held-out frames: per object, the most deformed one."""
+    """Indices of up to ``EXAMPLE_FRAMES`` held-out frames of distinct poses, taking the objects in
+    turn: for each pose its most deformed frame (most pixels pushed in by > 1 mm), deepest poses first."""
     ref_valid = reference_depth > 0
-    dent = np.array(
-        [int(((reference_depth - d > 1e-3) & (d > 0) & ref_valid).sum()) for d in frames.depth]
-    )
-    picks = []
+    dent = np.array([int(((reference_depth - d > 1e-3) & (d > 0) & ref_valid).sum()) for d in frames.depth])
+    per_object = []
     for name in sorted(set(frames.object_name)):
-        members = np.flatnonzero(frames.object_name == name)
-        picks.append(int(members[np.argmax(dent[members])]))
-    if len(picks) < EXAMPLE_FRAMES:
-        rest = [int(i) for i in np.argsort(-dent) if int(i) not in picks]
-        picks += rest[: EXAMPLE_FRAMES - len(picks)]
+        best = {}
+        for i in np.flatnonzero(frames.object_name == name):
+            pose = int(frames.pose_id[i])
+            if pose not in best or dent[i] > dent[best[pose]]:
+                best[pose] = int(i)
+        per_object.append(sorted(best.values(), key=lambda i: -dent[i]))
+    picks = []
+    for rank in range(max((len(p) for p in per_object), default=0)):
+        picks += [p[rank] for p in per_object if rank < len(p)]
     return np.array(picks[:EXAMPLE_FRAMES], dtype=np.int64)
 
 
