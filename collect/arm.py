@@ -43,8 +43,10 @@ STOP_DECEL_M_S2 = 4.0
 ARRIVAL_TOL_M = 2e-4
 ARRIVAL_TOL_RAD = 2e-3
 ARRIVAL_SPEED_M_S = 2e-3
-#: Extra seconds (bench clock) allowed beyond the planned duration of a move before ``arm-timeout``.
+#: Extra seconds (bench clock) allowed beyond the planned duration of a move before ``arm-timeout``,
+#: and a real-time backstop (this many times the budget) for a simulated clock that runs slow.
 MOVE_TIMEOUT_MARGIN_S = 2.0
+REAL_TIME_SLACK = 10.0
 
 
 @dataclass(frozen=True)
@@ -248,6 +250,7 @@ class Arm:
         budget = move_duration_s(distance, speed, accel) + MOVE_TIMEOUT_MARGIN_S
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
         t_end = self.clock() + budget
+        t_end_real = time.monotonic() + REAL_TIME_SLACK * budget
         while True:
             sample = self._next_sample()
             if not ignore_faults and self._fault is not None:
@@ -260,7 +263,7 @@ class Arm:
                     and _rotation_gap_rad(sample.tcp_pose, target) < ARRIVAL_TOL_RAD
                     and np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S):
                 return sample, False
-            if self.clock() > t_end:
+            if self.clock() > t_end or time.monotonic() > t_end_real:
                 self.stop()
                 raise HardwareFault("arm-timeout", f"arm: move did not finish within {budget:.1f} s")
 

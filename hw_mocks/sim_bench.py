@@ -24,6 +24,7 @@ down instead of the physics falling behind the arm. Readers never block on a sol
 
 from __future__ import annotations
 
+import logging
 import re
 import threading
 import time
@@ -32,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from collect.errors import InputError
+
+log = logging.getLogger(__name__)
 
 #: Fault kinds ``--sim-fault`` accepts.
 FAULT_KINDS = ("camera-stall", "serial-garbage", "serial-unplug", "protective-stop", "force-spike")
@@ -171,6 +174,7 @@ class SimBench:
         self.arm = SimURController(self, self.home_pose, protective_force_n)
         self._solved: list[_Solved] = []  # the last two solutions, oldest first
         self.solves = 0
+        self.physics_failed = False
         self._solve_now()
         self.clock.limit = self._time_limit
         self._stop = threading.Event()
@@ -204,7 +208,7 @@ class SimBench:
         ``LOOKAHEAD_S``: on a slow or loaded machine the simulation slows down instead of the
         wrench lagging the pose. Lock-free (called by the clock)."""
         solved = self._solved[-1]
-        if solved.t >= self.arm.moving_until():
+        if self.physics_failed or solved.t >= self.arm.moving_until():
             return None
         return solved.t + LOOKAHEAD_S
 
@@ -217,7 +221,12 @@ class SimBench:
             limit = self._time_limit()
             held = limit is not None and t >= limit - 1e-6
             if held or t - last.t >= REST_REFRESH_S or not _same_pose(last.pose, self.arm.pose_at(t + LOOKAHEAD_S)):
-                self._solve_now()
+                try:
+                    self._solve_now()
+                except Exception:  # keep the bench alive: time must not stay paused on a dead solver
+                    log.exception("simulated bubble: membrane solve failed; physics stopped")
+                    self.physics_failed = True
+                    return
             self._stop.wait(max(0.0, period_real - (time.monotonic() - started)))
 
     def now(self) -> float:
