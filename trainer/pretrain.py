@@ -66,12 +66,18 @@ def run_collect(args: argparse.Namespace) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     seeds = range(args.first_seed, args.first_seed + args.sensors)
+    failed = 0
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         futures = {seed: pool.submit(collect_one, work, seed, args.objects, args.poses_per_object, args.sim_speed)
                    for seed in seeds}
         for seed, future in futures.items():
-            print(f"sensor seed {seed}: {future.result()}", flush=True)
-    return 0
+            try:
+                print(f"sensor seed {seed}: {future.result()}", flush=True)
+            except RuntimeError as err:  # one bad simulated sensor does not stop the others
+                failed += 1
+                print(f"sensor seed {seed}: {err}", flush=True)
+    print(f"{args.sensors - failed} of {args.sensors} sessions in {work}", flush=True)
+    return 1 if failed else 0
 
 
 def package_base_model(model_dir: Path, out: Path) -> Path:
