@@ -4,6 +4,7 @@ import json
 import shutil
 import threading
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -137,6 +138,10 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
     truncated = tmp_path / "truncated.h5"
     truncated.write_bytes(session.read_bytes()[: session.stat().st_size // 3])
     other_size = make_synthetic_session(tmp_path / "other.h5", height=40, width=56, poses_per_object=1)
+    with_nan = tmp_path / "nan.h5"
+    shutil.copy(session, with_nan)
+    with h5py.File(with_nan, "r+") as f:
+        f["sim/true_depth"][12, 5, 5] = np.nan
     pickled = tmp_path / "pickled"
     shutil.copytree(model, pickled)
     torch.save({"w": torch.zeros(2)}, pickled / WEIGHTS_FILE)
@@ -145,6 +150,7 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         ("evaluate", "--model", model, "--data", garbage),
         ("evaluate", "--model", model, "--data", truncated),
         ("evaluate", "--model", model, "--data", other_size),
+        ("evaluate", "--model", model, "--data", with_nan),
         ("evaluate", "--model", model, "--data", session, "--objects", "teapot"),
         ("evaluate", "--model", pickled, "--data", session),
         ("evaluate", "--model", tmp_path / "no_model", "--data", session),
