@@ -6,11 +6,13 @@
 * main thread (the caller's): for each object, travel above it, rest at its reference pose for
   the no-contact frames (phase ``free``, pose id -1, the object's index), then for each contact
   pose: ``approach`` (travel to the pose's above-pose, guarded move until contact), ``press`` (to
-  the target force), ``hold``, ``retract`` (back to the above-pose). Moves between objects are
+  the pose's press force beyond the contact force), ``hold``, ``retract`` (back to the above-pose). Moves between objects are
   phase ``free`` with object -1.
-* recorder thread: takes every camera frame, stamps it with the current object / pose / phase and
-  the arm's latest TCP pose, and queues it to the writer together with the arm state samples and
-  pressure readings that arrived meanwhile. It also reports progress (<= 10 Hz and on every phase
+* recorder thread: takes every camera frame, stamps it with the object / pose / phase that was
+  under way at the frame's capture time (``t_host`` on the bench clock; the main thread logs each
+  phase start on that clock, so frames that wait in the camera queue keep their true phase) and
+  with the arm sample nearest that time (125 Hz or faster: within 4 ms), and queues it to the
+  writer together with the arm state samples and pressure readings that arrived meanwhile. It also reports progress (<= 10 Hz and on every phase
   change) and watches the camera (stall) and the pressure board (unplug, timeout).
 
 Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInterrupt`` or any
@@ -22,6 +24,8 @@ the writer and closes it (``with SessionWriter(...)``), which keeps every frame.
 
 from __future__ import annotations
 
+import bisect
+import collections
 import logging
 import threading
 import time
@@ -33,6 +37,7 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import HardwareFault
 from collect.pose_planner import CollectionPlan
+from collect.safety import tool_z_axis
 from collect.session_writer import SessionWriter
 
 log = logging.getLogger(__name__)
@@ -41,6 +46,8 @@ log = logging.getLogger(__name__)
 PROGRESS_HZ = 10.0
 #: How long the recorder waits for a frame before the camera counts as stalled (s).
 FRAME_TIMEOUT_S = 0.5
+#: Arm samples kept for stamping frames with the pose at their capture time (~1 s at 500 Hz).
+ARM_HISTORY = 512
 
 _PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
 
@@ -121,7 +128,11 @@ class _Recorder(threading.Thread):
         self.writer = writer
         self.progress_callback = progress_callback
         self.result = result
-        self.stamp = _Stamp()
+        self.stamp = _Stamp()  # the latest stamp (what the arm is doing now)
+        self._timeline_t: list[float] = [-np.inf]  # bench-clock start time of each stamp
+        self._timeline: list[_Stamp] = [self.stamp]
+        self._timeline_lock = threading.Lock()
+        self._recent_arm: collections.deque = collections.deque(maxlen=ARM_HISTORY)
         self.error: BaseException | None = None
         self.halt = threading.Event()
         self._last_seq: int | None = None
@@ -129,12 +140,32 @@ class _Recorder(threading.Thread):
         self._last_report = 0.0
         self._reported_stamp: _Stamp | None = None
 
+    def set_stamp(self, stamp: _Stamp, t: float) -> None:
+        """``stamp`` is under way from bench-clock time ``t`` (s) on."""
+        with self._timeline_lock:
+            self._timeline_t.append(t)
+            self._timeline.append(stamp)
+            self.stamp = stamp
+
+    def _stamp_at(self, t: float) -> _Stamp:
+        with self._timeline_lock:
+            i = max(bisect.bisect_right(self._timeline_t, t) - 1, 0)
+            stamp = self._timeline[i]
+            del self._timeline_t[:i], self._timeline[:i]  # frames arrive in time order
+            return stamp
+
+    def _arm_pose_at(self, t: float) -> np.ndarray:
+        if not self._recent_arm:
+            return self.bench.arm.state().tcp_pose
+        nearest = min(self._recent_arm, key=lambda sample: abs(sample.t - t))
+        return nearest.tcp_pose
+
     def run(self) -> None:
         try:
             while not self.halt.is_set():
                 frame = self.bench.camera.get_frame(FRAME_TIMEOUT_S)
-                self._write_frame(frame)
                 self._write_streams()
+                self._write_frame(frame)
                 self.bench.pressure.check()
                 self._report()
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
@@ -146,7 +177,7 @@ class _Recorder(threading.Thread):
                 self.error = self.error or err
 
     def _write_frame(self, frame) -> None:
-        stamp = self.stamp
+        stamp = self._stamp_at(frame.t_host)
         if self._last_seq is not None and frame.seq != self._last_seq + 1:
             self.result.dropped += max(0, frame.seq - self._last_seq - 1)
         if frame.t_device <= self._last_t_device:
@@ -155,13 +186,14 @@ class _Recorder(threading.Thread):
         object_index = self.writer.object_indices[stamp.object_index] if stamp.object_index >= 0 else -1
         self.writer.append_frame(
             frame.ir, frame.depth, frame.t_device, frame.t_host, frame.seq, object_index, stamp.pose_id,
-            stamp.phase, self.bench.arm.state().tcp_pose, true_depth=frame.true_depth,
+            stamp.phase, self._arm_pose_at(frame.t_host), true_depth=frame.true_depth,
         )
         self.result.frames += 1
 
     def _write_streams(self) -> None:
         for sample in self.bench.arm.drain_states():
             self.writer.append_arm(sample.t, sample.tcp_pose, sample.tcp_wrench)
+            self._recent_arm.append(sample)
         for reading in self.bench.pressure.drain():
             self.writer.append_pressure(reading.t, reading.hpa)
 
@@ -214,7 +246,7 @@ def run_collection(
             raise recorder.error
         if stop_event.is_set():
             raise _StopRequested()
-        recorder.stamp = stamp
+        recorder.set_stamp(stamp, bench.clock())
 
     recorder.start()
     try:
@@ -239,7 +271,8 @@ def run_collection(
                 )
                 if contact is not None:
                     enter(_Stamp(oi, pose.pose_id, sf.PHASE_PRESS, k))
-                    arm.press(force_n=pose.press_force_n, speed=s.press_speed)
+                    arm.press(force_n=press_target_n(contact, pose.press_force_n, s.max_press_force_n),
+                              speed=s.press_speed)
                     enter(_Stamp(oi, pose.pose_id, sf.PHASE_HOLD, k))
                     arm.hold(s.hold_s)
                 else:
@@ -268,10 +301,17 @@ def run_collection(
     return result
 
 
+def press_target_n(contact, added_n: float, cap_n: float) -> float:
+    """Force (N) a press aims for: the force along the pressing axis at first contact (``contact``,
+    an ``ArmState``) plus ``added_n``, at most ``cap_n``."""
+    at_contact = float(-np.dot(contact.tcp_wrench[:3], tool_z_axis(contact.tcp_pose)))
+    return min(max(at_contact, 0.0) + added_n, cap_n)
+
+
 def _safe_stop(bench, recorder: _Recorder) -> None:
     """Stop and retract the arm (frames keep recording, as ``retract``); never raises."""
     stamp = recorder.stamp
-    recorder.stamp = _Stamp(stamp.object_index, stamp.pose_id, sf.PHASE_RETRACT, stamp.pose_index)
+    recorder.set_stamp(_Stamp(stamp.object_index, stamp.pose_id, sf.PHASE_RETRACT, stamp.pose_index), bench.clock())
     try:
         bench.safe_stop()
     except (HardwareFault, OSError, RuntimeError) as err:

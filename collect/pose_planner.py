@@ -5,9 +5,13 @@ For each object, ``plan_collection`` draws K contact poses (seeded, reproducible
 * a contact point on the object's upper surface (``obj.top_surface_points``: upward-facing cells
   near the top of the object's height field, real meshes included);
 * a pressing axis (TCP +z) tilted from straight down by up to ``max_tilt_deg`` towards a random
-  direction, and a random yaw of the sensor about that axis;
-* a target press force drawn in ``press_force_n`` (the press stops at that force, or at the arm's
-  maximum press depth), which is safe on any shape, flat or pointed.
+  direction, and a random yaw of the sensor about the vertical in [-90, 90) deg (the bubble's
+  footprint is symmetric under a half turn); an object's poses run in order of yaw, so that the
+  arm turns the sensor by at most half a turn per object (reorienting is slow: see
+  ``ROTATION_M_PER_RAD``);
+* a press force drawn in ``press_force_n``, added to the force at first contact (the press stops
+  at that force, at ``max_press_force_n``, or at the arm's maximum press depth): safe on any
+  shape, flat or pointed, and always a real press even when the guarded approach overshoots.
 
 The motion of one pose (``collect.collection`` runs it): travel to ``above_pose`` (the pressing
 axis through the contact point, ``clearance_m`` above the object's top), approach along the axis
@@ -35,6 +39,9 @@ from collect.safety import SafetyLimits
 
 #: TCP orientation pressing straight down (TCP +z along base -z), yaw 0.
 DOWN = Rotation.from_rotvec([np.pi, 0.0, 0.0])
+#: Path length (m) a linear move spends per radian of tool reorientation, for the time estimate
+#: (the UR controller scales rotation into the tool speed; its twin uses the same 0.1 m/rad).
+ROTATION_M_PER_RAD = 0.1
 
 
 @dataclass(frozen=True)
@@ -47,9 +54,10 @@ class PlanSettings:
     poses_per_object: int = 8
     seed: int = 0
     max_tilt_deg: float = 15.0
-    press_force_n: tuple[float, float] = (2.0, 8.0)
+    press_force_n: tuple[float, float] = (2.0, 6.0)  # force added by the press beyond first contact
+    max_press_force_n: float = 15.0  # cap of the total contact force of a press
     contact_force_n: float = 0.4  # force that ends the guarded approach
-    clearance_m: float = 0.008  # above-pose height over the object's top
+    clearance_m: float = 0.006  # above-pose height over the object's top
     approach_margin_m: float = 0.008  # extra guarded travel past the planned contact point
     max_press_depth_m: float = 0.015  # deepest press past first contact (the arm's press cap)
     reference_clearance_m: float = 0.02
@@ -59,8 +67,8 @@ class PlanSettings:
     press_speed: float = 0.02
     retract_speed: float = 0.1
     accel: float = 1.0
-    hold_s: float = 0.4
-    reference_s: float = 0.5
+    hold_s: float = 0.3
+    reference_s: float = 0.4
 
     def __post_init__(self):
         if not 1 <= int(self.poses_per_object) <= 1000:
@@ -83,7 +91,7 @@ class ContactPose:
     surface_normal: np.ndarray  # (3,) unit, at the contact point
     tilt_deg: float  # angle of the pressing axis from straight down
     yaw_deg: float  # rotation of the sensor about the pressing axis
-    press_force_n: float  # target force of the press
+    press_force_n: float  # force the press adds beyond the force at first contact
     above_pose: np.ndarray  # (6,) start and end of the press, clear above the object
     approach_travel_m: float  # guarded approach length along the pressing axis from above_pose
 
@@ -148,7 +156,11 @@ class CollectionPlan:
 
 
 def _move_s(a: np.ndarray, b: np.ndarray, speed: float, accel: float) -> float:
-    return move_duration_s(float(np.linalg.norm(np.asarray(b)[:3] - np.asarray(a)[:3])), speed, accel)
+    """Duration (s) of a linear move between poses ``a`` and ``b`` (6,), reorientation included."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    turn = (Rotation.from_rotvec(a[3:]).inv() * Rotation.from_rotvec(b[3:])).magnitude()
+    path = max(float(np.linalg.norm(b[:3] - a[:3])), float(turn) * ROTATION_M_PER_RAD)
+    return move_duration_s(path, speed, accel)
 
 
 def pressing_rotation(tilt_deg: float, tilt_direction_rad: float, yaw_rad: float) -> Rotation:
@@ -174,7 +186,7 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
         raise InputError(f"object names must be unique, got {', '.join(duplicates)} twice")
     s = settings
     limits.check_force(s.contact_force_n)
-    limits.check_force(s.press_force_n[1])
+    limits.check_force(s.max_press_force_n)
     for speed in (s.travel_speed, s.approach_speed, s.press_speed, s.retract_speed):
         limits.check_motion(speed, s.accel)
     if s.max_tilt_deg > limits.max_tilt_deg:
@@ -192,10 +204,12 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
             _check_reachable(limits, obj.name, pose)
         stops.append(ObjectStop(index, obj.name, reference, travel))
         points, normals = obj.top_surface_points(s.poses_per_object, rng)
+        tilts = rng.uniform(0.0, s.max_tilt_deg, s.poses_per_object)
+        tilt_directions = rng.uniform(0.0, 2 * np.pi, s.poses_per_object)
+        yaws = np.sort(rng.uniform(-np.pi / 2, np.pi / 2, s.poses_per_object))
         for k in range(s.poses_per_object):
-            tilt = float(rng.uniform(0.0, s.max_tilt_deg))
-            yaw = float(rng.uniform(-np.pi, np.pi))
-            rot = pressing_rotation(tilt, rng.uniform(0, 2 * np.pi), yaw)
+            tilt, yaw = float(tilts[k]), float(yaws[k])
+            rot = pressing_rotation(tilt, tilt_directions[k], yaw)
             axis = rot.apply([0.0, 0.0, 1.0])  # pressing direction, points down
             # above_pose on the pressing axis through the contact point, clearance over the top
             back = (top_z + s.clearance_m - points[k, 2]) / -axis[2]

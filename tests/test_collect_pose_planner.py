@@ -78,6 +78,6 @@ def test_bad_plans(plate):
     with pytest.raises(InputError, match="unique"):
         plan_collection([plate[0], plate[0]], SafetyLimits())
     with pytest.raises(InputError, match="force"):
-        plan_collection(plate, SafetyLimits(force_limit_n=5.0), PlanSettings(press_force_n=(2.0, 8.0)))
+        plan_collection(plate, SafetyLimits(force_limit_n=10.0), PlanSettings(max_press_force_n=15.0))
     with pytest.raises(InputError, match="poses per object"):
         PlanSettings(poses_per_object=0)

@@ -1,0 +1,171 @@
+"""``bubble collect --sim`` and the collection run loop end to end on the simulated bench (real twins)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from calibrate.cli import main
+from collect import session_format as sf
+from collect.bench import BenchConfig, open_bench
+from collect.collection import run_collection, session_metadata
+from collect.pose_planner import PlanSettings, plan_collection
+from collect.session_reader import Session
+from collect.session_writer import SessionWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _collect(tmp_path, *extra, name="s.h5"):
+    out = tmp_path / name
+    return main(["collect", "--sim", "--objects", "box", "--poses-per-object", "2", "--seed", "3", "--quiet",
+                 "--out", str(out), *extra]), out
+
+
+@pytest.fixture(scope="module")
+def box_session(tmp_path_factory):
+    """One simulated collection: box, 2 poses (shared by the read-only checks below)."""
+    rc, out = _collect(tmp_path_factory.mktemp("collect"))
+    assert rc == 0
+    return out
+
+
+def test_collect_sim_records_every_phase(box_session, capsys):
+    with Session.open(box_session) as s:
+        assert s.simulated and s.closed_cleanly and s.object_names == ["box"]
+        np.testing.assert_array_equal(s.seq, s.seq[0] + np.arange(s.n_frames))
+        assert np.all(np.diff(s.t_device) > 0)
+        assert s.collection_plan()["settings"]["poses_per_object"] == 2
+        ref = s.reference_frames("box")
+        assert len(ref) >= 10 and np.all(s.pose_id[ref] == -1)
+        for pose_id in (0, 1):
+            phases = set(s.phase_name(s.select(pose_id=pose_id)))
+            assert phases == {"approach", "press", "hold", "retract"}
+        hold = s.select(object="box", phase="hold")
+        # pressed frames: the membrane is pushed towards the camera, the pressure and force rise
+        dent = s.true_depth(ref).mean(axis=0) - s.true_depth(hold)
+        assert dent.max(axis=(1, 2)).min() > 1e-3
+        arm, pressure = s.arm(), s.pressure()
+        t_hold = s.t_host[hold]
+        in_hold = (arm.t >= t_hold.min()) & (arm.t <= t_hold.max())
+        assert np.linalg.norm(arm.wrench[in_hold, :3], axis=1).max() > 1.0
+        p_ref = np.interp(s.t_host[ref], pressure.t, pressure.hpa).mean()
+        assert np.interp(t_hold, pressure.t, pressure.hpa).max() > p_ref + 0.5
+        # the frames carry the arm pose at capture time: lower while holding than at the reference
+        assert s.tcp_pose(hold)[:, 2].max() < s.tcp_pose(ref)[:, 2].min() - 0.01
+    assert main(["info", str(box_session)]) == 0
+    out = capsys.readouterr().out
+    assert "box" in out and "closed cleanly" in out and "dropped 0" in out
+
+
+def test_collect_refuses_bad_output_and_other_plan(box_session, tmp_path, capsys):
+    size = box_session.stat().st_size
+    rc, _ = _collect(box_session.parent, name=box_session.name)
+    assert rc == 2 and "already exists; use --resume" in capsys.readouterr().err
+    assert box_session.stat().st_size == size
+    assert _collect(tmp_path / "missing-dir")[0] == 2
+    assert "directory" in capsys.readouterr().err
+    assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "2", "--quiet", "--resume",
+                 "--out", str(box_session)]) == 2  # seed 0 draws another sensor than seed 3
+    assert "recorded with sensor" in capsys.readouterr().err
+    assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "3", "--seed", "3", "--quiet",
+                 "--resume", "--out", str(box_session)]) == 2
+    err = capsys.readouterr().err
+    assert "another plan" in err and err.count("\n") == 1
+    with Session.open(box_session) as s:
+        assert s.closed_cleanly and len(s.select(pose_id=1)) > 0
+    assert main(["collect", "--objects", "box", "--out", str(tmp_path / "real.h5")]) == 2
+    assert "--bench" in capsys.readouterr().err
+    assert main(["collect", "--sim", "--objects", "teapot", "--out", str(tmp_path / "t.h5")]) == 2
+    assert "unknown object 'teapot'" in capsys.readouterr().err
+
+
+def test_resume_refuses_other_format_version_and_truncated_files(tmp_path, synthetic_session, capsys):
+    with h5py.File(synthetic_session, "a") as f:
+        f.attrs[sf.ATTR_FORMAT_VERSION] = sf.FORMAT_VERSION + 1
+    assert _collect(synthetic_session.parent, "--resume", name=synthetic_session.name)[0] == 2
+    assert "format version" in capsys.readouterr().err
+    truncated = tmp_path / "cut.h5"
+    truncated.write_bytes(synthetic_session.read_bytes()[:5000])
+    assert _collect(tmp_path, "--resume", name="cut.h5")[0] == 2
+    assert "truncated file" in capsys.readouterr().err
+
+
+def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):
+    rc, out = _collect(tmp_path, "--sim-fault", "camera-stall@2.0")
+    assert rc == 3
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: fault: camera-stall") and err.count("\n") == 1
+    with Session.open(out) as s:
+        assert s.closed_cleanly and 60 <= s.n_frames <= 2.5 * 45
+        assert s.t_device[-1] - s.t_device[0] < 2.1
+        # safe stop: the arm ended clear of the box (above its top, 40 mm)
+        assert s.arm().tcp_pose[-1, 2] > 0.04
+
+
+def test_stop_event_then_resume_completes_the_plan(tmp_path):
+    out = tmp_path / "stopped.h5"
+    config = BenchConfig.create("sim", objects=("box",), seed=1)
+    settings = PlanSettings(poses_per_object=2, seed=1)
+    stop = threading.Event()
+    seen = []
+
+    def progress(**fields):
+        seen.append(fields)
+        if fields["phase"] == "hold":
+            stop.set()
+
+    with open_bench(config) as bench:
+        plan = plan_collection(bench.objects, bench.limits, settings)
+        with SessionWriter(out, **session_metadata(bench, plan.objects)) as writer:
+            writer.set_collection_plan(plan.describe())
+            result = run_collection(bench, plan, writer, progress, stop)
+    assert result.stopped and result.poses_done == []
+    assert {"object_name", "pose_index", "phase", "frames", "force_n", "pressure_hpa"} <= set(seen[-1])
+    assert any(f["force_n"] > 0.3 for f in seen)
+    with Session.open(out) as s:
+        first = s.n_frames
+        assert s.closed_cleanly and len(s.reference_frames("box")) > 0
+    with open_bench(config) as bench:
+        plan = plan_collection(bench.objects, bench.limits, settings)
+        with SessionWriter(out, **session_metadata(bench, plan.objects), resume=True) as writer:
+            writer.set_collection_plan(plan.describe())
+            # stopped after pose 0's hold: the safe stop retracted it, so pose 0 counts as done
+            assert writer.referenced_objects == {0} and writer.completed_pose_ids == {0}
+            result = run_collection(bench, plan, writer)
+    assert result.poses_done == [1]
+    with Session.open(out) as s:
+        assert s.n_frames > first
+        assert len(s.select(pose_id=[0, 1], phase="retract")) > 0
+        assert s.object_index[first:][s.phase[first:] == sf.PHASE_FREE].max() == -1  # no second reference
+
+
+def test_ctrl_c_exits_130_and_closes_the_file(tmp_path):
+    out = tmp_path / "interrupted.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", "collect", "--sim", "--objects", "box",
+                             "--poses-per-object", "2", "--quiet", "--out", str(out)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    frames = 0
+    while frames < 60 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.3)
+        if out.exists():
+            try:
+                with h5py.File(out, "r", swmr=True) as f:
+                    frames = f[sf.FRAMES_SEQ].shape[0]
+            except (OSError, KeyError):
+                frames = 0
+    os.kill(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "bubble: interrupted"
+    with Session.open(out) as s:
+        assert s.closed_cleanly and s.n_frames >= frames
