@@ -317,7 +317,9 @@ class Arm:
         """Press along the pressing axis from the current pose, by ``depth_m`` or until ``force_n``.
 
         Exactly one of ``depth_m`` (m, at most ``settings.max_press_depth_m``) and ``force_n``
-        (N, at most the force limit) is given. Returns the sample at the end of the press.
+        (N, at most the force limit) is given. A press to a force stops at the force, after
+        ``settings.max_press_depth_m``, or where the pressing axis leaves the workspace box (a low
+        object near the plate), whichever comes first. Returns the sample at the end of the press.
         """
         if (depth_m is None) == (force_n is None):
             raise InputError("arm: press needs exactly one of depth_m and force_n")
@@ -332,7 +334,14 @@ class Arm:
             target[:3] += axis * depth_m
         else:
             self.limits.check_force(force_n)
-            target[:3] += axis * s.max_press_depth_m
+            lo, hi = np.asarray(self.limits.workspace_min), np.asarray(self.limits.workspace_max)
+            p = start.tcp_pose[:3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                room = np.where(axis < 0, (lo - p) / axis, np.where(axis > 0, (hi - p) / axis, np.inf))
+            depth = min(s.max_press_depth_m, float(room.min()))
+            if depth <= 0:
+                return start
+            target[:3] += axis * depth
             guard = lambda smp: self._press_force(smp, axis) >= force_n  # noqa: E731
         sample, _ = self._run_move(target, speed or s.press_speed, s.accel, guard=guard)
         return sample
