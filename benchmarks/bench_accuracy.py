@@ -42,6 +42,7 @@ def main() -> int:
     parser.add_argument("--sensor-seed", type=int, default=11)
     parser.add_argument("--poses-per-object", type=int, default=8)
     parser.add_argument("--objects", default=DEFAULT_OBJECTS)
+    parser.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed (lower on a busy machine)")
     parser.add_argument("--work", help="keep the session and models here (default: a temporary directory)")
     parser.add_argument("--no-doc", action="store_true")
     args = parser.parse_args()
@@ -51,7 +52,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
-        session = collect_one(work, args.sensor_seed, args.objects, args.poses_per_object, sim_speed=100.0)
+        session = collect_one(work, args.sensor_seed, args.objects, args.poses_per_object, args.sim_speed)
         for arch in args.archs:
             settings = [("in-class (poses)", {"split": "poses"}), ("in-class (frames)", {"split": "frames"})]
             settings += [(f"leave out {name}", {"holdout_object": name}) for name in holdouts]

@@ -53,6 +53,7 @@ def test_training_writes_model_dir_and_learns(trained, session):
     assert events[-1].fraction == pytest.approx(1.0) and not result.stopped
     steps = [e.step for e in events if e.event == "step"]
     assert steps == sorted(steps) and steps[0] == 1
+    assert result.history[0]["step"] == 0  # the curve starts with the untrained network
     assert result.history[-1]["abs_rel"] < 0.8 * result.history[0]["abs_rel"]  # it learns
     meta = load_metadata(result.model_dir)
     assert meta.training["sources"][0]["sha256"] and meta.training["sensor_serials"] == ["SYN-0001"]

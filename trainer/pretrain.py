@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--first-seed", type=int, default=1000)
     c.add_argument("--objects", default=DEFAULT_OBJECTS)
     c.add_argument("--poses-per-object", type=int, default=8)
-    c.add_argument("--sim-speed", type=float, default=100.0, help="simulated clock speed factor (<= 100)")
+    c.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed factor (<= 100; lower on a busy machine)")
     c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel")
     c.add_argument("--work", required=True, help="directory of the sessions")
     c.set_defaults(func=run_collect)

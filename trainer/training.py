@@ -274,17 +274,20 @@ def train_model(
         eta = train_s / frac * (1.0 - frac) if frac > 0 else None
         progress_callback(TrainProgress(epoch_f, step, running, _learning_rate(config.lr, frac), train_s, frac, eta, val_live, event))
 
-    def validate_and_checkpoint() -> None:
+    def validate_and_checkpoint(checkpoint: bool = True) -> None:
         nonlocal val_live
         if ctx.is_main:
             metrics = evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)
             val_live = {"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running, **metrics}
             history.append(val_live)
-            save_checkpoint(out_dir, network, optimizer,
-                            {"epoch": epoch_f, "step": step, "train_s": train_s, "history": history, "loss": running})
+            if checkpoint:
+                save_checkpoint(out_dir, network, optimizer,
+                                {"epoch": epoch_f, "step": step, "train_s": train_s, "history": history, "loss": running})
             report("eval")
         ctx.barrier()
 
+    if not history:  # the curve starts with the untrained (or init) model
+        validate_and_checkpoint(checkpoint=False)
     model.train()
     (done,) = ctx.any_flags(fraction_done(epoch_f, train_s) >= 1.0)
     while not done:
