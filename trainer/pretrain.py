@@ -137,6 +137,7 @@ def run_train(args: argparse.Namespace) -> int:
         frame_stride=args.frame_stride,
         seed=args.seed,
         resume=args.resume,
+        eval_interval_s=args.eval_interval,
     )
 
     def show(p) -> None:
@@ -180,6 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--frame-stride", type=int, default=3)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--resume", action="store_true")
+    t.add_argument("--eval-interval", type=float, default=60.0, help="seconds between validations/checkpoints")
     t.add_argument("--model-card", default=str(MODEL_CARD) if MODEL_CARD.parent.is_dir() else "",
                    help="model card whose pretraining section to rewrite ('' = none)")
     t.set_defaults(func=run_train)
