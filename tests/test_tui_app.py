@@ -9,6 +9,7 @@ The real flow on the simulated bench is exercised in ``test_tui_commissioning.py
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
-from calibrate.tui.app import BenchApp
+from calibrate.tui.app import FLOW_NICE, BenchApp
 from calibrate.tui.widgets.banner import Banner
 from calibrate.tui.widgets.confirm import ConfirmStart
 from collect.errors import HardwareFault
@@ -104,9 +105,11 @@ class ScriptedFlow:
         self.release = threading.Event()
         self.calls = 0
         self.saw_stop = False
+        self.nice: int | None = None  # nice value of the thread the flow ran in
 
     def __call__(self, config, on_event, stop_event):
         self.calls += 1
+        self.nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         for event in self.events:
             on_event(event)
         self.emitted.set()
@@ -186,6 +189,8 @@ def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
             assert app.arm_state in ("stopping", "stopped")
             await wait_for(lambda: app.result is not None, pilot)
             assert flow.saw_stop and app.result.stopped and app.arm_state == "stopped"
+            # the flow ran in a thread the scheduler ranks below the UI thread
+            assert flow.nice == min(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + FLOW_NICE, 19)
             banner = app.query_one(Banner)
             assert banner.level == "warning" and "Stopped by operator" in str(banner.content)
             assert app.steps.row(Step.COLLECT).status == "stopped"

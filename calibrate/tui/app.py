@@ -5,7 +5,8 @@ Threads: the flow (``calibrate.commissioning.run_commissioning``, the same code 
 event in an ``EventInbox`` and, when the inbox was empty, posts one ``FlowEventsReady`` message
 (``post_message`` is thread-safe); the UI thread drains the whole batch at once. Bench snapshots
 (camera frames, pose, wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never
-floods the UI.
+floods the UI. The flow itself runs in a thread of its own at a lower scheduling priority
+(``FLOW_NICE``), so the UI thread wins the CPU while fine-tuning keeps every core busy.
 
 Safety: the stop key (``s`` or space, a priority binding that works on every screen) sets the
 flow's ``stop_event``; the flow safe-stops the arm, retracts and closes the session file. Nothing
@@ -15,6 +16,7 @@ flow has returned.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -55,8 +57,25 @@ Flow = Callable[..., object]
 
 HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
 
+#: Nice increment of the flow thread and its children (bench loops, fine-tuning): the scheduler
+#: then prefers the UI thread, so keys are answered while training saturates every core.
+FLOW_NICE = 10
+
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
+
+
+def _lower_thread_priority(increment: int) -> None:
+    """Raise the calling thread's nice value by ``increment`` (Linux: per thread, inherited by the
+    threads it starts: bench drivers, the session writer, torch's workers). Without privileges a
+    thread can only lower its priority, never raise it back, hence the dedicated flow thread."""
+    if increment <= 0:
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+    except (AttributeError, OSError):  # not Linux/Unix, or not permitted: run at normal priority
+        pass
 
 
 def _default_flow(config, on_event, stop_event):
@@ -76,7 +95,7 @@ class BenchApp(App):
     ``simulated``, ``sensor_spec``, ``registry_dir``, ``objects``, ``poses_per_object``).
     ``flow``: the commissioning entry point (default ``run_commissioning``). ``clock``: monotonic
     time in s for ETAs and snapshot ages (tests pass a fixed clock). ``refresh_hz``: rate of the
-    live bench/sensor refresh.
+    live bench/sensor refresh. ``flow_nice``: nice increment of the flow thread (0 = as the UI).
     """
 
     CSS_PATH = "bench.tcss"
@@ -102,12 +121,14 @@ class BenchApp(App):
         flow: Flow | None = None,
         clock: Callable[[], float] = time.monotonic,
         refresh_hz: float = 5.0,
+        flow_nice: int = FLOW_NICE,
     ) -> None:
         super().__init__()
         self.config = config
         self._flow = flow or _default_flow
         self._clock = clock
         self._refresh_hz = refresh_hz
+        self._flow_nice = flow_nice
         self._inbox = EventInbox()
         self._stop_event: threading.Event | None = None
         self._flow_done = threading.Event()
@@ -208,10 +229,25 @@ class BenchApp(App):
         self._update_bench_panel(None)
 
     def _run_flow(self):
+        """Worker body: run the flow in its own lower-priority thread and return its result."""
+        outcome: dict = {}
+
+        def flow_thread() -> None:
+            _lower_thread_priority(self._flow_nice)
+            try:
+                outcome["result"] = self._flow(self.config, on_event=self._on_flow_event, stop_event=self._stop_event)
+            except BaseException as err:  # handed to the worker, which reports it
+                outcome["error"] = err
+
         try:
-            return self._flow(self.config, on_event=self._on_flow_event, stop_event=self._stop_event)
+            thread = threading.Thread(target=flow_thread, name="commissioning-flow")
+            thread.start()
+            thread.join()
         finally:
             self._flow_done.set()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["result"]
 
     def action_stop(self) -> None:
         """Stop the arm now: the flow safe-stops, retracts and closes the session file."""
