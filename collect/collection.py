@@ -13,7 +13,8 @@
   phase start on that clock, so frames that wait in the camera queue keep their true phase) and
   with the arm sample nearest that time (125 Hz or faster: within 4 ms), and queues it to the
   writer together with the arm state samples and pressure readings that arrived meanwhile. It also reports progress (<= 10 Hz and on every phase
-  change) and watches the camera (stall) and the pressure board (unplug, timeout).
+  change) and watches the camera (stall) and the pressure board (unplug, timeout): a fault there
+  aborts the arm's running motion at once (``Arm.abort``), which raises it in the main thread.
 
 Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInterrupt`` or any
 other error, the loop calls ``bench.safe_stop()`` (stop the arm, retract when possible), stops the
@@ -170,11 +171,20 @@ class _Recorder(threading.Thread):
                 self._report()
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
             self.error = err
+            if isinstance(err, HardwareFault):
+                self.bench.arm.abort(err)  # the running motion stops now and raises it
         finally:
             try:
                 self._write_streams()
             except BaseException as err:  # noqa: BLE001
                 self.error = self.error or err
+
+    def write_remaining_streams(self) -> None:
+        """After the thread ended: queue the arm samples and pressure readings still pending."""
+        try:
+            self._write_streams()
+        except (HardwareFault, RuntimeError) as err:  # a failed writer; the run reports its own error
+            log.error("could not record the last arm/pressure samples: %s", err)
 
     def _write_frame(self, frame) -> None:
         stamp = self._stamp_at(frame.t_host)
@@ -289,12 +299,16 @@ def run_collection(
     except _StopRequested:
         result.stopped = True
         _safe_stop(bench, recorder)
-    except BaseException:
+    except BaseException as err:
         _safe_stop(bench, recorder)
+        if isinstance(err, HardwareFault) and isinstance(recorder.error, HardwareFault) and err is not recorder.error:
+            # the arm's error followed from the device fault (e.g. a retract aborted by it): report the cause
+            raise recorder.error from err
         raise
     finally:
         recorder.halt.set()
         recorder.join()
+        recorder.write_remaining_streams()  # e.g. the safe-stop retract after the camera failed
         result.duration_s = float(arm.state().t - t_start)
     if recorder.error is not None and not result.stopped:
         raise recorder.error
