@@ -73,28 +73,37 @@ def _writer(path, spec, compression):
                          camera_in_tcp=spec.camera_in_tcp, simulated=True, objects=[], compression=compression)
 
 
-def bench_compression(frames, spec, n_frames: int, tmp: Path) -> list[dict]:
+def bench_compression(frames, spec, n_frames: int, repeats: int, tmp: Path) -> list[dict]:
+    """Unpaced writes of ``n_frames`` per filter; the median of ``repeats`` interleaved runs."""
+    runs = {name: [] for name in COMPRESSIONS}
+    for _ in range(repeats):
+        for name, compression in COMPRESSIONS.items():
+            path = tmp / "throughput.h5"
+            t0, c0 = time.perf_counter(), time.process_time()
+            writer = _writer(path, spec, compression)
+            for i in range(n_frames):
+                ir, depth, true = frames[i % len(frames)]
+                writer.append_frame(ir, depth, i / FPS, i / FPS, i, -1, -1, sf.PHASE_FREE, np.zeros(6),
+                                    true_depth=true)
+            writer.close()
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            with Session.open(path) as s:
+                assert s.n_frames == n_frames
+                sizes = s.storage_bytes()
+            runs[name].append((wall, cpu, os.path.getsize(path), sizes))
+            path.unlink()
     rows = []
-    for name, compression in COMPRESSIONS.items():
-        path = tmp / f"throughput_{len(rows)}.h5"
-        t0, c0 = time.perf_counter(), time.process_time()
-        writer = _writer(path, spec, compression)
-        for i in range(n_frames):
-            ir, depth, true = frames[i % len(frames)]
-            writer.append_frame(ir, depth, i / FPS, i / FPS, i, -1, -1, sf.PHASE_FREE, np.zeros(6), true_depth=true)
-        writer.close()
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        with Session.open(path) as s:
-            assert s.n_frames == n_frames
-            sizes = s.storage_bytes()
+    for name, results in runs.items():
+        wall = float(np.median([r[0] for r in results]))
+        cpu = float(np.median([r[1] for r in results]))
+        size, sizes = results[0][2], results[0][3]
         rows.append({
             "name": name,
             "fps": n_frames / wall,
             "cpu_ms_per_frame": 1e3 * cpu / n_frames,
-            "kb_per_frame": os.path.getsize(path) / n_frames / 1e3,
+            "kb_per_frame": size / n_frames / 1e3,
             "image_kb": {k: sizes[k] / n_frames / 1e3 for k in (sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.SIM_TRUE_DEPTH)},
         })
-        path.unlink()
     return rows
 
 
@@ -179,6 +188,9 @@ def report(compression, long, collection, args) -> str:
         "",
         "## Compression (writer throughput, unpaced)",
         "",
+        f"{args.throughput_frames} frames per run, median of {args.repeats} interleaved runs; CPU = process CPU time "
+        "(producer + writer + compression threads) per frame.",
+        "",
         "| filter | frames/s written | headroom vs 45 fps | CPU ms/frame | kB/frame | ir / depth / true_depth kB |",
         "|---|---|---|---|---|---|",
     ]
@@ -188,6 +200,19 @@ def report(compression, long, collection, args) -> str:
             f"| {r['name']} | {r['fps']:.0f} | {r['fps'] / FPS:.1f}x | {r['cpu_ms_per_frame']:.1f} | "
             f"{r['kb_per_frame']:.0f} | {kb[sf.FRAMES_IR]:.0f} / {kb[sf.FRAMES_DEPTH]:.0f} / {kb[sf.SIM_TRUE_DEPTH]:.0f} |"
         )
+    chosen, lzf, none = compression[0], compression[1], compression[-1]
+    lines += [
+        "",
+        "Why shuffle + gzip-1 with parallel direct chunk writes: shuffle + deflate are the standard HDF5 "
+        "filters that every HDF5 reader decodes (h5py, h5dump, MATLAB, HDFView), while LZF exists only in "
+        f"h5py; the files are {100 * (1 - chosen['kb_per_frame'] / lzf['kb_per_frame']):.0f} % smaller than "
+        f"with LZF and {100 * (1 - chosen['kb_per_frame'] / none['kb_per_frame']):.0f} % smaller than raw. "
+        f"Deflate costs more CPU per frame than LZF ({chosen['cpu_ms_per_frame']:.1f} vs "
+        f"{lzf['cpu_ms_per_frame']:.1f} ms), so the writer runs zlib in two threads (it releases the GIL) and "
+        "stores the encoded chunks with direct chunk writes: compression runs beside the control loop and the "
+        f"camera, and the writer still sustains {chosen['fps'] / FPS:.1f}x the camera rate. Higher deflate "
+        "levels buy a few percent of size for a large loss of speed; no compression doubles the file.",
+    ]
     lines += [
         "",
         f"## Long recording: writer alone at {FPS:.0f} fps for {long['minutes']:g} min",
@@ -228,13 +253,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=10.0, help="long-recording length (default 10)")
     parser.add_argument("--throughput-frames", type=int, default=900, help="frames per compression run")
+    parser.add_argument("--repeats", type=int, default=3, help="runs per filter (median reported)")
     parser.add_argument("--no-collect", action="store_true", help="skip the bubble collect --sim run")
     parser.add_argument("--out", default=str(ROOT / "docs" / "bench_recorder.md"))
     args = parser.parse_args()
     frames, spec = render_frames(90)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        compression = bench_compression(frames, spec, args.throughput_frames, tmp)
+        compression = bench_compression(frames, spec, args.throughput_frames, args.repeats, tmp)
         print(compression, flush=True)
         long = bench_long_recording(frames, spec, args.minutes, tmp)
         print(long, flush=True)

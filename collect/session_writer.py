@@ -131,7 +131,7 @@ class SessionWriter:
         self.object_indices = _merge_objects(self._file, objects)
         self._file.attrs[sf.ATTR_CLOSED] = ""
         self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
-        #: pose ids with retract frames already in the file (resume skips them)
+        #: pose ids with hold and retract frames already in the file (resume skips them)
         self.completed_pose_ids = frozenset(_completed_pose_ids(self._file))
         #: object indices with no-contact reference frames already in the file
         self.referenced_objects = frozenset(_referenced_objects(self._file))
@@ -571,8 +571,11 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
 
 
 def _completed_pose_ids(f: h5py.File) -> set[int]:
-    phase = f[sf.FRAMES_PHASE][()]
-    return {int(p) for p in np.unique(f[sf.FRAMES_POSE_ID][()][phase == sf.PHASE_RETRACT]) if p >= 0}
+    """Pose ids with both hold and retract frames (pressed, held and let go)."""
+    phase, pose_id = f[sf.FRAMES_PHASE][()], f[sf.FRAMES_POSE_ID][()]
+    held = set(np.unique(pose_id[phase == sf.PHASE_HOLD]).tolist())
+    retracted = set(np.unique(pose_id[phase == sf.PHASE_RETRACT]).tolist())
+    return {int(p) for p in held & retracted if p >= 0}
 
 
 def _referenced_objects(f: h5py.File) -> set[int]:

@@ -248,3 +248,21 @@ def test_images_read_back_bit_exact_with_any_filters(tmp_path, compression):
         np.testing.assert_array_equal(f[sf.FRAMES_IR][()], ir)
         np.testing.assert_array_equal(f[sf.FRAMES_DEPTH][()], depth)
         np.testing.assert_array_equal(f[sf.SIM_TRUE_DEPTH][()], true)
+
+
+def test_resume_reports_completed_poses_and_references(synthetic_session):
+    with Session.open(synthetic_session) as s:
+        intrinsics, objects = s.intrinsics, s.objects
+    records = [{"name": o.name, "fixture_pose": o.fixture_pose, "mesh_sha256": o.mesh_sha256,
+                "primitive": o.primitive, "vertices": o.vertices, "faces": o.faces} for o in objects]
+    with SessionWriter(synthetic_session, sensor_serial="SYN-0001", sensor_spec={}, intrinsics=intrinsics,
+                       camera_in_tcp=np.zeros(6), simulated=True, objects=records, resume=True) as w:
+        assert w.completed_pose_ids == {0, 1, 2, 3} and w.referenced_objects == {0, 1}
+        # a pose with only approach + retract frames (no contact) is not complete
+        ir = np.zeros((172, 224), np.uint16)
+        for k, phase in enumerate((sf.PHASE_APPROACH, sf.PHASE_RETRACT)):
+            w.append_frame(ir, ir, 100.0 + k, 100.0 + k, 1000 + k, 0, 9, phase, np.zeros(6),
+                           true_depth=np.full((172, 224), 0.09, np.float32))
+    with SessionWriter(synthetic_session, sensor_serial="SYN-0001", sensor_spec={}, intrinsics=intrinsics,
+                       camera_in_tcp=np.zeros(6), simulated=True, objects=records, resume=True) as w:
+        assert w.completed_pose_ids == {0, 1, 2, 3}
