@@ -266,3 +266,14 @@ def test_resume_reports_completed_poses_and_references(synthetic_session):
     with SessionWriter(synthetic_session, sensor_serial="SYN-0001", sensor_spec={}, intrinsics=intrinsics,
                        camera_in_tcp=np.zeros(6), simulated=True, objects=records, resume=True) as w:
         assert w.completed_pose_ids == {0, 1, 2, 3}
+
+
+def test_tcp_pose_from_the_arm_stream_when_frames_lack_it(synthetic_session):
+    """frames/tcp_pose is optional in the contract: the reader interpolates arm/* on the host clock."""
+    with Session.open(synthetic_session) as s:
+        stored = s.tcp_pose(np.arange(s.n_frames))
+    with h5py.File(synthetic_session, "a") as f:
+        del f[sf.FRAMES_TCP_POSE]
+    with Session.open(synthetic_session) as s:
+        np.testing.assert_allclose(s.tcp_pose(np.arange(s.n_frames)), stored, atol=1e-9)
+        np.testing.assert_allclose(s.tcp_pose(5), stored[5], atol=1e-9)
