@@ -31,7 +31,7 @@ from textual import events  # noqa: E402
 
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
-from calibrate.tui.app import FLOW_NICE, BenchApp  # noqa: E402
+from calibrate.tui.app import COMPUTE_NICE, BenchApp  # noqa: E402
 
 TARGET_MS = 100.0
 SIZE = (120, 36)
@@ -68,8 +68,8 @@ def running_step(app: BenchApp) -> str:
     return "running" if app.running else "idle"
 
 
-async def measure(config: CommissionConfig, interval: float, max_seconds: float, flow_nice: int) -> dict:
-    app = BenchApp(config, flow_nice=flow_nice)
+async def measure(config: CommissionConfig, interval: float, max_seconds: float, compute_nice: int) -> dict:
+    app = BenchApp(config, compute_nice=compute_nice)
     latencies: dict[str, list[float]] = defaultdict(list)
     cpu: dict[str, list[float]] = defaultdict(list)  # UI thread CPU ms from key to frame
     missed: dict[str, int] = defaultdict(int)
@@ -148,7 +148,7 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "",
         "```",
         f".venv/bin/python benchmarks/bench_tui.py --finetune-minutes {args.finetune_minutes} "
-        f"--poses-per-object {args.poses_per_object} --interval {args.interval} --flow-nice {args.flow_nice}",
+        f"--poses-per-object {args.poses_per_object} --interval {args.interval} --compute-nice {args.compute_nice}",
         "```",
         "",
         "| step running | presses | median ms | p95 ms | max ms | UI CPU median ms | no update in 2 s | max < 100 ms |",
@@ -165,6 +165,8 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         f"load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (1/5/15 min); "
         f"Python {platform.python_version()}.",
         "",
+        *([f"Fine-tuned from `{args.base_model}` (given with `--base-model`), not the packaged base model.", ""]
+          if args.base_model else []),
         "**Provisional**: measured while other engineers' jobs loaded the 2-core machine; rerun on a quiet",
         "machine with the command above.",
         "",
@@ -179,7 +181,8 @@ def main() -> int:
     parser.add_argument("--poses-per-object", type=int, default=2)
     parser.add_argument("--interval", type=float, default=0.3, help="s between key presses")
     parser.add_argument("--max-seconds", type=float, default=600.0)
-    parser.add_argument("--flow-nice", type=int, default=FLOW_NICE, help="nice increment of the flow thread")
+    parser.add_argument("--compute-nice", type=int, default=COMPUTE_NICE,
+                        help="nice increment of the flow thread in the compute steps")
     parser.add_argument("--base-model", type=Path, help="model to fine-tune from (default: the packaged base model)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "bench_tui.md")
     args = parser.parse_args()
@@ -188,7 +191,7 @@ def main() -> int:
                                   objects=("mug", "box"), poses_per_object=args.poses_per_object,
                                   finetune_minutes=args.finetune_minutes, leak_hold_s=3.0,
                                   base_model=args.base_model)
-        stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.flow_nice))
+        stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.compute_nice))
     write_markdown(args.out, stats, args)
     print(args.out.read_text())
     return 0

@@ -29,7 +29,7 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
-from calibrate.tui.app import FLOW_NICE, BenchApp
+from calibrate.tui.app import COMPUTE_NICE, BenchApp
 from calibrate.tui.widgets.banner import Banner
 from calibrate.tui.widgets.confirm import ConfirmStart
 from collect.errors import HardwareFault
@@ -105,13 +105,13 @@ class ScriptedFlow:
         self.release = threading.Event()
         self.calls = 0
         self.saw_stop = False
-        self.nice: int | None = None  # nice value of the thread the flow ran in
+        self.nice: list[int] = []  # nice value of the flow's thread after each event
 
     def __call__(self, config, on_event, stop_event):
         self.calls += 1
-        self.nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         for event in self.events:
             on_event(event)
+            self.nice.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         self.emitted.set()
         while not (self.release.is_set() or stop_event.is_set()):
             stop_event.wait(0.01)
@@ -189,13 +189,30 @@ def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
             assert app.arm_state in ("stopping", "stopped")
             await wait_for(lambda: app.result is not None, pilot)
             assert flow.saw_stop and app.result.stopped and app.arm_state == "stopped"
-            # the flow ran in a thread the scheduler ranks below the UI thread
-            assert flow.nice == min(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + FLOW_NICE, 19)
             banner = app.query_one(Banner)
             assert banner.level == "warning" and "Stopped by operator" in str(banner.content)
             assert app.steps.row(Step.COLLECT).status == "stopped"
 
     asyncio.run(scenario())
+
+
+def test_flow_thread_yields_to_the_ui_from_fine_tuning_on(in_tmp):
+    events = [StepStarted(Step.COLLECT, 1.0), StepFinished(Step.COLLECT, True), StepStarted(Step.FINETUNE, 9.0),
+              TrainingProgress(1, 0.1, 0.01)]
+    ui_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    async def scenario():
+        flow = ScriptedFlow(events)
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.result is not None, pilot)
+        return flow.nice
+
+    niced = min(ui_nice + COMPUTE_NICE, 19)
+    assert asyncio.run(scenario()) == [ui_nice, ui_nice, niced, niced]
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == ui_nice
 
 
 def test_quit_mid_run_stops_first_and_exits_after_the_flow_returns(in_tmp):

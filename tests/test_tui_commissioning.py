@@ -56,8 +56,8 @@ def test_stop_mid_collection_then_resume_to_a_verdict(tmp_path, monkeypatch):
         return retracted
 
     monkeypatch.setattr(Bench, "safe_stop", recording_safe_stop)
-    # flow_nice=0: on a shared test machine a niced flow would yield to every other process
-    app = BenchApp(tiny_config(tmp_path), flow_nice=0)
+    # compute_nice=0: on a shared test machine a niced fine-tuning would yield to every other process
+    app = BenchApp(tiny_config(tmp_path), compute_nice=0)
     session_path = tmp_path / "run" / "session.h5"
 
     async def scenario():

@@ -5,8 +5,10 @@ Threads: the flow (``calibrate.commissioning.run_commissioning``, the same code 
 event in an ``EventInbox`` and, when the inbox was empty, posts one ``FlowEventsReady`` message
 (``post_message`` is thread-safe); the UI thread drains the whole batch at once. Bench snapshots
 (camera frames, pose, wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never
-floods the UI. The flow itself runs in a thread of its own at a lower scheduling priority
-(``FLOW_NICE``), so the UI thread wins the CPU while fine-tuning keeps every core busy.
+floods the UI. The flow runs in a thread of its own; when it reaches the compute steps
+(fine-tuning onwards, the bench is closed by then) that thread lowers its scheduling priority
+(``COMPUTE_NICE``, inherited by torch's worker threads), so the UI thread wins the CPU while
+training keeps every core busy. The bench loops before it keep their normal priority.
 
 Safety: the stop key (``s`` or space, a priority binding that works on every screen) sets the
 flow's ``stop_event``; the flow safe-stops the arm, retracts and closes the session file. Nothing
@@ -57,9 +59,11 @@ Flow = Callable[..., object]
 
 HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
 
-#: Nice increment of the flow thread and its children (bench loops, fine-tuning): the scheduler
-#: then prefers the UI thread, so keys are answered while training saturates every core.
-FLOW_NICE = 10
+#: Nice increment of the flow thread from the first compute step on (threads it starts then, such
+#: as torch's workers, inherit it): the scheduler prefers the UI thread while training saturates
+#: every core. Bench steps run before and keep the normal priority (no starved camera loop).
+COMPUTE_NICE = 10
+COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
 
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
@@ -67,8 +71,8 @@ QUIT_WAIT_S = 60.0
 
 def _lower_thread_priority(increment: int) -> None:
     """Raise the calling thread's nice value by ``increment`` (Linux: per thread, inherited by the
-    threads it starts: bench drivers, the session writer, torch's workers). Without privileges a
-    thread can only lower its priority, never raise it back, hence the dedicated flow thread."""
+    threads it starts later). Without privileges a thread can only lower its priority, never raise
+    it back, hence the dedicated flow thread, which ends with the flow."""
     if increment <= 0:
         return
     try:
@@ -95,7 +99,7 @@ class BenchApp(App):
     ``simulated``, ``sensor_spec``, ``registry_dir``, ``objects``, ``poses_per_object``).
     ``flow``: the commissioning entry point (default ``run_commissioning``). ``clock``: monotonic
     time in s for ETAs and snapshot ages (tests pass a fixed clock). ``refresh_hz``: rate of the
-    live bench/sensor refresh. ``flow_nice``: nice increment of the flow thread (0 = as the UI).
+    live bench/sensor refresh. ``compute_nice``: nice increment of the flow thread in the compute steps (0 = as the UI).
     """
 
     CSS_PATH = "bench.tcss"
@@ -121,14 +125,16 @@ class BenchApp(App):
         flow: Flow | None = None,
         clock: Callable[[], float] = time.monotonic,
         refresh_hz: float = 5.0,
-        flow_nice: int = FLOW_NICE,
+        compute_nice: int = COMPUTE_NICE,
     ) -> None:
         super().__init__()
         self.config = config
         self._flow = flow or _default_flow
         self._clock = clock
         self._refresh_hz = refresh_hz
-        self._flow_nice = flow_nice
+        self._compute_nice = compute_nice
+        self._compute_niced = False  # the flow thread has lowered its priority
+        self._flow_thread_id: int | None = None
         self._inbox = EventInbox()
         self._stop_event: threading.Event | None = None
         self._flow_done = threading.Event()
@@ -233,7 +239,7 @@ class BenchApp(App):
         outcome: dict = {}
 
         def flow_thread() -> None:
-            _lower_thread_priority(self._flow_nice)
+            self._flow_thread_id = threading.get_ident()
             try:
                 outcome["result"] = self._flow(self.config, on_event=self._on_flow_event, stop_event=self._stop_event)
             except BaseException as err:  # handed to the worker, which reports it
@@ -241,6 +247,7 @@ class BenchApp(App):
 
         try:
             thread = threading.Thread(target=flow_thread, name="commissioning-flow")
+            self._compute_niced = False
             thread.start()
             thread.join()
         finally:
@@ -286,12 +293,16 @@ class BenchApp(App):
     # ------------------------------------------------------- flow -> UI events
     def _on_flow_event(self, event: object) -> None:
         """Called by the flow thread for each event; never blocks."""
+        if (
+            isinstance(event, StepStarted)
+            and event.step in COMPUTE_STEPS
+            and not self._compute_niced
+            and threading.get_ident() == self._flow_thread_id
+        ):
+            self._compute_niced = True
+            _lower_thread_priority(self._compute_nice)
         if self._inbox.put(event):
             self.post_message(FlowEventsReady())
-
-    def feed(self, event: object) -> None:
-        """Hand one event to the UI as the flow would (any thread; tests and benchmarks)."""
-        self._on_flow_event(event)
 
     @on(FlowEventsReady)
     def _drain_inbox(self) -> None:
