@@ -114,7 +114,11 @@ def describe_outcome(app: BenchApp) -> str:
     if app.result is None:
         return "stopped by the benchmark before the flow ended"
     r = app.result
-    return "stopped" if r.stopped else f"fault {r.fault}" if r.fault else ("accepted" if r.accepted else f"rejected ({r.reason})")
+    if r.stopped:
+        return "stopped"
+    if r.fault:
+        return f"fault {r.fault}"
+    return "accepted" if r.accepted else f"rejected ({r.reason})"
 
 
 def write_markdown(path: Path, stats: dict, args) -> None:

@@ -35,8 +35,8 @@ async def wait_for(predicate, pilot, timeout: float):
     while not predicate():
         if loop.time() > deadline:
             steps = {step.value: row.status for step, row in app.steps.rows.items()}
-            raise AssertionError(f"condition not reached in {timeout} s: steps {steps}, collection {app.collection.last}, "
-                                 f"result {app.result}, error {app.error!r}")
+            raise AssertionError(f"condition not reached in {timeout} s: steps {steps}, "
+                                 f"collection {app.collection.last}, result {app.result}, error {app.error!r}")
         await pilot.pause(0.05)
 
 

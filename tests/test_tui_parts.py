@@ -126,6 +126,9 @@ def test_bar_chart_levels_and_compression():
     assert len(column_values(list(range(100)), 10)) == 10
     assert column_values(list(range(100)), 10)[0] == pytest.approx(4.5)
     assert bar_chart([], 4, 2)[0] == ["    ", "    "]
+    assert bar_chart([float("nan")], 4, 2)[0] == ["    ", "    "]  # no finite point yet (initial loss)
+    rows, lo, hi = bar_chart([float("nan"), 0.5, 0.5], 3, 2)  # flat: half height, NaN skipped
+    assert rows == ["   ", "██ "] and lo == hi == 0.5
 
 
 def test_formats():

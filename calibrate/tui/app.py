@@ -280,7 +280,10 @@ class BenchApp(App):
     async def action_quit(self) -> None:
         if self.running:
             self._quit_requested = True
-            self._request_stop("Quitting: stopping the arm and closing the session file first...")
+            if self._bench_open:
+                self._request_stop("Quitting: stopping the arm and closing the session file first...")
+            else:
+                self._request_stop("Quitting: ending the run first...")
             return
         self.exit()
 
@@ -394,7 +397,9 @@ class BenchApp(App):
                 banner.show(f"{reported} | arm stopped, run rejected", "fault")
                 self.acceptance.show(result.accepted, result.checks, str(result.report_path))
             else:
-                verdict = "ACCEPTED" if result.accepted else f"REJECTED ({result.reason})" if result.reason else "REJECTED"
+                verdict = "ACCEPTED" if result.accepted else "REJECTED"
+                if result.reason and not result.accepted:
+                    verdict += f" ({result.reason})"
                 banner.show(f"{verdict}. Report: {result.report_path}", "info" if result.accepted else "fault")
                 self.acceptance.show(result.accepted, result.checks, str(result.report_path))
         else:

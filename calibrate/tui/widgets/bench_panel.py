@@ -49,7 +49,8 @@ class BenchPanel(Static):
         grid = Table.grid(padding=(0, 1))
         grid.add_column(style="bold", no_wrap=True)
         grid.add_column(no_wrap=True)
-        grid.add_row("mode", Text("SIMULATED", style="bold cyan") if self.simulated else Text("REAL", style="bold yellow"))
+        mode = Text("SIMULATED", style="bold cyan") if self.simulated else Text("REAL", style="bold yellow")
+        grid.add_row("mode", mode)
         if not self.connected:
             link = Text("not connected", style="dim")
         elif self.snapshot_age_s is not None and self.snapshot_age_s > STALE_AFTER_S:

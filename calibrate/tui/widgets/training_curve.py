@@ -27,14 +27,17 @@ def column_values(values: list[float], width: int) -> np.ndarray:
 
 
 def bar_chart(values: list[float], width: int, height: int) -> tuple[list[str], float, float]:
-    """Rows (top first) of a ``width`` x ``height`` cell bar chart of ``values``, with the value
-    range (lo, hi) it spans; each cell holds eighths of a bar."""
-    if width <= 0 or height <= 0 or not values:
+    """Rows (top first) of a ``width`` x ``height`` cell bar chart of the finite ``values``, with
+    the value range (lo, hi) it spans; each cell holds eighths of a bar."""
+    finite = [v for v in values if np.isfinite(v)]
+    if width <= 0 or height <= 0 or not finite:
         return [" " * max(width, 0)] * max(height, 0), 0.0, 0.0
-    cols = column_values(values, width)
+    cols = column_values(finite, width)
     lo, hi = float(cols.min()), float(cols.max())
-    span = hi - lo if hi > lo else 1.0
-    eighths = np.round((cols - lo) / span * (height * 8 - 1)).astype(np.int64) + 1
+    if hi > lo:
+        eighths = np.round((cols - lo) / (hi - lo) * (height * 8 - 1)).astype(np.int64) + 1
+    else:  # a flat series: half-height bars
+        eighths = np.full(len(cols), height * 4, dtype=np.int64)
     rows = []
     for r in range(height):
         level = np.clip(eighths - (height - 1 - r) * 8, 0, 8)
@@ -64,17 +67,19 @@ class CurvePlot(Widget):
         width, height = self.size.width, self.size.height
         text = Text(no_wrap=True, overflow="crop")
         text.append(f"{self.title}", style="bold")
-        if self.values:
-            text.append(f"  {self.fmt.format(self.values[-1])}", style=self.chart_style)
+        finite = [v for v in self.values if np.isfinite(v)]
+        if finite:
+            latest = self.fmt.format(self.values[-1]) if np.isfinite(self.values[-1]) else "-"
+            text.append(f"  {latest}", style=self.chart_style)
         else:
             text.append("  (no data yet)", style="dim")
         chart_h = max(height - 1, 0)
-        rows, lo, hi = bar_chart(self.values, max(width - _AXIS, 0), chart_h)
+        rows, lo, hi = bar_chart(finite, max(width - _AXIS, 0), chart_h)
         for r, row in enumerate(rows):
             label = ""
-            if self.values and r == 0:
+            if finite and r == 0:
                 label = self.fmt.format(hi)
-            elif self.values and r == chart_h - 1:
+            elif finite and r == chart_h - 1:
                 label = self.fmt.format(lo)
             text.append("\n")
             text.append(f"{label:>{_AXIS - 1}} ", style="dim")
