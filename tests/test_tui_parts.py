@@ -136,3 +136,22 @@ def test_formats():
     assert duration(83.4) == "1:23"
     assert duration(3725) == "1:02:05"
     assert number(0.123456) == "0.1235" and number(True) == "yes" and number(None) == "-" and number("< 5") == "< 5"
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--sim", "--poses-per-object", "0"], "--poses-per-object must be at least 1"),
+        (["--sim", "--sensor", "missing.yaml"], "sensor spec missing.yaml does not exist"),
+        (["--sim-fault", "camera-stall@3"], "need --sim"),
+        (["--sim", "--objects", " , "], "--objects is empty"),
+        (["--sim"], "needs an interactive terminal"),  # pytest's stdin is not a terminal
+    ],
+)
+def test_tui_command_rejects_bad_input_in_one_line(tmp_path, monkeypatch, capsys, args, fragment):
+    from calibrate.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["tui", *args]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and err.count("\n") == 1
