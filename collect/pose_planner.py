@@ -67,7 +67,7 @@ class PlanSettings:
     press_speed: float = 0.02
     retract_speed: float = 0.1
     accel: float = 1.0
-    hold_s: float = 0.3
+    hold_s: float = 0.25
     reference_s: float = 0.4
 
     def __post_init__(self):
