@@ -123,12 +123,17 @@ class SessionWriter:
             self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated)
         else:
             self._file = _create(self.path)
-            _write_root_attrs(
-                self._file, sensor_serial, sensor_spec, intrinsics, camera_in_tcp, self.simulated
-            )
-            _create_datasets(self._file, self.height, self.width, self.simulated,
-                             IMAGE_COMPRESSION if compression is None else compression)
-        self.object_indices = _merge_objects(self._file, objects)
+        try:
+            if not resume:
+                _write_root_attrs(self._file, sensor_serial, sensor_spec, intrinsics, camera_in_tcp, self.simulated)
+                _create_datasets(self._file, self.height, self.width, self.simulated,
+                                 IMAGE_COMPRESSION if compression is None else compression)
+            self.object_indices = _merge_objects(self._file, objects)
+        except BaseException:
+            self._file.close()
+            if not resume:  # a file this call created holds nothing yet
+                os.remove(self.path)
+            raise
         self._file.attrs[sf.ATTR_CLOSED] = ""
         self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
         #: pose ids with hold and retract frames already in the file (resume skips them)

@@ -277,3 +277,16 @@ def test_tcp_pose_from_the_arm_stream_when_frames_lack_it(synthetic_session):
     with Session.open(synthetic_session) as s:
         np.testing.assert_allclose(s.tcp_pose(np.arange(s.n_frames)), stored, atol=1e-9)
         np.testing.assert_allclose(s.tcp_pose(5), stored[5], atol=1e-9)
+
+
+def test_bad_object_leaves_no_file_behind(tmp_path):
+    path = tmp_path / "s.h5"
+    with pytest.raises(InputError, match="cannot be stored"):
+        _writer(path, objects=[dict(OBJECT, name="a/b")])
+    assert not path.exists()
+    with _writer(path) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, 0, np.zeros(6))
+    with pytest.raises(InputError, match="cannot be stored"):
+        _writer(path, resume=True, objects=[dict(OBJECT, name="..")])
+    with Session.open(path) as s:  # the existing session is intact and not held open
+        assert s.n_frames == 1 and s.object_names == ["mug"]
