@@ -41,10 +41,11 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_info)
 
 
-def object_list(objects: str | None, meshes: list[str]) -> tuple[str, ...]:
-    """Object names / mesh paths from ``--objects`` and ``--object-mesh`` (meshes alone: only meshes)."""
+def object_list(objects: str | None, meshes: list[str], default: str = DEFAULT_OBJECTS) -> tuple[str, ...]:
+    """Object names / mesh paths from ``--objects`` and ``--object-mesh`` (meshes alone: only meshes;
+    neither: ``default``, comma-separated)."""
     if objects is None:
-        objects = "" if meshes else DEFAULT_OBJECTS
+        objects = "" if meshes else default
     names = tuple(n.strip() for n in objects.split(",") if n.strip())
     result = names + tuple(meshes)
     if not result:
@@ -56,8 +57,8 @@ def bench_config(args: argparse.Namespace):
     """The ``BenchConfig`` of the command line: 'sim' with --sim, else the real bench of --bench."""
     from collect.bench import BenchConfig
 
-    objects = object_list(args.objects, args.object_mesh)
     if args.sim:
+        objects = object_list(args.objects, args.object_mesh)
         if args.bench is not None:
             raise InputError("--bench describes real hardware; drop it or --sim")
         return BenchConfig.create("sim", objects=objects, sensor=args.sensor, seed=args.seed,
@@ -67,7 +68,7 @@ def bench_config(args: argparse.Namespace):
     if args.bench is None:
         raise InputError("the real bench needs --bench BENCH.yaml (type: ur, robot_ip, home_pose, ...); or use --sim")
     config = BenchConfig.from_yaml(args.bench)
-    config.objects = objects
+    config.objects = object_list(args.objects, args.object_mesh, default=",".join(config.objects))
     return config
 
 

@@ -169,3 +169,25 @@ def test_ctrl_c_exits_130_and_closes_the_file(tmp_path):
     assert proc.returncode == 130 and err.strip().splitlines()[-1] == "bubble: interrupted"
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames >= frames
+
+
+def test_object_list_from_the_command_line():
+    from collect.cli import object_list
+    from collect.errors import InputError
+
+    assert object_list(None, []) == ("mug", "wine_glass", "box", "fingers")
+    assert object_list(None, ["a.stl"]) == ("a.stl",)  # meshes alone: only the meshes
+    assert object_list("mug, box", ["a.stl", "b.obj"]) == ("mug", "box", "a.stl", "b.obj")
+    assert object_list(None, [], default="box") == ("box",)
+    with pytest.raises(InputError, match="empty"):
+        object_list(" , ", [])
+
+
+def test_real_bench_without_a_robot_is_a_fault(tmp_path, capsys):
+    """Without --sim the 'ur' bench of --bench is opened: no robot at the address -> one line, exit 3."""
+    bench = tmp_path / "bench.yaml"
+    bench.write_text("type: ur\nrobot_ip: 127.0.0.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n")
+    out = tmp_path / "real.h5"
+    assert main(["collect", "--bench", str(bench), "--objects", "box", "--quiet", "--out", str(out)]) == 3
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("bubble: fault: arm-disconnected")
+    assert not out.exists()
