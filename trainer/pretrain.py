@@ -35,9 +35,17 @@ DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
 MODEL_CARD = Path(__file__).resolve().parents[1] / "docs" / "model_card.md"
 
 
+#: Longest a single ``bubble`` command may run before it counts as hung (s).
+COMMAND_TIMEOUT_S = 1800.0
+
+
 def _bubble(*argv: str) -> None:
-    """Run one ``bubble`` command in a subprocess; raise with its last error line when it fails."""
-    proc = subprocess.run([sys.executable, "-m", "calibrate.cli", *argv], capture_output=True, text=True)
+    """Run one ``bubble`` command in a subprocess; raise with its last error line when it fails or hangs."""
+    try:
+        proc = subprocess.run([sys.executable, "-m", "calibrate.cli", *argv], capture_output=True, text=True,
+                              timeout=COMMAND_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"bubble {argv[0]} timed out after {COMMAND_TIMEOUT_S:.0f} s") from None
     if proc.returncode != 0:
         last = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
         raise RuntimeError(f"bubble {argv[0]} {argv[1] if len(argv) > 1 else ''} failed: {last}")
