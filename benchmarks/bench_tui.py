@@ -100,10 +100,12 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
         wall = time.perf_counter() - t_start
         if app.running:
             app.action_stop()
-            await asyncio.to_thread(app._flow_done.wait, 60)
+            deadline = time.perf_counter() + 60
+            while app.running and time.perf_counter() < deadline:
+                await asyncio.sleep(0.05)
         await pilot.pause(0.2)
         outcome = describe_outcome(app)
-        received = app._inbox.received
+        received = app.events_received
     return {"latencies": latencies, "cpu": cpu, "missed": missed, "wall_s": wall, "outcome": outcome,
             "events": received, "frames": clock.frames}
 

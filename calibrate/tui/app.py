@@ -196,6 +196,11 @@ class BenchApp(App):
         return not self._flow_done.is_set()
 
     @property
+    def events_received(self) -> int:
+        """Flow events received so far (every kind, before coalescing)."""
+        return self._inbox.received
+
+    @property
     def arm_state(self) -> str:
         """``idle``, ``moving``, ``stopping`` or ``stopped`` (the UI's view of the arm)."""
         return self._arm_state
