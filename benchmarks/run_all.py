@@ -1,0 +1,320 @@
+"""Run every benchmark script and assemble docs/benchmarks.md (all tables, targets met or not).
+
+    .venv/bin/python benchmarks/run_all.py                        # everything (~1.5-2 h on a quiet 2-core CPU)
+    .venv/bin/python benchmarks/run_all.py --only simulator,pose  # a subset, then reassemble the page
+    .venv/bin/python benchmarks/run_all.py --assemble-only        # rebuild the page from existing results
+
+Each script writes its own markdown in docs/ (``docs/bench_*.md``); this runs them one after the
+other (never in parallel: they time the CPU), logs each to ``runs/bench_logs/NAME.log``, keeps the
+command, exit code, wall time and date of every run in ``docs/benchmarks.json``, and writes
+``docs/benchmarks.md``: the targets of the project with the measured value, met or the gap, then
+every benchmark's page inlined (headings shifted down one level) with a link to it.
+
+Targets are read from the scripts' markdown tables (row label, column header) and from
+``docs/bench_accuracy.json``: a script whose table changes shape shows "not found" here, never a
+stale number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.machine import machine_info, machine_line  # noqa: E402
+
+DOCS = ROOT / "docs"
+LOGS = ROOT / "runs" / "bench_logs"
+RUNS_JSON = DOCS / "benchmarks.json"
+PAGE = DOCS / "benchmarks.md"
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    name: str
+    script: str  # in benchmarks/
+    args: tuple[str, ...]
+    doc: str  # the markdown it writes, in docs/
+    about: str
+
+    def command(self) -> list[str]:
+        return [sys.executable, str(ROOT / "benchmarks" / self.script), *self.args]
+
+    def shown(self) -> str:
+        return " ".join(["python", f"benchmarks/{self.script}", *self.args])
+
+
+#: Every benchmark, in the order they run (shortest first) and appear on the page.
+BENCHMARKS = (
+    Benchmark("simulator", "bench_simulator.py", (), "bench_simulator.md", "simulated bubble: frame time, physics vs the real bubble"),
+    Benchmark("twins", "bench_twins.py", (), "bench_twins.md", "hardware twins streaming together: rates and CPU"),
+    Benchmark("inference", "bench_inference.py", (), "bench_trainer.md", "batch-1 inference latency per architecture, torch and ONNX Runtime"),
+    Benchmark("finetune", "bench_finetune.py", ("--work", "runs/bench_finetune"), "bench_trainer.md",
+              "fine-tuning a new sensor from the base model: a1 against minutes"),
+    Benchmark("pose", "bench_pose.py", (), "bench_pose.md", "pose estimation speed and the pose check's errors (paper Sec. V)"),
+    Benchmark("recorder", "bench_recorder.py", (), "bench_recorder.md", "HDF5 recorder throughput, CPU share, dropped frames; collection time"),
+    Benchmark("commission", "bench_commission.py", (), "bench_commission.md", "`bubble commission --sim` end to end over several new sensors"),
+    Benchmark("tui", "bench_tui.py", (), "bench_tui.md", "TUI key-to-screen latency while commissioning runs"),
+    Benchmark("accuracy", "bench_accuracy.py", (), "bench_accuracy.md", "the paper's Tables II-IV and ToF vs model against the true depth"),
+)
+BY_NAME = {b.name: b for b in BENCHMARKS}
+
+
+# ---- reading the scripts' markdown ----------------------------------------------------------------
+
+def tables(text: str) -> list[tuple[list[str], list[list[str]]]]:
+    """Markdown tables of ``text`` as (header cells, body rows of cells)."""
+    found, lines = [], text.splitlines()
+    for i in range(len(lines) - 1):
+        if lines[i].startswith("|") and re.match(r"^\|(\s*:?-+:?\s*\|)+\s*$", lines[i + 1].strip()):
+            split = lambda line: [c.strip() for c in line.strip().strip("|").split("|")]  # noqa: E731
+            rows, j = [], i + 2
+            while j < len(lines) and lines[j].startswith("|"):
+                rows.append(split(lines[j]))
+                j += 1
+            found.append((split(lines[i]), rows))
+    return found
+
+
+def cell(text: str, row: str, column: str) -> str | None:
+    """The cell in the first row whose first cell contains ``row``, under the header starting with ``column``."""
+    for header, rows in tables(text):
+        col = next((k for k, h in enumerate(header) if h.startswith(column)), None)
+        if col is None:
+            continue
+        for cells in rows:
+            if row in cells[0] and col < len(cells):
+                return cells[col]
+    return None
+
+
+def number(text: str | None) -> float | None:
+    """The first number in ``text`` (None when there is none)."""
+    match = re.search(r"-?\d+(?:\.\d+)?(?:e-?\d+)?", text or "")
+    return float(match.group()) if match else None
+
+
+# ---- targets --------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Target:
+    goal: str  # what the issue asks, in words
+    benchmark: str  # BENCHMARKS name whose doc holds the number
+    op: str  # ">=", "<=", "<" or "=="
+    threshold: float
+    unit: str
+    extract: Callable[[str], tuple[float | None, str]]  # doc text -> (value, detail shown next to it)
+
+    def verdict(self, value: float) -> bool:
+        return {">=": value >= self.threshold, "<=": value <= self.threshold, "<": value < self.threshold,
+                "==": value == self.threshold}[self.op]
+
+
+def _cell_value(row: str, column: str, scale: float = 1.0) -> Callable[[str], tuple[float | None, str]]:
+    def extract(text: str) -> tuple[float | None, str]:
+        raw = cell(text, row, column)
+        value = number(raw)
+        return (None if value is None else value * scale), f"{column.strip()} of `{row}`: {raw}" if raw else ""
+    return extract
+
+
+def _regex_value(pattern: str, group: int, what: str, what_group: int = 0) -> Callable[[str], tuple[float | None, str]]:
+    """The number in ``group`` of the first match of ``pattern``; the detail shows ``what`` and ``what_group``."""
+    def extract(text: str) -> tuple[float | None, str]:
+        match = re.search(pattern, text)
+        return (float(match.group(group)), f"{what}: {match.group(what_group)}") if match else (None, "")
+    return extract
+
+
+def _finetune_minutes(text: str) -> tuple[float | None, str]:
+    match = re.search(r"Final \(all held-out frames\): a1 ([\d.]+).*?after ([\d.]+) min.*?reached at (never|[\d.]+ min)", text)
+    if not match:
+        return None, ""
+    detail = f"final a1 {match.group(1)} after {match.group(2)} min; a1 >= 0.95 reached at {match.group(3)}"
+    return (math.inf if match.group(3) == "never" else float(match.group(3).split()[0])), detail
+
+
+def _recorder_dropped(text: str) -> tuple[float | None, str]:
+    produced, gaps = cell(text, "frames produced / in file", "value"), cell(text, "sequence gaps", "value")
+    if not produced or not gaps:
+        return None, ""
+    counts = [int(n) for n in re.findall(r"\d+", produced)]
+    missing = counts[0] - counts[1] + sum(int(n) for n in re.findall(r"\d+", gaps))
+    return float(missing), f"frames produced / in file {produced}; gaps / non-increasing timestamps {gaps}"
+
+
+def _accuracy_finetuned_a1(text: str) -> tuple[float | None, str]:
+    path = DOCS / "bench_accuracy.json"
+    if not path.is_file():
+        return None, ""
+    rows = json.loads(path.read_text()).get("cross_sensor", [])
+    if not rows:
+        return None, ""
+    a1 = [r["finetuned"]["a1"] for r in rows]
+    return min(a1), "fine-tuned a1 per new sensor: " + ", ".join(f"{r['seed']}: {v:.3f}" for r, v in zip(rows, a1))
+
+
+TARGETS = (
+    Target("simulator: one moving frame (physics + IR + ToF + truth) <= 10 ms on one core (>= 100 fps)", "simulator",
+           ">=", 100, "fps", _cell_value("moving", "fps (CPU median)")),
+    Target("camera twin sustains 45 fps while pressing", "twins", ">=", 45, "fps", _cell_value("pressing", "camera fps")),
+    Target("arm state >= 125 Hz", "twins", ">=", 125, "Hz", _cell_value("pressing", "arm state Hz")),
+    Target("pressure board at ~100 Hz (within 5 %)", "twins", ">=", 95, "Hz", _cell_value("pressing", "pressure Hz")),
+    Target("collection: 4 objects x 8 poses in <= 60 s of arm time", "recorder", "<=", 60, "s",
+           _cell_value("arm time", "value")),
+    Target("recorder: zero dropped frames over a 10-minute recording", "recorder", "==", 0, "frames", _recorder_dropped),
+    Target("recorder headroom: frames/s written over the camera's 45 fps (> 1x)", "recorder", ">=", 1, "x",
+           _cell_value("(chosen)", "headroom")),
+    Target("inference >= 60 fps batch 1 at 224 x 224, default model", "inference", ">=", 60, "fps",
+           _cell_value("(default)", "fps")),
+    Target("fine-tune from the base model to a1 >= 0.95 within 3 min", "finetune", "<=", 3, "min", _finetune_minutes),
+    Target("commissioning end to end <= 5 min wall (slowest sensor)", "commission", "<=", 300, "s",
+           _regex_value(r"total wall: \S+ / \S+ / (\S+) s", 1, "min / median / max")),
+    Target("commissioning fine-tune step <= 3 min (slowest sensor)", "commission", "<=", 180, "s",
+           _regex_value(r"fine-tune step [^:]*: \S+ / \S+ / (\S+) s", 1, "min / median / max")),
+    Target("commissioning held-out a1 >= 0.95 (worst sensor)", "commission", ">=", 0.95, "",
+           _regex_value(r"held-out a1: (\S+) / \S+ / \S+", 1, "min / median / max")),
+    Target("pose estimates >= 100 per second (1500 points, one core)", "pose", ">=", 100, "Hz",
+           _cell_value("patch + warm fit", "rate")),
+    Target("pose check: predicted vs measured median e_x <= 1.0 mm", "pose", "<=", 1.0, "mm",
+           _cell_value("predicted vs measured depth", "e_x median")),
+    Target("pose check: predicted vs measured median e_theta <= 3e-4", "pose", "<=", 3e-4, "",
+           _cell_value("predicted vs measured depth", "e_theta median")),
+    Target("TUI key to screen update < 100 ms (slowest press)", "tui", "<", 100, "ms",
+           _regex_value(r"All presses: (\d+, median [\d.]+ ms, p95 [\d.]+ ms, max ([\d.]+) ms)", 2, "presses", 1)),
+    Target("cross-sensor: fine-tuned a1 >= 0.95 on a new sensor's test session (worst sensor)", "accuracy", ">=", 0.95, "",
+           _accuracy_finetuned_a1),
+)
+
+
+def _fmt(value: float) -> str:
+    return "never" if math.isinf(value) else f"{value:.4g}"
+
+
+def target_rows() -> list[str]:
+    lines = ["| target | measured | verdict | source |", "|---|---|---|---|"]
+    for t in TARGETS:
+        bench = BY_NAME[t.benchmark]
+        path = DOCS / bench.doc
+        value, detail = t.extract(path.read_text()) if path.is_file() else (None, "")
+        source = f"[{bench.doc}]({bench.doc})"
+        if value is None:
+            lines.append(f"| {t.goal} | not measured | **not measured**: run `python benchmarks/run_all.py --only "
+                         f"{t.benchmark}` | {source} |")
+            continue
+        if t.verdict(value):
+            verdict = "met"
+        elif math.isinf(value):
+            verdict = "**not met**: never reached"
+        else:
+            unit = f" {t.unit}" if t.unit else ""
+            verdict = (f"**not met**: {_fmt(value)}{unit} vs {t.op} {_fmt(t.threshold)}{unit} "
+                       f"(gap {_fmt(abs(value - t.threshold))}{unit})")
+        measured = " ".join(x for x in (_fmt(value), t.unit) if x)
+        lines.append(f"| {t.goal} | {measured} ({detail}) | {verdict} | {source} |")
+    return lines
+
+
+# ---- running and assembling -----------------------------------------------------------------------
+
+def load_runs() -> dict:
+    return json.loads(RUNS_JSON.read_text()) if RUNS_JSON.is_file() else {}
+
+
+def run(bench: Benchmark) -> dict:
+    """Run one script (output to its log); its command, exit code, wall time and date."""
+    LOGS.mkdir(parents=True, exist_ok=True)
+    log = LOGS / f"{bench.name}.log"
+    print(f"[{time.strftime('%H:%M:%S')}] {bench.name}: {bench.shown()} (log {log.relative_to(ROOT)})", flush=True)
+    t0 = time.perf_counter()
+    with log.open("w") as out:
+        rc = subprocess.run(bench.command(), cwd=ROOT, stdout=out, stderr=subprocess.STDOUT).returncode
+    wall = time.perf_counter() - t0
+    print(f"    exit {rc} after {wall / 60:.1f} min", flush=True)
+    return {"command": bench.shown(), "exit": rc, "wall_min": round(wall / 60, 2), "machine": machine_info()}
+
+
+def demote(markdown: str) -> list[str]:
+    """Body of a benchmark page without its title, headings one level down."""
+    lines = markdown.strip().splitlines()
+    if lines and lines[0].startswith("# "):
+        lines = lines[1:]
+    return [("#" + line) if re.match(r"^#{1,5} ", line) else line for line in lines]
+
+
+def assemble(runs: dict) -> str:
+    total = sum(r["wall_min"] for r in runs.values())
+    latest = max(runs.values(), key=lambda r: r["machine"]["date"], default=None)
+    lines = [
+        "# Benchmarks",
+        "",
+        "Every figure of the project on one page, each produced by a script in `benchmarks/` that anyone can rerun. "
+        "Written by `python benchmarks/run_all.py` (all scripts one after the other, then this page; "
+        "`--only NAME,...` reruns a subset, `--assemble-only` rebuilds the page). Runs, exit codes and wall "
+        "times: [benchmarks.json](benchmarks.json); logs in `runs/bench_logs/`.",
+        "",
+        (machine_line(latest["machine"]) + f" Last full set of runs took {total:.0f} min." if latest else
+         "No benchmark has run through `run_all.py` yet: the sections below are the scripts' own pages."),
+        "",
+        "Numbers measured while other jobs share the machine are provisional; each section says when and where "
+        "it was measured.",
+        "",
+        "## Targets",
+        "",
+        *target_rows(),
+        "",
+        "## Runs",
+        "",
+        "| benchmark | what | command | exit | wall (min) | when |",
+        "|---|---|---|---|---|---|",
+    ]
+    for b in BENCHMARKS:
+        r = runs.get(b.name)
+        when = f"{r['exit']} | {r['wall_min']:.1f} | {r['machine']['date']}" if r else "- | - | not run by run_all"
+        lines.append(f"| {b.name} | {b.about} | `{b.shown()}` | {when} |")
+    shown = set()
+    for b in BENCHMARKS:
+        if b.doc in shown:
+            continue
+        shown.add(b.doc)
+        names = ", ".join(x.name for x in BENCHMARKS if x.doc == b.doc)
+        path = DOCS / b.doc
+        lines += ["", f"## {names}: [{b.doc}]({b.doc})", ""]
+        lines += demote(path.read_text()) if path.is_file() else [f"Not measured yet: `{b.shown()}`."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", help="comma-separated benchmarks to run: " + ",".join(BY_NAME))
+    parser.add_argument("--assemble-only", action="store_true", help="run nothing, rebuild docs/benchmarks.md")
+    args = parser.parse_args(argv)
+    names = list(BY_NAME) if not args.only else [n.strip() for n in args.only.split(",") if n.strip()]
+    unknown = [n for n in names if n not in BY_NAME]
+    if unknown:
+        parser.error(f"unknown benchmark(s) {', '.join(unknown)}; choose from {', '.join(BY_NAME)}")
+    runs = load_runs()
+    failed = []
+    if not args.assemble_only:
+        for name in names:
+            runs[name] = run(BY_NAME[name])
+            RUNS_JSON.write_text(json.dumps(runs, indent=2) + "\n")
+            if runs[name]["exit"] != 0:
+                failed.append(name)
+    PAGE.write_text(assemble(runs))
+    print(f"wrote {PAGE.relative_to(ROOT)}" + (f"; failed: {', '.join(failed)} (see runs/bench_logs/)" if failed else ""))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
