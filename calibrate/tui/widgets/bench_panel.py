@@ -73,7 +73,10 @@ class BenchPanel(Static):
         force = math.sqrt(fx * fx + fy * fy + fz * fz)
         grid.add_row("force", f"|F| {force:6.2f} N  Fz {fz:+6.2f}")
         grid.add_row("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")
-        grid.add_row("bubble", f"{snap.pressure_hpa:8.1f} hPa")
+        if math.isfinite(snap.pressure_hpa):
+            grid.add_row("bubble", f"{snap.pressure_hpa:8.1f} hPa")
+        else:
+            grid.add_row("bubble", Text("no reading from the board", style="yellow"))
         grid.add_row("camera", self._camera_line(snap))
         self.update(grid, layout=False)
 
