@@ -47,7 +47,7 @@ class CollectionPanel(Static):
     def apply(self, event: CollectionProgress) -> None:
         self.last = event
         name = event.object_name
-        line = Text()
+        line = Text(no_wrap=True, overflow="ellipsis")
         if not name:  # between objects or after the last one: the arm is free
             line.append("no object", style="dim")
         else:

@@ -40,7 +40,12 @@ _LOOK = {
 
 #: Below this fraction the ETA comes from the step's announced duration, not from its progress.
 _MIN_FRACTION_FOR_RATE = 0.05
-BAR_WIDTH = 24
+#: Bar width range, cells: the bar gives way to the summary column in narrow terminals.
+BAR_WIDTH = (10, 24)
+#: Cells of the other fixed columns with their gaps (title 15, percent 4, time 9, 4 gaps of 1).
+_FIXED_CELLS = 32
+#: Summary cells kept before the bar shrinks.
+_MIN_SUMMARY = 24
 
 
 @dataclass
@@ -126,10 +131,19 @@ class StepsPanel(Static):
         self._now = now
         self._redraw()
 
+    def on_resize(self) -> None:
+        self._redraw()
+
+    def _bar_width(self) -> int:
+        width = self.content_region.width if self.is_mounted else 0
+        lo, hi = BAR_WIDTH
+        return max(lo, min(hi, width - _FIXED_CELLS - _MIN_SUMMARY))
+
     def _redraw(self) -> None:
+        bar_width = self._bar_width()
         grid = Table.grid(padding=(0, 1), expand=True)
         grid.add_column(width=15, no_wrap=True)
-        grid.add_column(width=BAR_WIDTH, no_wrap=True)
+        grid.add_column(width=bar_width, no_wrap=True)
         grid.add_column(width=4, justify="right", no_wrap=True)
         grid.add_column(width=9, no_wrap=True)
         grid.add_column(ratio=1, no_wrap=True, overflow="ellipsis")
@@ -137,7 +151,7 @@ class StepsPanel(Static):
             mark, title_style, bar_style = _LOOK[row.status]
             grid.add_row(
                 Text(f"{mark} {STEP_TITLES[row.step]}", style=title_style),
-                text_bar(row.fraction, BAR_WIDTH, bar_style),
+                text_bar(row.fraction, bar_width, bar_style),
                 f"{row.fraction * 100:.0f}%",
                 Text(row.time_text(self._now), style="dim"),
                 Text(row.summary, style="dim"),
