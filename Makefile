@@ -3,12 +3,12 @@ PY ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test bench
+.PHONY: setup demo test bench chromium
 
 $(BIN)/bubble: pyproject.toml
 	$(PY) -m venv $(VENV)
-	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q --disable-pip-version-check torch==2.13.0
+	$(BIN)/pip install -q --disable-pip-version-check -e '.[dev]'
 	touch $@
 
 setup: $(BIN)/bubble
@@ -16,7 +16,13 @@ setup: $(BIN)/bubble
 demo: setup
 	$(BIN)/bubble commission --sim --out runs/demo
 
-test: setup
+# The report test renders report.html in headless Chromium (Debian's package; root installs it).
+chromium:
+	@command -v chromium >/dev/null || command -v chromium-browser >/dev/null || \
+	  { [ "$$(id -u)" = 0 ] && apt-get update -qq && apt-get install -y -qq chromium >/dev/null; } || \
+	  { echo "make test needs Chromium: sudo apt-get install chromium" >&2; exit 1; }
+
+test: setup chromium
 	$(BIN)/python -m pytest -q
 
 bench: setup
