@@ -36,10 +36,18 @@ from collect.errors import HardwareFault
 
 SIZE = (120, 36)
 CHECKS = [
-    {"name": "leak_rate", "value": 0.012, "threshold": 0.05, "passed": True, "reason": ""},
-    {"name": "a1", "value": 0.934, "threshold": 0.9, "passed": True, "reason": ""},
-    {"name": "abs_rel", "value": 0.0183, "threshold": 0.03, "passed": True, "reason": ""},
-    {"name": "pose_e_x_mm", "value": 2.41, "threshold": 2.0, "passed": False, "reason": "median above limit"},
+    {"name": "leak_rate_hpa_per_min", "value": 0.012, "threshold": 1.0, "op": "<=", "unit": "hPa/min", "passed": True,
+     "reason": "bubble pressure loss over the leak-test hold: 0.012 hPa/min within limit"},
+    {"name": "inflation_pressure_hpa", "value": 1062.4, "threshold": [1030.0, 1110.0], "op": "in", "unit": "hPa",
+     "passed": True, "reason": ""},
+    {"name": "heldout_a1", "value": 0.934, "threshold": 0.9, "op": ">=", "unit": "fraction", "passed": True,
+     "reason": ""},
+    {"name": "heldout_abs_rel", "value": 0.0183, "threshold": 0.03, "passed": True, "reason": ""},
+    {"name": "pose_e_x_median_mm", "value": 2.41, "threshold": 2.0, "op": "<=", "unit": "mm", "passed": False,
+     "reason": "median position error of the mug pose from predicted depth against the pose from measured depth: "
+               "2.41 mm above maximum 2 mm"},
+    {"name": "pose_e_theta_median", "value": None, "threshold": 0.01, "op": "<=", "unit": "1-|q1.q2|",
+     "passed": False, "reason": "pose_e_theta_median was not measured"},
 ]
 
 

@@ -131,6 +131,18 @@ def test_bar_chart_levels_and_compression():
     assert rows == ["   ", "██ "] and lo == hi == 0.5
 
 
+def test_check_formats():
+    from calibrate.tui.widgets.acceptance_table import threshold_text, value_text
+
+    check = {"value": 7.97, "threshold": 1.5, "op": "<=", "unit": "mm"}
+    assert (value_text(check), threshold_text(check)) == ("7.97 mm", "<= 1.5 mm")
+    check = {"value": 1062.4, "threshold": [1030.0, 1110.0], "op": "in", "unit": "hPa"}
+    assert threshold_text(check) == "in [1030, 1110] hPa"
+    assert value_text({"value": None, "unit": "mm"}) == "-"
+    assert threshold_text({"threshold": 0.9, "op": ">=", "unit": "fraction"}) == ">= 0.9"
+    assert threshold_text({"threshold": "< 5"}) == "< 5"
+
+
 def test_formats():
     assert duration(None) == "--:--"
     assert duration(83.4) == "1:23"

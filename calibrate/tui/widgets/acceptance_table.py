@@ -2,35 +2,57 @@
 
 from __future__ import annotations
 
+from rich import box
+from rich.console import Group
+from rich.table import Table
 from rich.text import Text
-from textual.containers import Vertical
-from textual.widgets import DataTable, Static
+from textual.containers import Vertical, VerticalScroll
+from textual.widgets import Static
 
 from calibrate.tui.widgets.formatting import number
 
 
+def _with_unit(text: str, unit: str | None) -> str:
+    return f"{text} {unit}" if unit and unit != "fraction" and text != "-" else text
+
+
+def threshold_text(check: dict) -> str:
+    """``<= 1.5 mm``, ``in [1030, 1110] hPa``, or the bare threshold when the check has no ``op``."""
+    threshold, op, unit = check.get("threshold"), check.get("op"), check.get("unit")
+    if isinstance(threshold, (list, tuple)):
+        bounds = "[" + ", ".join(number(v) for v in threshold) + "]"
+        return _with_unit(f"{op or 'in'} {bounds}", unit)
+    return _with_unit(f"{op} {number(threshold)}" if op else number(threshold), unit)
+
+
+def value_text(check: dict) -> str:
+    """The measured value with its unit, ``-`` when it was not measured."""
+    return _with_unit(number(check.get("value")), check.get("unit"))
+
+
 class AcceptanceTable(Vertical):
-    """Table of checks ``{name, value, threshold, passed, reason}`` under a verdict line."""
+    """Checks ``{name, value, threshold, op, unit, passed, reason}`` under a verdict line, the
+    reasons of the failed ones below; scrolls when taller than the panel."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         self.border_title = "Acceptance"
+        self.checks: list[dict] = []  # the checks shown
         self.verdict_line = Static("no verdict yet", id="verdict-line")
-        self.table = DataTable(id="checks", zebra_stripes=True, cursor_type="none", show_cursor=False)
+        self.table = Static("", id="checks")
         self.report_line = Static("", id="report-line")
 
     def compose(self):
         yield self.verdict_line
-        yield self.table
+        with VerticalScroll(id="checks-scroll"):
+            yield self.table
         yield self.report_line
 
-    def on_mount(self) -> None:
-        self.table.add_columns("check", "value", "threshold", "result", "reason")
-
     def reset(self) -> None:
+        self.checks = []
         self.verdict_line.update("no verdict yet")
         self.report_line.update("")
-        self.table.clear()
+        self.table.update("")
 
     def show(self, accepted: bool | None, checks: list[dict], report_path: str, note: str = "") -> None:
         """Show the checks; ``accepted`` None means the run ended without a verdict (``note`` says why)."""
@@ -44,15 +66,22 @@ class AcceptanceTable(Vertical):
             failed = sum(1 for check in checks if not check.get("passed"))
             line.append(f"  {len(checks) - failed}/{len(checks)} checks passed")
         self.verdict_line.update(line)
-        table = self.table
-        table.clear()
+        self.checks = list(checks)
+        table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, row_styles=["", "on grey11"])
+        table.add_column("check", no_wrap=True, style="bold")
+        table.add_column("value", no_wrap=True, justify="right")
+        table.add_column("threshold", no_wrap=True)
+        table.add_column("result", no_wrap=True)
+        why = []  # reasons of the failed checks, below the table
         for check in checks:
             passed = bool(check.get("passed"))
             table.add_row(
                 str(check.get("name", "?")),
-                number(check.get("value")),
-                number(check.get("threshold")),
+                value_text(check),
+                threshold_text(check),
                 Text("PASS", style="bold green") if passed else Text("FAIL", style="bold red"),
-                str(check.get("reason", "") or ""),
             )
+            if not passed and check.get("reason"):
+                why.append(Text.assemble((f"{check.get('name', '?')}: ", "bold red"), str(check["reason"])))
+        self.table.update(Group(table, *([Text("")] + why if why else [])) if checks else "")
         self.report_line.update(f"report: {report_path}" if report_path else "")
