@@ -248,6 +248,13 @@ def report(compression, long, collection, args) -> str:
                 f"| dropped / non-increasing timestamps | {collection['dropped']} / {collection['non_increasing_t']} |",
                 f"| file size | {collection['mb']:.1f} MB |",
             ]
+            if collection["dropped"]:
+                lines += [
+                    "",
+                    "Dropped frames here are frames the camera twin's 8-frame device queue discarded while the "
+                    "in-process simulator (physics + rendering at 45 fps) and the recorder thread were short of CPU "
+                    "(see the load average above); the recorder alone (previous section) drops none.",
+                ]
     return "\n".join(lines) + "\n"
 
 

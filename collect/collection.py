@@ -156,10 +156,14 @@ class _Recorder(threading.Thread):
             return stamp
 
     def _arm_pose_at(self, t: float) -> np.ndarray:
-        if not self._recent_arm:
-            return self.bench.arm.state().tcp_pose
-        nearest = min(self._recent_arm, key=lambda sample: abs(sample.t - t))
-        return nearest.tcp_pose
+        """TCP pose (6,) of the arm sample nearest bench time ``t`` (samples are in time order)."""
+        nearest = None
+        for sample in reversed(self._recent_arm):
+            if nearest is None or abs(sample.t - t) < abs(nearest.t - t):
+                nearest = sample
+            if sample.t <= t:
+                break
+        return nearest.tcp_pose if nearest is not None else self.bench.arm.state().tcp_pose
 
     def run(self) -> None:
         try:
