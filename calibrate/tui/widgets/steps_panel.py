@@ -97,7 +97,7 @@ class StepsPanel(Static):
             self.rows[Step(event.step)] = StepState(event.step, "running", started_at=now, eta_s=event.eta_s)
         elif isinstance(event, StepProgress):
             row = self.row(event.step)
-            row.fraction = min(max(float(event.fraction), 0.0), 1.0)
+            row.fraction = max(row.fraction, min(max(float(event.fraction), 0.0), 1.0))  # never backwards
             if event.message:
                 row.summary = event.message
         elif isinstance(event, StepFinished):
