@@ -36,6 +36,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -50,8 +52,11 @@ from trainer.model_dir import load_metadata  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
 
 ARCHS = ("resnet", "packnet", "bts")
-#: ``bubble collect`` runs per session: a fault (twins starved on a loaded machine) resumes at half the speed.
-COLLECT_ATTEMPTS = 4
+#: Seconds of training between live validations: only the final validation enters the tables.
+EVAL_INTERVAL_S = 60.0
+#: ``bubble collect`` runs per session: a fault (twins starved on a loaded machine) resumes at half the
+#: simulated clock speed, down to real time.
+COLLECT_ATTEMPTS = 6
 #: Settings of ``--quick``: every section runs, on tiny sessions and budgets (not results).
 QUICK = {"minutes": 0.15, "holdouts": "mug", "poses_per_object": 2, "cross_seeds": "21", "calib_poses": 2,
          "test_poses": 1, "finetune_minutes": 0.25}
@@ -99,7 +104,7 @@ def record(work: Path, seed: int, objects: str, poses: int, pose_seed: int, sim_
             "--seed", str(pose_seed), "--quiet", "--out", str(partial)]
     for attempt in range(COLLECT_ATTEMPTS):  # a loaded machine can starve the twins: resume, slower
         resume = ["--resume"] if partial.exists() else []
-        speed = sim_speed / 2**attempt
+        speed = max(sim_speed / 2**attempt, min(sim_speed, 1.0))
         if bubble(*argv, "--sim-speed", str(speed), *resume, may_fault=attempt < COLLECT_ATTEMPTS - 1):
             break
     partial.replace(out)
@@ -108,15 +113,17 @@ def record(work: Path, seed: int, objects: str, poses: int, pose_seed: int, sim_
 
 
 def session_summary(path: Path) -> dict:
-    """Frames and recording time on the bench clock (first to last arm sample, s) of a session."""
+    """Frames and recording time of a session: arm time on the bench clock (s), summed over the
+    arm stream's sample steps (a resumed recording restarts the clock, so not last minus first)."""
     with Session.open(path) as s:
-        t = s.arm().t
-        return {"path": str(path), "frames": int(s.n_frames), "record_s": float(t[-1] - t[0]) if len(t) else 0.0}
+        dt = np.diff(s.arm().t)
+        return {"path": str(path), "frames": int(s.n_frames), "record_s": float(dt[(dt > 0) & (dt < 1.0)].sum())}
 
 
 def train(work: Path, name: str, **config) -> dict:
     """``train_model`` into ``work/models/name``; the final validation metrics and the budget used."""
-    r = train_model(TrainConfig(out=str(work / "models" / name), export_onnx=False, **config))
+    r = train_model(TrainConfig(out=str(work / "models" / name), export_onnx=False, eval_interval_s=EVAL_INTERVAL_S,
+                                **config))
     print(f"{name:32s} a1 {r.metrics['a1']:.3f} abs_rel {r.metrics['abs_rel']:.4f} "
           f"({r.epochs:.1f} epochs, {r.train_s / 60:.2f} min)", flush=True)
     return {"model": str(r.model_dir), "metrics": r.metrics, "epochs": r.epochs, "steps": r.steps,
@@ -225,7 +232,9 @@ def markdown(res: dict) -> str:
             cells = (f"{m['rmse'] * 1e3:.3f} | {m['abs_rel']:.4f} | {m['a1']:.4f}" if m.get("n_images")
                      else "- | - | -")
             lines.append(f"| {r['seed']} | {depth} | {pixels} | {cells} | {cov} |")
-    lines += ["", f"Data and models: `{s['work']}`; numbers also in `{Path(res['json']).name}`.", ""]
+    work = Path(s["work"])
+    shown = work.relative_to(ROOT) if work.is_relative_to(ROOT) else work
+    lines += ["", f"Data and models: `{shown}`; numbers also in `{Path(res['json']).name}`.", ""]
     return "\n".join(lines)
 
 
@@ -233,7 +242,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny budgets (~5 min) to validate the script; overrides budgets")
     p.add_argument("--archs", default=",".join(ARCHS), help="comma-separated architectures")
-    p.add_argument("--minutes", type=float, default=1.25, help="CPU training minutes per from-scratch run (sections 1-2)")
+    p.add_argument("--minutes", type=float, default=1.0, help="CPU training minutes per from-scratch run (sections 1-2)")
     p.add_argument("--splits", default="frames", help="in-class splits: frames (the paper's), poses, or both")
     p.add_argument("--holdouts", default=",".join(BUILTIN_OBJECTS), help="objects to leave out, one run each")
     p.add_argument("--objects", default=",".join(BUILTIN_OBJECTS))
@@ -251,7 +260,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.quick:
         for key, value in QUICK.items():
             setattr(args, key, value)
-    args.work = args.work or ROOT / "runs" / ("bench_accuracy_quick" if args.quick else "bench_accuracy")
+    args.work = (args.work or ROOT / "runs" / ("bench_accuracy_quick" if args.quick else "bench_accuracy")).resolve()
     return args
 
 

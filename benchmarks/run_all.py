@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/run_all.py                        # everything (~1.5-2 h on a quiet 2-core CPU)
     .venv/bin/python benchmarks/run_all.py --only simulator,pose  # a subset, then reassemble the page
     .venv/bin/python benchmarks/run_all.py --assemble-only        # rebuild the page from existing results
+    .venv/bin/python benchmarks/run_all.py --only accuracy -- --quick   # arguments after -- go to the script(s)
 
 Each script writes its own markdown in docs/ (``docs/bench_*.md``); this runs them one after the
 other (never in parallel: they time the CPU), logs each to ``runs/bench_logs/NAME.log``, keeps the
@@ -47,11 +48,11 @@ class Benchmark:
     doc: str  # the markdown it writes, in docs/
     about: str
 
-    def command(self) -> list[str]:
-        return [sys.executable, str(ROOT / "benchmarks" / self.script), *self.args]
+    def command(self, extra: tuple[str, ...] = ()) -> list[str]:
+        return [sys.executable, str(ROOT / "benchmarks" / self.script), *self.args, *extra]
 
-    def shown(self) -> str:
-        return " ".join(["python", f"benchmarks/{self.script}", *self.args])
+    def shown(self, extra: tuple[str, ...] = ()) -> str:
+        return " ".join(["python", f"benchmarks/{self.script}", *self.args, *extra])
 
 
 #: Every benchmark, in the order they run (shortest first) and appear on the page.
@@ -157,8 +158,9 @@ def _accuracy_finetuned_a1(text: str) -> tuple[float | None, str]:
     path = DOCS / "bench_accuracy.json"
     if not path.is_file():
         return None, ""
-    rows = json.loads(path.read_text()).get("cross_sensor", [])
-    if not rows:
+    result = json.loads(path.read_text())
+    rows = result.get("cross_sensor", [])
+    if not rows or result.get("settings", {}).get("quick"):  # a --quick run validates the script, measures nothing
         return None, ""
     a1 = [r["finetuned"]["a1"] for r in rows]
     return min(a1), "fine-tuned a1 per new sensor: " + ", ".join(f"{r['seed']}: {v:.3f}" for r, v in zip(rows, a1))
@@ -231,17 +233,17 @@ def load_runs() -> dict:
     return json.loads(RUNS_JSON.read_text()) if RUNS_JSON.is_file() else {}
 
 
-def run(bench: Benchmark) -> dict:
-    """Run one script (output to its log); its command, exit code, wall time and date."""
+def run(bench: Benchmark, extra: tuple[str, ...] = ()) -> dict:
+    """Run one script with ``extra`` arguments (output to its log); its command, exit code, wall time and date."""
     LOGS.mkdir(parents=True, exist_ok=True)
     log = LOGS / f"{bench.name}.log"
-    print(f"[{time.strftime('%H:%M:%S')}] {bench.name}: {bench.shown()} (log {log.relative_to(ROOT)})", flush=True)
+    print(f"[{time.strftime('%H:%M:%S')}] {bench.name}: {bench.shown(extra)} (log {log.relative_to(ROOT)})", flush=True)
     t0 = time.perf_counter()
     with log.open("w") as out:
-        rc = subprocess.run(bench.command(), cwd=ROOT, stdout=out, stderr=subprocess.STDOUT).returncode
+        rc = subprocess.run(bench.command(extra), cwd=ROOT, stdout=out, stderr=subprocess.STDOUT).returncode
     wall = time.perf_counter() - t0
     print(f"    exit {rc} after {wall / 60:.1f} min", flush=True)
-    return {"command": bench.shown(), "exit": rc, "wall_min": round(wall / 60, 2), "machine": machine_info()}
+    return {"command": bench.shown(extra), "exit": rc, "wall_min": round(wall / 60, 2), "machine": machine_info()}
 
 
 def demote(markdown: str) -> list[str]:
@@ -263,7 +265,7 @@ def assemble(runs: dict) -> str:
         "`--only NAME,...` reruns a subset, `--assemble-only` rebuilds the page). Runs, exit codes and wall "
         "times: [benchmarks.json](benchmarks.json); logs in `runs/bench_logs/`.",
         "",
-        (machine_line(latest["machine"]) + f" Last full set of runs took {total:.0f} min." if latest else
+        (machine_line(latest["machine"]) + f" The runs listed below took {total:.0f} min in total." if latest else
          "No benchmark has run through `run_all.py` yet: the sections below are the scripts' own pages."),
         "",
         "Numbers measured while other jobs share the machine are provisional; each section says when and where "
@@ -281,7 +283,7 @@ def assemble(runs: dict) -> str:
     for b in BENCHMARKS:
         r = runs.get(b.name)
         when = f"{r['exit']} | {r['wall_min']:.1f} | {r['machine']['date']}" if r else "- | - | not run by run_all"
-        lines.append(f"| {b.name} | {b.about} | `{b.shown()}` | {when} |")
+        lines.append(f"| {b.name} | {b.about} | `{r['command'] if r else b.shown()}` | {when} |")
     shown = set()
     for b in BENCHMARKS:
         if b.doc in shown:
@@ -298,7 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", help="comma-separated benchmarks to run: " + ",".join(BY_NAME))
     parser.add_argument("--assemble-only", action="store_true", help="run nothing, rebuild docs/benchmarks.md")
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    extra = tuple(argv[argv.index("--") + 1:]) if "--" in argv else ()
+    args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
     names = list(BY_NAME) if not args.only else [n.strip() for n in args.only.split(",") if n.strip()]
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
@@ -307,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = []
     if not args.assemble_only:
         for name in names:
-            runs[name] = run(BY_NAME[name])
+            runs[name] = run(BY_NAME[name], extra)
             RUNS_JSON.write_text(json.dumps(runs, indent=2) + "\n")
             if runs[name]["exit"] != 0:
                 failed.append(name)
