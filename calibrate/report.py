@@ -62,8 +62,8 @@ class ReportData:
     example_pred: np.ndarray | None = None  # (K,H,W) m
     example_true: np.ndarray | None = None  # (K,H,W) m, simulated runs
     example_labels: list[str] = field(default_factory=list)
-    training_curve: list[dict] = field(default_factory=list)  # {step, elapsed_s, loss, a1}
-    truth_comparison: dict | None = None  # {"model": metrics, "tof": metrics, "dropouts": {...}}
+    training_curve: list[dict] = field(default_factory=list)  # {step, elapsed_s, loss (m) | None, a1 | None}
+    truth_comparison: dict | None = None  # {"model", "tof", "model_all" (optional): metrics, "dropouts": {...}}
     pose: dict | None = None  # pose check results
     notes: dict[str, str] = field(default_factory=dict)  # section -> why it is missing
 
@@ -233,9 +233,10 @@ def _truth_plot(true, tof, pred) -> str:
 def _training_plot(curve: list[dict]) -> str:
     import matplotlib.pyplot as plt
 
-    steps = [p["step"] for p in curve]
+    losses = [(p["step"], p["loss"] * 1000) for p in curve if p.get("loss") is not None]
     fig, ax = plt.subplots(figsize=(6, 2.8))
-    ax.plot(steps, [p["loss"] * 1000 for p in curve], color="tab:blue")
+    if losses:
+        ax.plot(*zip(*losses), color="tab:blue")
     ax.set_xlabel("optimizer step")
     ax.set_ylabel("training loss (mm, masked L1)", color="tab:blue")
     ax.set_yscale("log")
@@ -345,7 +346,10 @@ def render_html(data: ReportData) -> str:
             tc = data.truth_comparison
             truth = (
                 "<p>Against the simulator's true membrane depth, on the held-out frames' membrane pixels.</p>"
-                + metrics_table([("fine-tuned model vs truth", tc["model"]), ("ToF sensor vs truth", tc["tof"])])
+                + metrics_table(
+                    [("fine-tuned model vs truth, where the ToF is valid", tc["model"]), ("ToF vs truth, where valid", tc["tof"])]
+                    + ([("fine-tuned model vs truth, every membrane pixel", tc["model_all"])] if tc.get("model_all") else [])
+                )
             )
             drop = tc.get("dropouts")
             if drop:

@@ -39,7 +39,7 @@ checks:
   heldout_a1: {min: 0.0}
   heldout_abs_rel: {max: 10.0}
   heldout_rmse_mm: {max: 1000.0}
-  model_vs_tof_abs_rel_ratio: {max: 1000000.0}
+  truth_a1: {min: 0.0}
 """
 
 
@@ -132,7 +132,7 @@ def test_run_directory_holds_the_contract_files(faulted_then_resumed):
         assert isinstance(doc[key], float) and np.isfinite(doc[key])
     names = [c["name"] for c in doc["checks"]]
     for required in ("leak_rate_hpa_per_min", "dead_pixels", "dot_count", "valid_depth_coverage",
-                     "poses_completed_fraction", "heldout_a1", "model_vs_tof_abs_rel_ratio"):
+                     "poses_completed_fraction", "heldout_a1", "truth_a1"):
         assert required in names
     for check in doc["checks"]:
         assert {"value", "threshold", "verdict", "passed", "reason"} <= set(check)
