@@ -105,6 +105,8 @@ def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
     meta = load_metadata(model_dir)
     t, m = meta.training, meta.metrics
     size = sum(p.stat().st_size for p in model_dir.iterdir() if p.is_file()) / 2**20
+    minutes = t["budget"].get("minutes")
+    budget = f"{minutes} min of training" if minutes is not None else f"{t['budget'].get('epochs')} epochs"
     lines = [
         f"Command: `{command}`",
         "",
@@ -113,7 +115,7 @@ def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
         f"* training data: {len(t['sources'])} simulated sensors ({', '.join(t['sensor_serials'])}), "
         f"{t['n_train_frames']} frames (contact + 10 % free, frame stride {t['frame_stride']}), objects {', '.join(t['objects'])}",
         f"* validation: {len(t['val_sources'])} held-out sensors, {t['n_val_frames']} frames",
-        f"* budget: {t['budget']}, done {t['epochs']:.1f} epochs / {t['steps']} steps in {t['train_s'] / 60:.1f} min "
+        f"* budget: {budget}, done {t['epochs']:.1f} epochs / {t['steps']} steps in {t['train_s'] / 60:.1f} min "
         f"of training on {t['world_size']} process(es), batch {t['batch_size']}, peak RSS {t['peak_rss_mb']:.0f} MB",
         f"* held-out sensors (vs ToF): a1 {m['a1']:.3f}, abs_rel {m['abs_rel']:.4f}, rmse {m['rmse'] * 1e3:.2f} mm, "
         f"rmse_log {m['rmse_log']:.4f}, silog {m['silog']:.3f}",
@@ -159,7 +161,7 @@ def run_train(args: argparse.Namespace) -> int:
         return 0
     out = package_base_model(result.model_dir, Path(args.out))
     if args.model_card:
-        write_model_card_section(out, Path(args.model_card), " ".join(sys.argv))
+        write_model_card_section(out, Path(args.model_card), "python -m trainer.pretrain " + " ".join(sys.argv[1:]))
     print(f"base model -> {out}: held-out sensors a1 {result.metrics['a1']:.3f}, abs_rel {result.metrics['abs_rel']:.4f}")
     return 0
 
