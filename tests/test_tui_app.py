@@ -174,8 +174,8 @@ def test_confirmation_guards_the_start(in_tmp):
         flow = ScriptedFlow([])
         app = BenchApp(make_config(), flow=flow)
         async with app.run_test(size=SIZE) as pilot:
-            await pilot.press("c")
-            assert isinstance(app.screen, ConfirmStart)
+            await pilot.press("c", "c")  # one dialog, however often c is pressed
+            assert isinstance(app.screen, ConfirmStart) and len(app.screen_stack) == 2
             await pilot.press("n")
             assert not isinstance(app.screen, ConfirmStart)
             await pilot.press("c", "s")  # the stop key also cancels the dialog

@@ -207,6 +207,8 @@ class BenchApp(App):
 
     # ---------------------------------------------------------------- actions
     def action_commission(self) -> None:
+        if isinstance(self.screen, ConfirmStart):
+            return  # already asking
         if self.running:
             self.notify("Commissioning is already running.", severity="warning")
             return
