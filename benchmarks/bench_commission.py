@@ -106,11 +106,11 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
     row = {
         "seed": seed, "serial": spec.serial, "accepted": result.accepted, "reason": result.reason, "total_s": total,
         "steps": durations, "train_s": state.get("finetune", {}).get("train_s"), "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
-        "truth_a1": checks.get("truth_a1"), "pose_e_x": checks.get("pose_e_x_median_mm"),
+        "truth_a1": checks.get("truth_a1"), "contact_rmse": checks.get("contact_rmse_mm"), "pose_e_x": checks.get("pose_e_x_median_mm"),
         "tof_a1": (doc.get("vs_true") or {}).get("tof", {}).get("a1"),
         "dropout_a1": (doc.get("vs_true") or {}).get("model_on_tof_dropout", {}).get("a1"),
     }
-    print(f"seed {seed}: {'ACCEPTED' if result.accepted else 'REJECTED'} in {total:.0f} s, a1 {row['a1']:.3f} "
+    print(f"seed {seed}: {'ACCEPTED' if result.accepted else 'REJECTED'} in {total:.0f} s, a1 {_f(row['a1'], '.3f')} "
           f"{result.reason}", flush=True)
     if (config.run_dir / "model" / "metadata.json").is_file():
         from collect.errors import HardwareFault
@@ -161,15 +161,16 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         f"simulated clock. Targets: total <= {TARGET_TOTAL_S / 60:.0f} min, fine-tune step <= "
         f"{TARGET_FINETUNE_S / 60:.0f} min, held-out a1 >= {TARGET_A1}.",
         "",
-        "| seed | verdict | total (s) | " + " | ".join(steps) + " | held-out a1 | abs_rel | rmse (mm) | "
+        "| seed | verdict | total (s) | " + " | ".join(steps) + " | held-out a1 | abs_rel | rmse (mm) | contact rmse (mm) | "
         "a1 vs truth (model / ToF) | a1 on ToF dropouts | pose e_x (mm) | a1 unseen meshes |",
-        "|---" * (10 + len(steps)) + "|",
+        "|---" * (11 + len(steps)) + "|",
     ]
     for r in rows:
         lines.append(
             f"| {r['seed']} | {'accepted' if r['accepted'] else 'rejected'} | {r['total_s']:.0f} | "
             + " | ".join(_f(r["steps"].get(s), ".0f") for s in steps)
             + f" | {_f(r['a1'], '.3f')} | {_f(r['abs_rel'], '.4f')} | {_f(r['rmse'] and r['rmse'] * 1e3, '.3f')} | "
+            f"{_f(r['contact_rmse'], '.3f')} | "
             f"{_f(r['truth_a1'], '.3f')} / {_f(r['tof_a1'], '.3f')} | {_f(r['dropout_a1'], '.3f')} | {_f(r['pose_e_x'], '.2f')} | "
             f"{_f(r.get('unseen_a1'), '.3f')} |"
         )

@@ -47,6 +47,7 @@ class ReportData:
     stopped: bool = False
     run_info: dict = field(default_factory=dict)  # shown as a key/value table
     heldout_metrics: dict | None = None  # METRIC_KEYS -> value
+    contact_metrics: dict | None = None  # the same on the held-out contact patches only
     leak_t: np.ndarray | None = None  # (P,) s
     leak_hpa: np.ndarray | None = None  # (P,) hPa
     leak_rate_hpa_per_min: float | None = None
@@ -300,7 +301,12 @@ def render_html(data: ReportData) -> str:
     section("Acceptance checks", _checks_table(data.checks) if data.checks else None, "checks")
     section(
         "Held-out metrics (paper's columns)",
-        metrics_table([("fine-tuned model vs ToF, held-out poses", data.heldout_metrics)]) if data.heldout_metrics else None,
+        metrics_table(
+            [("fine-tuned model vs ToF, held-out poses", data.heldout_metrics)]
+            + ([("the same, contact patches only", data.contact_metrics)] if data.contact_metrics else [])
+        )
+        if data.heldout_metrics
+        else None,
         "metrics",
     )
     leak = None

@@ -39,6 +39,7 @@ checks:
   heldout_a1: {min: 0.0}
   heldout_abs_rel: {max: 10.0}
   heldout_rmse_mm: {max: 1000.0}
+  contact_rmse_mm: {max: 1000.0}
   truth_a1: {min: 0.0}
 """
 
