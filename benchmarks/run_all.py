@@ -69,6 +69,8 @@ BENCHMARKS = (
     Benchmark("accuracy", "bench_accuracy.py", (), "bench_accuracy.md", "the paper's Tables II-IV and ToF vs model against the true depth"),
 )
 BY_NAME = {b.name: b for b in BENCHMARKS}
+#: Shown first on the page (the paper's tables); the others follow in run order.
+PAGE_FIRST = ("accuracy",)
 
 
 # ---- reading the scripts' markdown ----------------------------------------------------------------
@@ -290,13 +292,13 @@ def assemble(runs: dict) -> str:
         when = f"{r['exit']} | {r['wall_min']:.1f} | {r['machine']['date']}" if r else "- | - | not run by run_all"
         lines.append(f"| {b.name} | {b.about} | `{r['command'] if r else b.shown()}` | {when} |")
     shown = set()
-    for b in BENCHMARKS:
+    for b in sorted(BENCHMARKS, key=lambda b: b.name not in PAGE_FIRST):
         if b.doc in shown:
             continue
         shown.add(b.doc)
-        names = ", ".join(x.name for x in BENCHMARKS if x.doc == b.doc)
+        about = "; ".join(x.about for x in BENCHMARKS if x.doc == b.doc)
         path = DOCS / b.doc
-        lines += ["", f"## {names}: [{b.doc}]({b.doc})", ""]
+        lines += ["", f"## {about[0].upper() + about[1:]} ([{b.doc}]({b.doc}))", ""]
         lines += demote(path.read_text()) if path.is_file() else [f"Not measured yet: `{b.shown()}`."]
     return "\n".join(lines) + "\n"
 
