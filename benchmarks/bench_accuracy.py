@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_accuracy.py           # full run, ~35-40 min on a quiet 2-core CPU
     .venv/bin/python benchmarks/bench_accuracy.py --quick   # ~5 min: tiny budgets, validates the script end to end
+    .venv/bin/python benchmarks/bench_accuracy.py --reuse-models   # rebuild from the models kept in --work
 
 Writes ``docs/bench_accuracy.md`` and ``docs/bench_accuracy.json`` (``--out``). Everything goes
 through the product: sessions are drawn and recorded with ``bubble sim new-sensor`` and
@@ -11,7 +12,8 @@ with ``trainer.training.train_model`` (what ``bubble train`` runs) and evaluated
 
 1. In-class (paper Table II): one simulated sensor (``--sensor-seed``), every architecture from
    scratch for ``--minutes`` of CPU training, 70/30 split within each object's data
-   (``--splits``: ``frames`` = the paper's random frame split, ``poses`` = held-out contact poses).
+   (``--splits``: ``frames`` = the paper's random frame split, ``poses`` = held-out contact poses);
+   plus the base model fine-tuned with the same budget (the product's path).
 2. Leave-one-object-out (Table III): the same sensor, train on the other objects, validate on the
    held-out one, per architecture and object.
 3. Cross-sensor (Table IV): new sensors (``--cross-seeds``; refused when the base model trained on
@@ -48,7 +50,7 @@ from collect.session_reader import Session  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS  # noqa: E402
 from trainer.cli import PAPER_COLUMNS, write_json  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
-from trainer.model_dir import load_metadata  # noqa: E402
+from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
 
 ARCHS = ("resnet", "packnet", "bts")
@@ -120,8 +122,27 @@ def session_summary(path: Path) -> dict:
         return {"path": str(path), "frames": int(s.n_frames), "record_s": float(dt[(dt > 0) & (dt < 1.0)].sum())}
 
 
-def train(work: Path, name: str, **config) -> dict:
-    """``train_model`` into ``work/models/name``; the final validation metrics and the budget used."""
+def reusable(out: Path, config: dict) -> dict | None:
+    """The result of a finished model in ``out`` trained on the same data, init and budget, else None."""
+    if not (out / METADATA_FILE).is_file():
+        return None
+    meta = load_metadata(out)
+    t = meta.training
+    same = (t["budget"].get("minutes") == config["minutes"] and (t["init"] or {}).get("model_dir") == config.get("init")
+            and [src["path"] for src in t["sources"]] == config["data"]
+            and [src["path"] for src in t["val_sources"]] == config.get("val_data", []))
+    return {"model": str(out), "metrics": meta.metrics, "epochs": t["epochs"], "steps": t["steps"],
+            "train_min": t["train_s"] / 60} if same else None
+
+
+def train(work: Path, name: str, reuse: bool = False, **config) -> dict:
+    """``train_model`` into ``work/models/name``; the final validation metrics and the budget used.
+
+    With ``reuse``, a model already there from the same data, init and budget is taken as it is.
+    """
+    if reuse and (kept := reusable(work / "models" / name, config)):
+        print(f"{name:32s} reused (a1 {kept['metrics']['a1']:.3f})", flush=True)
+        return kept
     r = train_model(TrainConfig(out=str(work / "models" / name), export_onnx=False, eval_interval_s=EVAL_INTERVAL_S,
                                 **config))
     print(f"{name:32s} a1 {r.metrics['a1']:.3f} abs_rel {r.metrics['abs_rel']:.4f} "
@@ -170,15 +191,17 @@ def markdown(res: dict) -> str:
         "## In-class (Table II)",
         "",
         f"Sensor seed {s['sensor_seed']}, objects {s['objects']}, {s['poses_per_object']} contact poses each "
-        f"({res['sensor_a']['frames']} frames); every network from scratch, {s['minutes']} min of CPU training "
-        f"(default width), 70/30 split within each object's data: `frames` = random frames (the paper's), "
-        f"`poses` = held-out contact poses. Paper (real data): {PAPER['in_class']}.",
+        f"({res['sensor_a']['frames']} frames); every network from scratch (init `-`), {s['minutes']} min of CPU "
+        f"training (default width), 70/30 split within each object's data: `frames` = random frames (the paper's), "
+        f"`poses` = held-out contact poses. Init `base`: the packaged base model fine-tuned with the same budget "
+        f"(the product's path; it was pretrained on other sensors pressing the same objects). "
+        f"Paper (real data, 100 epochs): {PAPER['in_class']}.",
         "",
-        *paper_header(["arch", "split"], ["val frames", "epochs"]),
+        *paper_header(["arch", "init", "split"], ["val frames", "epochs"]),
     ]
     for r in res["in_class"]:
-        lines.append(f"| {r['arch']} | {r['split']} | {paper_cells(r['metrics'])} | {r['metrics']['n_val_frames']} | "
-                     f"{r['epochs']:.1f} |")
+        lines.append(f"| {r['arch']} | {r.get('init') or '-'} | {r['split']} | {paper_cells(r['metrics'])} | "
+                     f"{r['metrics']['n_val_frames']} | {r['epochs']:.1f} |")
     lines += [
         "",
         "## Leave one object out (Table III)",
@@ -256,6 +279,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--base-model", default="base", help="pretrained model (default: the packaged base model)")
     p.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed of bubble collect")
     p.add_argument("--work", type=Path, help="sessions and models (default: runs/bench_accuracy[_quick])")
+    p.add_argument("--reuse-models", action="store_true",
+                   help="keep models in --work trained on the same data, init and budget (rebuild the tables cheaply)")
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_accuracy.md", help="markdown; JSON next to it")
     args = p.parse_args(argv)
     if args.quick:
@@ -277,19 +302,26 @@ def main(argv: list[str] | None = None) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
 
     session_a = record(args.work, args.sensor_seed, args.objects, args.poses_per_object, args.sensor_seed, args.sim_speed)
-    in_class = [{"arch": arch, "split": split, **train(args.work, f"{arch}_inclass_{split}", data=[str(session_a)],
-                                                       arch=arch, minutes=args.minutes, split=split)}
-                for arch in archs for split in args.splits.split(",")]
-    leave_one_out = [{"arch": arch, "holdout": obj, **train(args.work, f"{arch}_without_{obj}", data=[str(session_a)],
-                                                            arch=arch, minutes=args.minutes, holdout_object=obj)}
+    splits = args.splits.split(",")
+    in_class = [{"arch": arch, "init": None, "split": split, **train(
+        args.work, f"{arch}_inclass_{split}", args.reuse_models, data=[str(session_a)], arch=arch, minutes=args.minutes,
+        split=split)}
+        for arch in archs for split in splits]
+    base_arch = load_metadata(args.base_model).arch  # the product's path, same budget: fine-tune the base model
+    in_class += [{"arch": base_arch, "init": "base", "split": split, **train(
+        args.work, f"base_inclass_{split}", args.reuse_models, data=[str(session_a)], init=args.base_model,
+        minutes=args.minutes, split=split)} for split in splits]
+    leave_one_out = [{"arch": arch, "holdout": obj, **train(args.work, f"{arch}_without_{obj}", args.reuse_models,
+                                                            data=[str(session_a)], arch=arch, minutes=args.minutes,
+                                                            holdout_object=obj)}
                      for arch in archs for obj in args.holdouts.split(",")]
-    model_a = next((r for r in in_class if r["arch"] == "resnet"), in_class[0])
+    model_a = next((r for r in in_class if r["arch"] == "resnet" and not r["init"]), in_class[0])
 
     cross = []
     for seed in cross_seeds:
         calib = record(args.work, seed, args.objects, args.calib_poses, seed, args.sim_speed)
         test = record(args.work, seed, args.objects, args.test_poses, seed + 100_000, args.sim_speed)
-        finetune = train(args.work, f"sensor{seed}_finetuned", data=[str(calib)], val_data=[str(test)],
+        finetune = train(args.work, f"sensor{seed}_finetuned", args.reuse_models, data=[str(calib)], val_data=[str(test)],
                          init=args.base_model, minutes=args.finetune_minutes)
         tuned = evaluate(finetune["model"], test)
         cross.append({"seed": seed, "calib": session_summary(calib), "test": session_summary(test),
