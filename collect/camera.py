@@ -20,7 +20,6 @@ twin, which may run slower than real time on a loaded machine).
 
 from __future__ import annotations
 
-import datetime
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -34,8 +33,8 @@ from collect.session_format import DEPTH_UNIT_M
 #: Unit of the depth frames the OAK ToF node outputs.
 DEPTHAI_TOF_DEPTH_UNIT_M = 1e-3
 STALL_TIMEOUT_S = 0.5
-#: Longest single wait on a queue (s of real time) before the deadline is checked again.
-POLL_S = 0.05
+#: Polling interval of the frame queues (s of real time).
+POLL_S = 0.002
 
 
 @dataclass(frozen=True)
@@ -104,7 +103,7 @@ class ToFCamera(ABC):
 class QueueToFCamera(ToFCamera):
     """A ToF camera reading depth and amplitude ``dai.ImgFrame`` messages from two queues.
 
-    Queues are anything with depthai's ``MessageQueue.get(timedelta)`` (returns None on timeout).
+    Queues are anything with depthai's ``MessageQueue.tryGet()`` (returns None when empty).
     Counters: ``frames`` delivered, ``dropped`` (gaps in the sequence numbers), ``unpaired``
     (messages discarded because their partner never came).
     """
@@ -133,7 +132,10 @@ class QueueToFCamera(ToFCamera):
             remaining = deadline - self.clock()
             if remaining <= 0:
                 raise HardwareFault("camera-stall", f"camera: no frame for {timeout_s:.2f} s")
-            msg = queue.get(datetime.timedelta(seconds=min(remaining, POLL_S)))
+            # Poll rather than block in depthai's timed get(): a timed get() on the host can
+            # deadlock against a concurrent send() into the same non-blocking queue.
+            time.sleep(min(remaining, POLL_S))
+            msg = queue.tryGet()
         return msg
 
     def get_frame(self, timeout_s: float | None = None) -> CameraFrame:
