@@ -54,6 +54,8 @@ from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
 
 ARCHS = ("resnet", "packnet", "bts")
+#: Longest a ``bubble`` command may run (a 4 x 8 session takes ~1-3 min; a hung one is killed and resumed).
+COMMAND_TIMEOUT_S = 900.0
 #: Seconds of training between live validations: only the final validation enters the tables.
 EVAL_INTERVAL_S = 60.0
 #: ``bubble collect`` runs per session: a fault (twins starved on a loaded machine) resumes at half the
@@ -73,9 +75,17 @@ PAPER = {
 def bubble(*argv: str, may_fault: bool = False) -> bool:
     """Run one ``bubble`` command; exit with its last error line when it fails.
 
-    With ``may_fault``, a hardware fault (exit 3) returns False instead (the caller may resume).
+    With ``may_fault``, a hardware fault (exit 3) or a run over ``COMMAND_TIMEOUT_S`` returns False
+    instead (the caller may resume).
     """
-    proc = subprocess.run([sys.executable, "-m", "calibrate.cli", *argv], capture_output=True, text=True, cwd=ROOT)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "calibrate.cli", *argv], capture_output=True, text=True, cwd=ROOT,
+                              timeout=COMMAND_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        if may_fault:
+            print(f"`bubble {argv[0]}` still running after {COMMAND_TIMEOUT_S:.0f} s: killed", flush=True)
+            return False
+        sys.exit(f"bench_accuracy: `bubble {' '.join(argv)}` still running after {COMMAND_TIMEOUT_S:.0f} s: killed")
     last = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
     if proc.returncode == EXIT_FAULT and may_fault:
         print(f"`bubble {argv[0]}` stopped on a fault ({last})", flush=True)
