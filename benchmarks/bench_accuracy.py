@@ -1,6 +1,6 @@
 """Accuracy on the simulated bench: the paper's Tables II-IV, and ToF vs model against the true depth.
 
-    .venv/bin/python benchmarks/bench_accuracy.py           # full run, ~35-40 min on a quiet 2-core CPU
+    .venv/bin/python benchmarks/bench_accuracy.py           # full run: ~45 min on 2 cores (~35 with the sessions cached)
     .venv/bin/python benchmarks/bench_accuracy.py --quick   # ~5 min: tiny budgets, validates the script end to end
     .venv/bin/python benchmarks/bench_accuracy.py --reuse-models   # rebuild from the models kept in --work
 
@@ -55,7 +55,7 @@ from trainer.training import TrainConfig, train_model  # noqa: E402
 
 ARCHS = ("resnet", "packnet", "bts")
 #: Longest a ``bubble`` command may run (a 4 x 8 session takes ~1-3 min; a hung one is killed and resumed).
-COMMAND_TIMEOUT_S = 900.0
+COMMAND_TIMEOUT_S = 600.0
 #: Seconds of training between live validations: only the final validation enters the tables.
 EVAL_INTERVAL_S = 60.0
 #: ``bubble collect`` runs per session: a fault (twins starved on a loaded machine) resumes at half the
@@ -75,8 +75,8 @@ PAPER = {
 def bubble(*argv: str, may_fault: bool = False) -> bool:
     """Run one ``bubble`` command; exit with its last error line when it fails.
 
-    With ``may_fault``, a hardware fault (exit 3) or a run over ``COMMAND_TIMEOUT_S`` returns False
-    instead (the caller may resume).
+    With ``may_fault``, a hardware fault (exit 3), a kill by a signal or a run over ``COMMAND_TIMEOUT_S``
+    returns False instead (the caller may resume).
     """
     try:
         proc = subprocess.run([sys.executable, "-m", "calibrate.cli", *argv], capture_output=True, text=True, cwd=ROOT,
@@ -87,7 +87,7 @@ def bubble(*argv: str, may_fault: bool = False) -> bool:
             return False
         sys.exit(f"bench_accuracy: `bubble {' '.join(argv)}` still running after {COMMAND_TIMEOUT_S:.0f} s: killed")
     last = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
-    if proc.returncode == EXIT_FAULT and may_fault:
+    if (proc.returncode == EXIT_FAULT or proc.returncode < 0) and may_fault:  # a fault, or killed (hung)
         print(f"`bubble {argv[0]}` stopped on a fault ({last})", flush=True)
         return False
     if proc.returncode != 0:
@@ -189,6 +189,10 @@ def markdown(res: dict) -> str:
         machine_line(res["machine"]) + f" Wall time {res['wall_min']:.1f} min.",
         "",
     ]
+    if s.get("reuse_models"):
+        lines += ["Models already in the work directory from an earlier run with the same data, init and budget were "
+                  "reused (`--reuse-models`): the wall time covers only what this run recorded, trained and evaluated.",
+                  ""]
     if s["quick"]:
         lines += ["**Quick validation run** (`--quick`): tiny sessions and budgets that only check the script end to "
                   "end. These are not benchmark results; rerun without `--quick`.", ""]

@@ -1,6 +1,6 @@
 """Run every benchmark script and assemble docs/benchmarks.md (all tables, targets met or not).
 
-    .venv/bin/python benchmarks/run_all.py                        # everything (~1.5-2 h on a quiet 2-core CPU)
+    .venv/bin/python benchmarks/run_all.py                        # everything (~1 h 45 min on a quiet 2-core CPU)
     .venv/bin/python benchmarks/run_all.py --only simulator,pose  # a subset, then reassemble the page
     .venv/bin/python benchmarks/run_all.py --assemble-only        # rebuild the page from existing results
     .venv/bin/python benchmarks/run_all.py --only accuracy -- --quick   # arguments after -- go to the script(s)
