@@ -12,7 +12,7 @@ frames through the same unpacking code as from a real OAK, plus the simulator's 
 The simulated sensor reports depth directly in ``DEPTH_UNIT_M`` (10 um), not in the OAK's
 millimetres, so that the simulated depth noise (~0.05 mm) is not lost to rounding.
 Device clock: simulated time plus a per-device boot offset; host timestamps: simulated time.
-Faults: ``camera-stall`` stops the frames for good.
+Faults: ``camera-stall`` stops the frames for good (the device keeps time: ``SimBench.pace``).
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ os.environ.setdefault("DEPTHAI_LEVEL", "error")
 QUEUE_SIZE = 8
 #: How many recent frames' true depth the device keeps for the camera to attach.
 TRUE_DEPTH_KEEP = 32
+#: The camera's name in the bench's pacing (``SimBench.pace``).
+PACE_NAME = "camera"
 
 
 def _img_frame(image: np.ndarray, seq: int, t_device: float, t_host: float):
@@ -97,22 +99,27 @@ class SimCameraDevice:
         period = 1.0 / self.fps
         # Frames start on the next multiple of the frame period (the sensor free-runs from boot).
         seq = int(np.ceil(clock.now() / period))
-        while not self._stop.is_set():
-            t = seq * period
-            if not clock.sleep_until(t, self._stop):
-                return
-            if self.scene.fault_active("camera-stall", t):
-                self._stop.wait(0.05)
-                continue
-            depth_msg, amp_msg, true_depth = self.render(seq, t)
-            with self._lock:
-                self._true_depth[seq] = true_depth
-                while len(self._true_depth) > TRUE_DEPTH_KEEP:
-                    self._true_depth.popitem(last=False)
-            self.depth_queue.send(depth_msg)
-            self.amplitude_queue.send(amp_msg)
-            self.frames_sent += 1
-            seq += 1
+        try:
+            while not self._stop.is_set():
+                t = seq * period
+                self.scene.pace(PACE_NAME, t)
+                if not clock.sleep_until(t, self._stop):
+                    return
+                if not self.scene.fault_active("camera-stall", t):  # a stalled device sends nothing
+                    self._send(seq, t)
+                seq += 1
+        finally:
+            self.scene.pace(PACE_NAME, None)
+
+    def _send(self, seq: int, t: float) -> None:
+        depth_msg, amp_msg, true_depth = self.render(seq, t)
+        with self._lock:
+            self._true_depth[seq] = true_depth
+            while len(self._true_depth) > TRUE_DEPTH_KEEP:
+                self._true_depth.popitem(last=False)
+        self.depth_queue.send(depth_msg)
+        self.amplitude_queue.send(amp_msg)
+        self.frames_sent += 1
 
 
 class SimToFCamera(QueueToFCamera):

@@ -30,8 +30,9 @@ from collect.pressure_board import SEQ_MODULO, encode_line
 FIRMWARE_VERSION = "bubble-pb 1.3.0"
 RATE_HZ = 100.0
 NOISE_HPA = 0.03
-#: When the emulator falls further behind than this (s), it skips readings (seq gaps) to catch up.
-MAX_LAG_S = 0.1
+#: The board's name in the bench's pacing (``SimBench.pace``): simulated time waits for a starved
+#: emulator instead of running into a false ``serial-timeout``.
+PACE_NAME = "pressure-board"
 
 
 class PressureFirmware:
@@ -97,6 +98,13 @@ class PressureFirmware:
             self._write(encode_line(f"ERR,unknown command {' '.join(words)[:32]}"))
 
     def _run(self) -> None:
+        try:
+            self._serve()
+        finally:
+            self.scene.pace(PACE_NAME, None)
+
+    def _serve(self) -> None:
+        """The firmware's main loop: commands in, one reading line per period out."""
         clock = self.scene.clock
         period = 1.0 / self.rate_hz
         t_next = clock.now()
@@ -123,6 +131,7 @@ class PressureFirmware:
                 hpa = self.scene.pressure_hpa(t_next) + NOISE_HPA * self._rng.standard_normal()
                 self._write(encode_line(f"P,{seq},{hpa:.2f}"))
             seq = (seq + 1) % SEQ_MODULO
-            t_next = max(t_next + period, clock.now() - MAX_LAG_S)
+            t_next += period
+            self.scene.pace(PACE_NAME, t_next)
             if not clock.sleep_until(t_next, self._stop):
                 return

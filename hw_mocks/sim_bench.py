@@ -20,6 +20,11 @@ down instead of the physics falling behind the arm. Readers never block on a sol
   current pose along the direction of motion (extrapolated at most ``EXTRAPOLATE_MAX`` solve steps
   beyond), so a press ramps smoothly between solves and a stop short of the look-ahead pose
   interpolates back.
+Pacing: the streaming twins (camera frames, pressure lines) announce the simulated time of their
+next message (``pace``); simulated time may not run more than ``PACE_SLACK_S`` past the earliest
+one, so a twin starved of CPU slows the simulation down instead of raising a false
+``camera-stall`` or ``serial-timeout`` (a twin whose fault is injected keeps its pace: it skips
+its messages but keeps time).
 """
 
 from __future__ import annotations
@@ -59,6 +64,8 @@ LOOKAHEAD_S = 0.03
 #: Farthest extrapolation of the wrench/pressure, in units of the last solve step, and the shortest
 #: step (m) worth extrapolating along (shorter steps would amplify the solver's tolerance).
 EXTRAPOLATE_MAX = 2.0
+#: How far (s) simulated time may run past the next message a streaming twin owes (see Pacing).
+PACE_SLACK_S = 0.1
 EXTRAPOLATE_MIN_STEP_M = 1e-4
 
 
@@ -175,6 +182,9 @@ class SimBench:
         self._solved: list[_Solved] = []  # the last two solutions, oldest first
         self.solves = 0
         self.physics_failed = False
+        self._paces: dict[str, float] = {}
+        self._earliest_pace: float | None = None
+        self._pace_lock = threading.Lock()
         self._solve_now()
         self.clock.limit = self._time_limit
         self._stop = threading.Event()
@@ -203,14 +213,29 @@ class SimBench:
             self._solved = (self._solved + [_Solved(pose, t, state)])[-2:]
             self.solves += 1
 
+    def pace(self, twin: str, t: float | None) -> None:
+        """Streaming ``twin`` owes its next message at simulated time ``t`` s (None: it stopped)."""
+        with self._pace_lock:
+            if t is None:
+                self._paces.pop(twin, None)
+            else:
+                self._paces[twin] = float(t)
+            self._earliest_pace = min(self._paces.values(), default=None)
+
     def _time_limit(self) -> float | None:
-        """While the arm moves, simulated time may not pass the latest solution by more than
-        ``LOOKAHEAD_S``: on a slow or loaded machine the simulation slows down instead of the
-        wrench lagging the pose. Lock-free (called by the clock)."""
+        """The latest simulated time the clock may show, or None. While the arm moves, simulated
+        time may not pass the latest solution by more than ``LOOKAHEAD_S`` (on a slow or loaded
+        machine the simulation slows down instead of the wrench lagging the pose), nor the
+        earliest streaming twin's next message by more than ``PACE_SLACK_S``. Lock-free (called
+        by the clock)."""
+        limits = []
         solved = self._solved[-1]
-        if self.physics_failed or solved.t >= self.arm.moving_until():
-            return None
-        return solved.t + LOOKAHEAD_S
+        if not self.physics_failed and solved.t < self.arm.moving_until():
+            limits.append(solved.t + LOOKAHEAD_S)
+        earliest_pace = self._earliest_pace
+        if earliest_pace is not None:
+            limits.append(earliest_pace + PACE_SLACK_S)
+        return min(limits, default=None)
 
     def _physics(self) -> None:
         period_real = 1.0 / (float(self.spec.fps) * self.clock.speed)

@@ -18,10 +18,7 @@ SIZE = (120, 36)
 
 
 def tiny_config(tmp_path: Path, **overrides) -> CommissionConfig:
-    """One object, three poses, a one-second leak hold, a few seconds of fine-tuning.
-
-    Real-time simulated clock: on a loaded machine a faster clock starves the camera twin into a
-    camera-stall fault."""
+    """One object, three poses, a one-second leak hold, a few seconds of fine-tuning, real-time clock."""
     kwargs = dict(run_dir=tmp_path / "run", simulated=True, registry_dir=tmp_path / "registry", objects=("box",),
                   poses_per_object=3, finetune_minutes=0.05, seed=3, leak_hold_s=1.0)
     kwargs.update(overrides)
