@@ -188,3 +188,17 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
             BenchConfig.from_yaml(path)
     with pytest.raises(InputError):
         BenchConfig.create("ur").open()  # no robot_ip: refused before any connection attempt
+
+
+def test_a_cpu_starved_camera_twin_slows_simulated_time_instead_of_stalling(monkeypatch):
+    """Rendering made slower than the stall timeout: simulated time waits for the camera twin
+    (pacing), so the driver sees every frame late in real time but never a camera-stall."""
+    with open_bench(_config(speed=20.0)) as bench:
+        device = bench.camera.device
+        render = device.render
+        monkeypatch.setattr(device, "render", lambda seq, t: (time.sleep(0.08), render(seq, t))[1])
+        t0_sim, t0_real = bench.clock(), time.monotonic()
+        frames = [bench.camera.get_frame() for _ in range(10)]  # 0.08 s real = 1.6 s simulated each
+        elapsed_sim, elapsed_real = bench.clock() - t0_sim, time.monotonic() - t0_real
+        assert [f.seq for f in frames] == list(range(frames[0].seq, frames[0].seq + 10))
+        assert elapsed_real >= 0.7 and elapsed_sim < 1.0  # 10 frames at 45 fps, not 20x real time
