@@ -7,7 +7,7 @@ import torch
 from collect.errors import InputError
 from trainer.augmentation import augment_ir
 from trainer.dataset import load_frames, to_network_tensors
-from trainer.losses import masked_l1
+from trainer.losses import contact_weights, masked_l1
 from trainer.preprocessing import InputGeometry, IRNormalization
 from trainer.splits import split_holdout_object, split_in_class
 
@@ -83,3 +83,22 @@ def test_masked_l1_ignores_invalid_pixels():
     assert float(masked_l1(pred, target, valid, inverse=True).detach()) == pytest.approx(10 - 1 / 0.12)
     masked_l1(pred, target, torch.zeros_like(valid)).backward()  # no valid pixel: zero, still differentiable
     assert pred.grad is not None and float(pred.grad.abs().sum()) == 0.0
+
+
+def test_contact_patches_follow_the_dents_and_weight_the_loss(synthetic_session):
+    frames = load_frames([synthetic_session], free_fraction=0.25)
+    assert frames.reference.shape == (2,) + frames.size  # one no-contact reference per object
+    assert set(frames.reference_index[frames.object_name == "mug"]) != set(frames.reference_index[frames.object_name == "box"])
+    contact = frames.contact()
+    pressed = np.isin(frames.phase, ["press", "hold"])
+    assert contact[frames.phase == "free"].sum() == 0  # the membrane at rest is its own reference
+    assert (contact[pressed].sum(axis=(1, 2)) > 20).all()  # every 2-6 mm dent is found
+    for frame, patch, ref in zip(frames.depth[pressed], contact[pressed], frames.reference[frames.reference_index[pressed]]):
+        assert (ref - frame)[patch].min() > 0.5e-3  # pushed in towards the camera by more than 0.5 mm
+    t = to_network_tensors(frames, InputGeometry(172, 224, 224, 224), IRNormalization.fit(frames.ir))
+    assert int(t.contact.sum()) == int(contact.sum()) and not t.contact[:, :, :26].any()
+
+    pred = torch.zeros(1, 1, 1, 2)
+    target = torch.tensor([[[[0.1, 0.2]]]])
+    weight = contact_weights(torch.tensor([[[[False, True]]]]), 9.0)  # the second pixel counts 10x
+    assert float(masked_l1(pred, target, target > 0, weight=weight)) == pytest.approx((0.1 + 10 * 0.2) / 11)

@@ -36,6 +36,9 @@ def register(subparsers) -> None:
     train.add_argument("--batch-size", type=int, default=8)
     train.add_argument("--lr", type=float, default=2e-4)
     train.add_argument("--inverse-depth-loss", action="store_true", help="L1 on inverse depth instead of depth")
+    train.add_argument("--contact-weight", type=float, metavar="W",
+                       help="extra L1 weight of the contact patches, pixels pushed in > 0.5 mm from the "
+                            "no-contact reference (default 10; 0 = plain L1 as in the paper)")
     train.add_argument("--no-augment", action="store_true", help="no IR augmentation")
     train.add_argument("--no-onnx", action="store_true", help="skip the ONNX export (torch inference)")
     train.add_argument("--threads", type=int, help="torch CPU threads")
@@ -108,6 +111,7 @@ def run_train(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         lr=args.lr,
         inverse_depth_loss=args.inverse_depth_loss,
+        **({} if args.contact_weight is None else {"contact_weight": args.contact_weight}),
         augment=not args.no_augment,
         export_onnx=not args.no_onnx,
         threads=args.threads,

@@ -1,9 +1,10 @@
 """Training / evaluation frames loaded from session files into memory.
 
 ``load_frames(paths)`` reads the contact frames (``press``, ``hold``) of every object and a
-share of the no-contact ``free`` frames through ``collect.session_reader.Session`` and keeps
-them at native size; ``to_network_tensors`` turns a subset into network inputs (normalized IR,
-depth, validity) at the network's input geometry. A calibration set (~2,500 frames of
+share of the no-contact ``free`` frames through ``collect.session_reader.Session``, plus the
+no-contact reference depth recorded before each object's first press, and keeps them at native
+size; ``to_network_tensors`` turns a subset into network inputs (normalized IR, depth,
+validity, contact patches) at the network's input geometry. A calibration set (~2,500 frames of
 224 x 172) fits in memory easily.
 """
 
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from calibrate.contact_patch import contact_mask, reference_depth
 from collect.errors import InputError
 from collect.session_reader import Session
 from trainer.preprocessing import InputGeometry, IRNormalization
@@ -25,6 +27,13 @@ CONTACT_PHASES = ("press", "hold")
 
 #: Free (no-contact) frames kept, as a fraction of the contact frames of a session.
 FREE_FRAME_FRACTION = 0.1
+
+#: No-contact frames (evenly spaced) that make up one reference depth map.
+REFERENCE_FRAMES = 32
+
+#: Depth decrease from the no-contact reference (m) that puts a pixel in a contact patch for the
+#: loss weighting (lower than the acceptance's 1.5 mm so that the rims of a dent count too).
+CONTACT_LOSS_THRESHOLD_M = 0.5e-3
 
 
 @dataclass(frozen=True)
@@ -52,6 +61,8 @@ class FrameSet:
     object_name: np.ndarray  # (N,) str object pressed ("" for none)
     pose_id: np.ndarray  # (N,) int32 contact pose within its session (-1 = none)
     phase: np.ndarray  # (N,) str phase name
+    reference: np.ndarray  # (R,H,W) float32 m no-contact reference depths, 0 = never valid
+    reference_index: np.ndarray  # (N,) int index into reference: the one of each frame's session and object
     sources: list[SessionSource] = field(default_factory=list)
 
     def __len__(self) -> int:
@@ -72,8 +83,17 @@ class FrameSet:
             object_name=self.object_name[idx],
             pose_id=self.pose_id[idx],
             phase=self.phase[idx],
+            reference=self.reference,
+            reference_index=self.reference_index[idx],
             sources=self.sources,
         )
+
+    def contact(self) -> np.ndarray:
+        """``(N,H,W) bool``: pixels whose ToF depth is pushed in from the frame's no-contact
+        reference by more than ``CONTACT_LOSS_THRESHOLD_M`` (the contact patches)."""
+        return np.stack([contact_mask(d, self.reference[r], CONTACT_LOSS_THRESHOLD_M)
+                         for d, r in zip(self.depth, self.reference_index)]) if len(self) else \
+            np.zeros((0,) + self.size, dtype=bool)
 
 
 def file_sha256(path: str | Path) -> str:
@@ -97,6 +117,18 @@ def _select_frames(
     return np.union1d(contact, chosen_free)
 
 
+def _reference_depth(s: Session, name: str) -> np.ndarray:
+    """No-contact reference depth ``(H,W) float32 m`` of object ``name`` ("" = none) in session
+    ``s``: its own reference frames, else every free frame of the session, else zeros."""
+    idx = s.reference_frames(name) if name else np.zeros(0, dtype=np.int64)
+    if len(idx) == 0:
+        idx = s.select(phase="free")
+    if len(idx) == 0:
+        return np.zeros((s.height, s.width), dtype=np.float32)
+    pick = np.unique(np.linspace(0, len(idx) - 1, min(len(idx), REFERENCE_FRAMES)).round().astype(np.int64))
+    return reference_depth(s.depth_m(idx[pick]))
+
+
 def load_frames(
     paths: list[str | Path],
     objects: list[str] | None = None,
@@ -118,7 +150,8 @@ def load_frames(
     if stride < 1:
         raise InputError(f"frame stride must be at least 1, got {stride}")
     rng = np.random.default_rng(seed)
-    parts: dict[str, list] = {k: [] for k in ("ir", "depth", "true", "session", "object", "pose", "phase")}
+    parts: dict[str, list] = {k: [] for k in ("ir", "depth", "true", "session", "object", "pose", "phase", "ref_index")}
+    references: list[np.ndarray] = []
     sources: list[SessionSource] = []
     size = None
     known_objects: set[str] = set()
@@ -140,6 +173,11 @@ def load_frames(
             parts["session"].append(np.full(len(idx), len(sources), dtype=np.int64))
             names = np.array(s.object_names + [""], dtype=object)
             parts["object"].append(names[s.object_index[idx]])
+            ref_index = np.zeros(len(idx), dtype=np.int64)
+            for oid in np.unique(s.object_index[idx]):
+                references.append(_reference_depth(s, names[oid]))
+                ref_index[s.object_index[idx] == oid] = len(references) - 1
+            parts["ref_index"].append(ref_index)
             parts["pose"].append(s.pose_id[idx])
             parts["phase"].append(np.asarray(s.phase_name(idx), dtype=object))
             sources.append(SessionSource(str(path), file_sha256(path), s.sensor_serial, s.simulated, len(idx)))
@@ -158,6 +196,8 @@ def load_frames(
         object_name=np.concatenate(parts["object"]),
         pose_id=np.concatenate(parts["pose"]),
         phase=np.concatenate(parts["phase"]),
+        reference=np.stack(references),
+        reference_index=np.concatenate(parts["ref_index"]),
         sources=sources,
     )
 
@@ -169,6 +209,7 @@ class NetworkTensors:
     x: torch.Tensor  # (n,1,h,w) float32 normalized IR, 0 in the padding
     depth: torch.Tensor  # (n,1,h,w) float32 m ToF depth, 0 = invalid or padding
     content: torch.Tensor  # (1,1,h,w) bool, True where the native frame lies in the input
+    contact: torch.Tensor  # (n,1,h,w) bool contact patches (FrameSet.contact), False in the padding
 
     def __len__(self) -> int:
         return int(self.x.shape[0])
@@ -179,8 +220,10 @@ def to_network_tensors(frames: FrameSet, geometry: InputGeometry, normalization:
     x = geometry.to_input(normalization.apply(frames.ir))
     depth = geometry.to_input(frames.depth, nearest=True)
     content = geometry.to_input(np.ones((1,) + frames.size, dtype=np.uint8), nearest=True).astype(bool)
+    contact = geometry.to_input(frames.contact().astype(np.uint8), nearest=True).astype(bool)
     return NetworkTensors(
         x=torch.from_numpy(x[:, None]),
         depth=torch.from_numpy(depth[:, None]),
         content=torch.from_numpy(content[:, None]),
+        contact=torch.from_numpy(contact[:, None]),
     )

@@ -24,13 +24,13 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_BAD_INPUT, InputError
 from trainer.doc_sections import update_section
 from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE, load_metadata
 
 #: Upper bound for the committed base model directory (bytes).
 MAX_BASE_MODEL_BYTES = 20 * 1024 * 1024
-DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
 #: The model card, whose "pretraining" section ``train`` rewrites (in a source checkout).
 MODEL_CARD = Path(__file__).resolve().parents[1] / "docs" / "model_card.md"
 
@@ -116,7 +116,9 @@ def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
         f"{t['n_train_frames']} frames (contact + 10 % free, frame stride {t['frame_stride']}), objects {', '.join(t['objects'])}",
         f"* validation: {len(t['val_sources'])} held-out sensors, {t['n_val_frames']} frames",
         f"* budget: {budget}, done {t['epochs']:.1f} epochs / {t['steps']} steps in {t['train_s'] / 60:.1f} min "
-        f"of training on {t['world_size']} process(es), batch {t['batch_size']}, peak RSS {t['peak_rss_mb']:.0f} MB",
+        f"of training on {t['world_size']} process(es), batch {t['batch_size']}, peak RSS {t['peak_rss_mb']:.0f} MB"
+        + (f", continued from a model trained on {len(t['init']['sensor_serials'])} sensors" if t.get("init") else ""),
+        f"* loss: {t['loss']}, contact patches weighted {1 + t.get('contact_weight', 0):g}x",
         f"* held-out sensors (vs ToF): a1 {m['a1']:.3f}, abs_rel {m['abs_rel']:.4f}, rmse {m['rmse'] * 1e3:.2f} mm, "
         f"rmse_log {m['rmse_log']:.4f}, silog {m['silog']:.3f}",
         f"* inference: {meta.inference.get('runtime', 'torch')}, ONNX max |ORT - torch| "
@@ -140,6 +142,8 @@ def run_train(args: argparse.Namespace) -> int:
         out=str(work / "model"),
         arch=args.arch,
         width=args.width,
+        init=args.init,
+        **({} if args.contact_weight is None else {"contact_weight": args.contact_weight}),
         epochs=args.epochs,
         minutes=args.minutes if args.epochs is None else None,
         batch_size=args.batch_size,
@@ -172,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("collect", help="record one simulated session per sensor")
     c.add_argument("--sensors", type=int, default=16)
     c.add_argument("--first-seed", type=int, default=1000)
-    c.add_argument("--objects", default=DEFAULT_OBJECTS)
+    c.add_argument("--objects", default=DEFAULT_OBJECTS_ARG)
     c.add_argument("--poses-per-object", type=int, default=8)
     c.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed factor (<= 100; lower on a busy machine)")
     c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel")
@@ -184,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--val-sensors", type=int, default=2, help="last sessions held out for validation")
     t.add_argument("--arch", default="resnet")
     t.add_argument("--width", type=float)
+    t.add_argument("--init", metavar="MODEL_DIR", help="continue from this model directory ('base' = the shipped base model)")
+    t.add_argument("--contact-weight", type=float, help="extra L1 weight of the contact patches (default: the trainer's)")
     t.add_argument("--epochs", type=float)
     t.add_argument("--minutes", type=float, default=30.0)
     t.add_argument("--batch-size", type=int, default=8)

@@ -31,7 +31,7 @@ from trainer.augmentation import augment_ir
 from trainer.checkpoint import CHECKPOINT_STATE, CHECKPOINT_WEIGHTS, has_checkpoint, load_checkpoint, save_checkpoint
 from trainer.dataset import FrameSet, NetworkTensors, load_frames, to_network_tensors
 from trainer.distributed import DistContext
-from trainer.losses import masked_l1
+from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
 from trainer.model_dir import ModelMetadata, load_network, resolve_model_dir, save_model
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, set_initial_depth
@@ -47,6 +47,8 @@ DEFAULT_MIN_DEPTH = 0.04
 DEFAULT_MAX_DEPTH = 0.12
 #: Budget when neither epochs nor minutes are given (the product's fine-tuning promise).
 DEFAULT_MINUTES = 3.0
+#: Extra L1 weight of the contact-patch pixels (``trainer.losses.contact_weights``).
+DEFAULT_CONTACT_WEIGHT = 10.0
 #: The learning rate halves after every this fraction of the budget (paper: every 40 of 100 epochs).
 LR_HALVING_FRACTION = 0.4
 
@@ -72,6 +74,7 @@ class TrainConfig:
     batch_size: int = 8
     lr: float = 2e-4
     inverse_depth_loss: bool = False
+    contact_weight: float = DEFAULT_CONTACT_WEIGHT  # extra loss weight of the contact patches (0 = plain L1)
     augment: bool = True
     min_depth: float = DEFAULT_MIN_DEPTH
     max_depth: float = DEFAULT_MAX_DEPTH
@@ -158,6 +161,8 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"epochs must be positive, got {config.epochs}")
     if config.minutes is not None and not config.minutes > 0:
         raise InputError(f"minutes must be positive, got {config.minutes}")
+    if not (math.isfinite(config.contact_weight) and config.contact_weight >= 0):
+        raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
     if config.batch_size < 1:
         raise InputError(f"batch size must be at least 1, got {config.batch_size}")
     h, w = config.input_size
@@ -236,7 +241,7 @@ def train_model(
     objects = sorted(set(train_frames.object_name) - {""})
     del frames, train_frames, val_frames  # the native copies; training uses the tensors only
     live_idx = np.linspace(0, len(val_t) - 1, min(config.eval_frames, len(val_t))).round().astype(int)
-    live_val = NetworkTensors(val_t.x[live_idx], val_t.depth[live_idx], val_t.content)
+    live_val = NetworkTensors(val_t.x[live_idx], val_t.depth[live_idx], val_t.content, val_t.contact[live_idx])
 
     network.to(ctx.device)
     model: nn.Module = network
@@ -306,7 +311,9 @@ def train_model(
                 x = augment_ir(x, train_t.content, metadata.normalization.std, gen)
             target = train_t.depth[idx].to(ctx.device)
             valid = (target > metadata.min_depth) & (target < metadata.max_depth)
-            loss = masked_l1(model(x.to(ctx.device)), target, valid, inverse=config.inverse_depth_loss)
+            weight = contact_weights(train_t.contact[idx], config.contact_weight).to(ctx.device) \
+                if config.contact_weight > 0 else None
+            loss = masked_l1(model(x.to(ctx.device)), target, valid, inverse=config.inverse_depth_loss, weight=weight)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -357,6 +364,7 @@ def train_model(
                           "lr_halving": f"x0.5 after every {int(LR_HALVING_FRACTION * 100)} % of the budget"},
             "budget": {"epochs": config.epochs, "minutes": minutes},
             "loss": "l1-inverse-depth" if config.inverse_depth_loss else "l1-depth",
+            "contact_weight": config.contact_weight,
             "augment": config.augment,
             "seed": config.seed,
             "frame_stride": config.frame_stride,
