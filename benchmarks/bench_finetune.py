@@ -26,7 +26,8 @@ sys.path.insert(0, str(ROOT))
 
 from trainer.doc_sections import BENCH_TRAINER_HEADER, update_section  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
-from trainer.pretrain import DEFAULT_OBJECTS, collect_one  # noqa: E402
+from collect.cli import DEFAULT_OBJECTS_ARG  # noqa: E402
+from trainer.pretrain import collect_one  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
 
 TARGET_A1 = 0.95
@@ -51,7 +52,7 @@ def main() -> int:
     parser.add_argument("--eval-s", type=float, default=15.0)
     parser.add_argument("--sensor-seed", type=int, default=7)
     parser.add_argument("--poses-per-object", type=int, default=8)
-    parser.add_argument("--objects", default=DEFAULT_OBJECTS)
+    parser.add_argument("--objects", default=DEFAULT_OBJECTS_ARG)
     parser.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed (lower on a busy machine)")
     parser.add_argument("--scratch", action="store_true", help="also train from scratch for the same time")
     parser.add_argument("--work", help="keep sessions and models here (default: a temporary directory)")

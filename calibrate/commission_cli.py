@@ -13,9 +13,8 @@ import threading
 import time
 from pathlib import Path
 
+from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
-
-DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
 
 
 def register(subparsers) -> None:
@@ -34,7 +33,7 @@ def register(subparsers) -> None:
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
     p.add_argument("--finetune-minutes", type=float, default=2.5, metavar="M", help="fine-tuning time budget (default 2.5)")
     p.add_argument("--leak-hold-s", type=float, default=10.0, metavar="S", help="leak-test hold, s of bench time (default 10)")
-    p.add_argument("--objects", default=DEFAULT_OBJECTS, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS})")
+    p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=8, metavar="K")
     p.add_argument("--seed", type=int, default=0, help="seed of the pose plan and of the simulated sensor")
     p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS", help="inject a fault (simulated bench)")

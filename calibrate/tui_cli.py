@@ -6,6 +6,7 @@ import sys
 from datetime import datetime
 from pathlib import Path
 
+from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import InputError
 
 
@@ -19,7 +20,7 @@ def register(subparsers) -> None:
     p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
     p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="sensor spec of the simulated sensor")
     p.add_argument("--out", type=Path, metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
-    p.add_argument("--objects", default="mug,wine_glass,box,fingers", help="comma-separated objects to press")
+    p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=8, metavar="K")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--finetune-minutes", type=float, default=2.5, metavar="M")

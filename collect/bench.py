@@ -15,6 +15,7 @@ layout is geometry shared by the real fixture and the simulation); a real bench 
 from __future__ import annotations
 
 import contextlib
+from abc import ABC, abstractmethod
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -31,11 +32,12 @@ from collect.safety import SafetyLimits
 
 log = logging.getLogger(__name__)
 
+#: The objects of the standard fixture plate (built-in simulated objects of the same names).
 DEFAULT_OBJECTS = ("mug", "wine_glass", "box", "fingers")
 
 
 @dataclass
-class BenchConfig:
+class BenchConfig(ABC):
     """Settings common to every bench; subclasses register under ``type`` with ``BenchConfig.register``.
 
     objects: built-in object names or mesh paths, placed on the fixture plate in this order.
@@ -111,9 +113,9 @@ class BenchConfig:
             raise InputError(f"bench config {path} is not valid YAML: {str(err).splitlines()[0]}") from None
         return cls.from_dict(data, source=f"bench config {path}")
 
+    @abstractmethod
     def open(self) -> "Bench":
-        """Open every device of this bench (overridden per type)."""
-        raise NotImplementedError(f"bench type '{self.type}' cannot be opened")
+        """Open every device of this bench."""
 
 
 def _placed_objects(names, plate_pose=None) -> list:

@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import threading
 
+from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
 
-DEFAULT_OBJECTS = "mug,wine_glass,box,fingers"
+#: ``--objects`` default of the commands that press objects: every object of the fixture plate.
+DEFAULT_OBJECTS_ARG = ",".join(DEFAULT_OBJECTS)
 
 
 def register(subparsers) -> None:
@@ -20,7 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--sim", action="store_true", help="use the simulated bench (default: the real 'ur' bench of --bench)")
     p.add_argument("--bench", metavar="BENCH.yaml", help="real bench settings (robot_ip, home_pose, serial_port, ...)")
     p.add_argument("--sensor", metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
-    p.add_argument("--objects", help=f"comma-separated built-in objects (default: {DEFAULT_OBJECTS})")
+    p.add_argument("--objects", help=f"comma-separated built-in objects (default: {DEFAULT_OBJECTS_ARG})")
     p.add_argument("--object-mesh", nargs="+", action="extend", default=[], metavar="PATH",
                    help="mesh files (STL/OBJ/PLY, m, +z up) on the plate; alone, only the meshes are used")
     p.add_argument("--poses-per-object", type=int, default=8, metavar="K", help="contact poses per object (default 8)")
@@ -41,7 +43,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_info)
 
 
-def object_list(objects: str | None, meshes: list[str], default: str = DEFAULT_OBJECTS) -> tuple[str, ...]:
+def object_list(objects: str | None, meshes: list[str], default: str = DEFAULT_OBJECTS_ARG) -> tuple[str, ...]:
     """Object names / mesh paths from ``--objects`` and ``--object-mesh`` (meshes alone: only meshes;
     neither: ``default``, comma-separated)."""
     if objects is None:
