@@ -72,3 +72,4 @@ ATTR_INVALID = "invalid"  # frames/depth: the value that marks invalid pixels (0
 ATTR_PHASE_ENUM = "enum"  # frames/phase: JSON {name: value} of PHASES
 ATTR_CLOSED = "closed"  # root: ISO 8601 UTC time of the last clean close, "" while recording / after a crash
 ATTR_COLLECTION_PLAN = "collection_plan"  # root: JSON of the pose plan settings (objects, poses per object, seed)
+ATTR_RESUMED_AT_FRAMES = "resumed_at_frames"  # root: JSON list of the frame indices where resumed segments start

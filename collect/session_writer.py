@@ -12,6 +12,13 @@ flush. A process killed with SIGKILL leaves a file holding every frame up to the
 opens with ``h5py.File(path, "r", swmr=True)`` (``collect.session_reader`` does that for you) and
 ``resume=True`` continues it.
 
+Resumed sessions: the clocks stay increasing across segments. When a resumed segment's clock
+restarted (the simulated bench starts at 0; a rebooted host or camera), its bench-clock times
+(``t_host``, arm and pressure ``t``) and its camera times are shifted to continue
+``RESUME_GAP_S`` after the last recorded ones; sequence numbers always continue from the last
+recorded one (frames between two segments were never recorded, not dropped). The frame index
+where each segment starts is listed in the root attr ``resumed_at_frames``.
+
 Compression: the byte-shuffle + deflate (level 1) HDF5 filters, applied by the writer itself in
 parallel threads and stored with direct chunk writes (see ``IMAGE_COMPRESSION``,
 docs/session_format.md and docs/bench_recorder.md for the measurements behind this choice).
@@ -49,6 +56,30 @@ ROW_CHUNK = 512
 QUEUE_ITEMS = 2048
 
 _STR = h5py.string_dtype("utf-8")
+
+#: Gap (s) between the last recorded sample and a resumed segment whose clock restarted.
+RESUME_GAP_S = 1.0
+
+
+class _ContinuedClock:
+    """Shift of one clock of a resumed segment: fixed by the first value the segment brings, so
+    that it lands ``gap`` after ``last`` (the last recorded value; -inf: none, never shifted).
+    With ``restarted_only`` a clock that did not restart keeps its values (shift 0); without, the
+    segment always continues right after ``last`` (sequence numbers: the frames between two
+    segments were never recorded, not dropped). Thread-safe."""
+
+    def __init__(self, last: float, gap: float, restarted_only: bool = True):
+        self.last, self.gap, self.restarted_only = float(last), float(gap), restarted_only
+        self.shift: float | None = None if np.isfinite(self.last) else 0.0
+        self._lock = threading.Lock()
+
+    def __call__(self, value: float) -> float:
+        if self.shift is None:
+            with self._lock:
+                if self.shift is None:
+                    shift = self.last + self.gap - value
+                    self.shift = max(0.0, shift) if self.restarted_only else shift
+        return value + self.shift
 
 
 def software_version() -> str:
@@ -141,6 +172,12 @@ class SessionWriter:
         #: object indices with no-contact reference frames already in the file
         self.referenced_objects = frozenset(_referenced_objects(self._file))
         self.stats.frames_flushed = self.n_frames_at_open
+        self._host_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_HOST, sf.ARM_T, sf.PRESSURE_T), RESUME_GAP_S)
+        self._device_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_DEVICE), RESUME_GAP_S)
+        self._seq = _ContinuedClock(_last_value(self._file, sf.FRAMES_SEQ), 1, restarted_only=False)
+        if resume and self.n_frames_at_open:
+            segments = json.loads(self._file.attrs.get(sf.ATTR_RESUMED_AT_FRAMES, "[]"))
+            self._file.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps(segments + [self.n_frames_at_open])
         self._file.flush()
         self._file.swmr_mode = True
         self._frames = {name: self._file[name] for name in _FRAME_DATASETS}
@@ -187,9 +224,9 @@ class SessionWriter:
             "frame",
             np.array(ir, dtype=np.uint16),
             np.array(depth, dtype=np.uint16),
-            float(t_device),
-            float(t_host),
-            int(seq),
+            self._device_clock(float(t_device)),
+            self._host_clock(float(t_host)),
+            int(self._seq(int(seq))),
             int(object_index),
             int(pose_id),
             int(phase),
@@ -204,7 +241,7 @@ class SessionWriter:
         self._put(
             (
                 "arm",
-                float(t),
+                self._host_clock(float(t)),
                 np.asarray(tcp_pose, dtype=np.float64).reshape(6),
                 np.asarray(wrench, dtype=np.float64).reshape(6),
             )
@@ -212,7 +249,7 @@ class SessionWriter:
 
     def append_pressure(self, t: float, hpa: float) -> None:
         """Queue one pressure reading: host time s, absolute pressure hPa."""
-        self._put(("pressure", float(t), float(hpa)))
+        self._put(("pressure", self._host_clock(float(t)), float(hpa)))
 
     def close(self) -> None:
         """Write everything queued, mark the file closed cleanly, close it. Idempotent.
@@ -573,6 +610,11 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
         f.close()
         raise
     return f
+
+
+def _last_value(f: h5py.File, *names: str) -> float:
+    """Largest last value of the 1-D datasets ``names`` (-inf when all are empty)."""
+    return max((float(f[name][-1]) for name in names if f[name].shape[0]), default=-np.inf)
 
 
 def _completed_pose_ids(f: h5py.File) -> set[int]:

@@ -140,6 +140,31 @@ def test_sigkill_keeps_every_flushed_frame_and_resume_continues(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["crash.h5"]
 
 
+def test_a_resumed_segment_whose_clocks_restarted_continues_them(tmp_path):
+    """A simulated bench (or a rebooted host / camera) starts its clocks and sequence numbers at 0
+    again: the resumed segment is shifted to follow the recorded one; a clock that went on is kept."""
+    path = tmp_path / "resumed.h5"
+    with _writer(path) as w:
+        for i in range(5):
+            w.append_frame(*_frame(i), 100.0 + i / 45, 10.0 + i / 45, 40 + i, 0, -1, sf.PHASE_FREE, np.zeros(6))
+        w.append_arm(10.2, np.zeros(6), np.zeros(6))
+        w.append_pressure(10.25, 1065.0)
+    with _writer(path, resume=True) as w:  # host and sequence restarted, the camera clock went on
+        w.append_arm(0.0, np.zeros(6), np.zeros(6))
+        for i in range(3):
+            w.append_frame(*_frame(i), 500.0 + i / 45, 0.01 + i / 45, i, 0, -1, sf.PHASE_FREE, np.zeros(6))
+        w.append_pressure(0.02, 1065.0)
+    with Session.open(path) as s, h5py.File(path, "r") as f:
+        assert json.loads(f.attrs[sf.ATTR_RESUMED_AT_FRAMES]) == [5]
+        np.testing.assert_array_equal(s.seq, np.arange(40, 48))  # contiguous: nothing was dropped
+        t_host, t_device = f[sf.FRAMES_T_HOST][()], f[sf.FRAMES_T_DEVICE][()]
+        assert (np.diff(t_host) > 0).all() and (np.diff(t_device) > 0).all()
+        np.testing.assert_allclose(t_host[5:], 11.25 + 0.01 + np.arange(3) / 45)  # 1 s after the pressure at 10.25
+        np.testing.assert_allclose(t_device[5:], 500.0 + np.arange(3) / 45)  # not restarted: kept
+        np.testing.assert_allclose(f[sf.ARM_T][()], [10.2, 11.25])
+        np.testing.assert_allclose(f[sf.PRESSURE_T][()], [10.25, 11.27])
+
+
 def test_flush_happens_while_recording_without_close(tmp_path):
     path = tmp_path / "live.h5"
     w = _writer(path)
