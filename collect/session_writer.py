@@ -626,8 +626,12 @@ def _completed_pose_ids(f: h5py.File) -> set[int]:
 
 
 def _referenced_objects(f: h5py.File) -> set[int]:
-    phase = f[sf.FRAMES_PHASE][()]
-    return {int(o) for o in np.unique(f[sf.FRAMES_OBJECT][()][phase == sf.PHASE_FREE]) if o >= 0}
+    """Objects whose no-contact reference is complete: free frames followed by a contact pose's
+    frames (a reference cut short by a fault or a stop is recorded again on resume)."""
+    phase, obj = f[sf.FRAMES_PHASE][()], f[sf.FRAMES_OBJECT][()]
+    free = set(np.unique(obj[phase == sf.PHASE_FREE]).tolist())
+    posed = set(np.unique(obj[phase != sf.PHASE_FREE]).tolist())
+    return {int(o) for o in free & posed if o >= 0}
 
 
 def _truncate_to_common_length(f: h5py.File) -> None:

@@ -184,7 +184,10 @@ def test_flush_happens_while_recording_without_close(tmp_path):
 def test_resume_adds_new_objects_and_checks_meshes(tmp_path):
     path = tmp_path / "s.h5"
     with _writer(path) as w:
-        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, 0, np.zeros(6))
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    with _writer(path, resume=True) as w:  # a reference cut short (nothing after it) is recorded again
+        assert w.referenced_objects == set()
+        w.append_frame(*_frame(1), 0.1, 0.1, 1, 0, 0, sf.PHASE_APPROACH, np.zeros(6))
     box = dict(OBJECT, name="box", mesh_sha256="cd" * 32)
     with _writer(path, resume=True, objects=[box, OBJECT]) as w:
         assert w.object_indices == [1, 0] and w.referenced_objects == {0}
