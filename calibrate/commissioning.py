@@ -564,6 +564,8 @@ class _Flow:
             "per_object": per_object,
             "contact": {k: contact_metrics[k] for k in (*METRIC_KEYS, "n_images", "n_pixels")},
             "vs_true": truth,
+            "heldout_pose_ids": {name: sorted({int(p) for p in held.pose_id[held.object_name == name]})
+                                 for name in sorted(set(held.object_name))},
             "checks": checks,
         }
 
@@ -577,7 +579,8 @@ class _Flow:
         try:
             result = run_pose_check(
                 str(self.run_dir / MODEL_DIR), self.run_dir / SESSION_FILE, "mug",
-                seed=self.config.seed, plots_dir=self.run_dir / PLOTS_DIR,
+                seed=self.config.seed, pose_ids=self.state.get(Step.VALIDATE).get("heldout_pose_ids", {}).get("mug"),
+                plots_dir=self.run_dir / PLOTS_DIR,
             )
         except InputError as err:  # no usable frame: the check fails, the run goes on to a verdict
             checks = [

@@ -176,8 +176,9 @@ def _predict(estimator, session, idx: np.ndarray) -> np.ndarray:
 def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
                    threshold_m: float = CONTACT_THRESHOLD_M, n_points: int = N_POINTS,
                    prior_error_mm: float = 2.0, prior_error_deg: float = 2.0, seed: int = 0,
-                   plots_dir: str | Path | None = None) -> PoseCheckResult:
-    """Run the pose check over every hold frame of ``object_name`` in the session.
+                   pose_ids=None, plots_dir: str | Path | None = None) -> PoseCheckResult:
+    """Run the pose check over every hold frame of ``object_name`` in the session (of the contact
+    poses ``pose_ids`` only, when given: e.g. the poses the model was not trained on).
 
     ``model``: a model directory (or ``"base"``), or a loaded estimator with
     ``predict_batch(ir (N,H,W) uint16) -> (N,H,W) float32 m`` (``trainer.inference.DepthEstimator``).
@@ -197,7 +198,8 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         if len(ref_idx) == 0:
             raise InputError(f"{session.path}: no no-contact (free) frames of {object_name!r} to "
                              "take the contact reference from")
-        hold_idx = session.select(object=object_name, phase="hold")
+        hold_idx = session.select(object=object_name, phase="hold",
+                                  pose_id=None if pose_ids is None else [int(p) for p in pose_ids])
         if len(hold_idx) == 0:
             raise InputError(f"{session.path}: no hold frames of {object_name!r}")
         sources = [s for s in SOURCES if s != "true" or session.simulated]

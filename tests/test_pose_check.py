@@ -139,3 +139,7 @@ def test_pose_check_counts_skipped_frames_and_fails_with_no_usable_frame(tmp_pat
         run_pose_check(DecodingEstimator(), path, "cup")
     result = run_pose_check(DecodingEstimator(), path, "mug")
     assert result.n_used == 4 and not result.vs_true and result.skipped[SKIP_NON_FINITE] == 0
+    held_out = run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[int(result.frames[-1].pose_id)])
+    assert held_out.n_hold_frames == 2 and {f.pose_id for f in held_out.frames} == {result.frames[-1].pose_id}
+    with pytest.raises(InputError, match="no hold frames"):
+        run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[])
