@@ -81,7 +81,8 @@ def main() -> int:
     lines = [
         f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} CPUs, load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} "
-        "(other processes running make these provisional).",
+        "(includes this benchmark and the one run just before it; numbers taken while other jobs share the "
+        "machine are provisional).",
         "",
         f"New simulated sensor: seed {args.sensor_seed}, objects {args.objects}, {args.poses_per_object} poses each; "
         f"validation = held-out contact poses (30 %, in-class pose split). Budget {args.minutes} min of training "

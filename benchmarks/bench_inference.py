@@ -76,7 +76,8 @@ def main() -> int:
     lines = [
         f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} CPUs, torch threads {args.threads}, torch {torch.__version__}, "
-        f"load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} (other processes running make these provisional).",
+        f"load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} (includes this benchmark and the one run just "
+        "before it; numbers taken while other jobs share the machine are provisional).",
         "",
         "Median wall time of `DepthEstimator.predict` on one 224 x 172 frame (normalize, pad to 224 x 224, "
         f"network, crop), batch 1, {args.repeats} runs. Target <= {TARGET_MS:.1f} ms (60 fps). "

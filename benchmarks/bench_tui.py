@@ -173,8 +173,8 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "",
         *([f"Fine-tuned from `{args.base_model}` (given with `--base-model`), not the packaged base model.", ""]
           if args.base_model else []),
-        "**Provisional**: measured while other engineers' jobs loaded the 2-core machine; rerun on a quiet",
-        "machine with the command above.",
+        "The load average includes this benchmark's own flow (collection, then fine-tuning on both cores) and",
+        "whatever ran just before it; numbers taken while other jobs share the machine are provisional.",
         "",
     ]
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -89,7 +89,8 @@ def main(argv=None) -> int:
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} CPUs, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}"
         " (1/5/15 min) at the end of the run."
-        + (" **Provisional: the machine was shared and loaded.**" if load[0] > 0.5 * (os.cpu_count() or 1) else ""),
+        + " (includes this benchmark and the one run just before it)"
+        + (" **Provisional: the machine was shared and loaded.**" if load[0] > (os.cpu_count() or 1) else ""),
         "",
         "| mode | wall s | sim s / wall s | CPU (cores) | camera fps | camera seq gaps | arm state Hz | pressure Hz | physics solves/s |",
         "|---|---|---|---|---|---|---|---|---|",
