@@ -57,8 +57,8 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
+from calibrate.contact_patch import contact_mask
 from collect.errors import HardwareFault, InputError
-from calibrate.contact_patch import CONTACT_THRESHOLD_M
 from collect.session_format import DEPTH_UNIT_M
 
 if TYPE_CHECKING:
@@ -534,7 +534,7 @@ class _Flow:
         # The contact patches: where the ToF sees the membrane pushed in from its rest shape. The
         # whole-image metrics hardly see a few-mm dent (delta < 1.05 is 4.5 mm at 90 mm), these do.
         ref = arrays["reference_depth"]
-        contact = (ref > 0) & (held.depth > 0) & (ref - held.depth > CONTACT_THRESHOLD_M)
+        contact = contact_mask(held.depth, ref)
         contact_metrics = depth_metrics(pred, held.depth, mask=contact, **kw)
         pick = _pick_examples(held, ref)
         arrays.update(

@@ -45,10 +45,11 @@ def reference_depth(frames: np.ndarray) -> np.ndarray:
 
 def contact_mask(depth: np.ndarray, reference: np.ndarray,
                  threshold_m: float = CONTACT_THRESHOLD_M) -> np.ndarray:
-    """``(H,W) bool``: valid in both and closer to the camera than the reference by > threshold."""
+    """``(H,W) bool`` (or ``(N,H,W)`` for ``(N,H,W)`` depth maps against one ``(H,W)``
+    reference): valid in both and closer to the camera than the reference by > threshold."""
     depth = np.asarray(depth, dtype=np.float32)
     reference = np.asarray(reference, dtype=np.float32)
-    if depth.shape != reference.shape:
+    if depth.shape[-2:] != reference.shape:
         raise InputError(f"depth {depth.shape} and reference {reference.shape} differ in shape")
     with np.errstate(invalid="ignore"):
         return _valid(depth) & _valid(reference) & (reference - depth > threshold_m)

@@ -15,8 +15,8 @@ layout is geometry shared by the real fixture and the simulation); a real bench 
 from __future__ import annotations
 
 import contextlib
-from abc import ABC, abstractmethod
 import logging
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -64,9 +64,9 @@ LOOKAHEAD_S = 0.03
 #: Farthest extrapolation of the wrench/pressure, in units of the last solve step, and the shortest
 #: step (m) worth extrapolating along (shorter steps would amplify the solver's tolerance).
 EXTRAPOLATE_MAX = 2.0
+EXTRAPOLATE_MIN_STEP_M = 1e-4
 #: How far (s) simulated time may run past the next message a streaming twin owes (see Pacing).
 PACE_SLACK_S = 0.1
-EXTRAPOLATE_MIN_STEP_M = 1e-4
 
 
 @dataclass(frozen=True)

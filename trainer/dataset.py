@@ -91,9 +91,11 @@ class FrameSet:
     def contact(self) -> np.ndarray:
         """``(N,H,W) bool``: pixels whose ToF depth is pushed in from the frame's no-contact
         reference by more than ``CONTACT_LOSS_THRESHOLD_M`` (the contact patches)."""
-        return np.stack([contact_mask(d, self.reference[r], CONTACT_LOSS_THRESHOLD_M)
-                         for d, r in zip(self.depth, self.reference_index)]) if len(self) else \
-            np.zeros((0,) + self.size, dtype=bool)
+        mask = np.zeros(self.depth.shape, dtype=bool)
+        for r in np.unique(self.reference_index):
+            mine = self.reference_index == r
+            mask[mine] = contact_mask(self.depth[mine], self.reference[r], CONTACT_LOSS_THRESHOLD_M)
+        return mask
 
 
 def file_sha256(path: str | Path) -> str:
