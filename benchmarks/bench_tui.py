@@ -1,7 +1,7 @@
 """TUI responsiveness while the real commissioning flow runs -> docs/bench_tui.md.
 
-Runs ``bubble tui``'s app headless (``App.run_test``) and starts the real commissioning flow on the
-simulated bench (real-time clock: the camera twin streams at its 45 fps; fine-tuning uses every
+Runs ``bubble tui``'s app headless (``App.run_test``) and starts the real commissioning flow, in the
+child process ``bubble tui`` runs it in, on the simulated bench (real-time clock: the camera twin streams at its 45 fps; fine-tuning uses every
 CPU core torch is given). Every ``--interval`` s it injects a key press that switches tabs
 (``1`` <-> ``2``: the commission tab and the large sensor view) and measures the latency from the
 key event being posted to the first frame the app composes with the new tab active (the
@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
 import os
 import platform
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -31,10 +33,20 @@ from textual import events  # noqa: E402
 
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
-from calibrate.tui.app import COMPUTE_NICE, BenchApp  # noqa: E402
+from calibrate.tui.app import UI_GC_THRESHOLDS, BenchApp  # noqa: E402
+from calibrate.tui.flow_runner import COMPUTE_NICE  # noqa: E402
 
 TARGET_MS = 100.0
 SIZE = (120, 36)
+
+
+def runqueue_wait_s() -> float:
+    """Time the calling thread has spent runnable but waiting for a CPU, s (Linux schedstat; nan elsewhere)."""
+    try:
+        fields = Path(f"/proc/self/task/{threading.get_native_id()}/schedstat").read_text().split()
+        return int(fields[1]) * 1e-9
+    except (OSError, IndexError, ValueError):
+        return float("nan")
 
 
 class FrameClock:
@@ -45,7 +57,11 @@ class FrameClock:
         self.waiting_for: str | None = None  # tab id the pending key press should show
         self.shown_at: float | None = None
         self.shown_cpu: float | None = None  # UI thread CPU time (s) when the frame was composed
+        self.shown_wait: float | None = None  # UI thread run-queue wait (s) when the frame was composed
         self.frames = 0
+        self.gc_s = 0.0  # time spent in garbage collections in this process so far, s
+        self._gc_started = 0.0
+        gc.callbacks.append(self._on_gc)
         original = app._display
 
         def display(screen, renderable):
@@ -55,9 +71,20 @@ class FrameClock:
             if self.waiting_for is not None and self.shown_at is None and app.tabs.active == self.waiting_for:
                 self.shown_at = time.perf_counter()
                 self.shown_cpu = time.thread_time()
+                self.shown_wait = runqueue_wait_s()
             return original(screen, renderable)
 
         app._display = display
+
+
+    def _on_gc(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._gc_started = time.perf_counter()
+        else:
+            self.gc_s += time.perf_counter() - self._gc_started
+
+    def close(self) -> None:
+        gc.callbacks.remove(self._on_gc)
 
 
 def running_step(app: BenchApp) -> str:
@@ -68,10 +95,13 @@ def running_step(app: BenchApp) -> str:
     return "running" if app.running else "idle"
 
 
-async def measure(config: CommissionConfig, interval: float, max_seconds: float, compute_nice: int) -> dict:
-    app = BenchApp(config, compute_nice=compute_nice)
+async def measure(config: CommissionConfig, interval: float, max_seconds: float, compute_nice: int,
+                  tune_gc: bool = True) -> dict:
+    app = BenchApp(config, compute_nice=compute_nice, tune_gc=tune_gc)
     latencies: dict[str, list[float]] = defaultdict(list)
     cpu: dict[str, list[float]] = defaultdict(list)  # UI thread CPU ms from key to frame
+    waits: dict[str, list[float]] = defaultdict(list)  # UI thread run-queue wait ms from key to frame
+    gcs: dict[str, list[float]] = defaultdict(list)  # garbage collection ms from key to frame
     missed: dict[str, int] = defaultdict(int)
     async with app.run_test(size=SIZE) as pilot:
         clock = FrameClock(app)
@@ -83,7 +113,7 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
             phase = running_step(app)
             key = "2" if target == "tab-sensor" else "1"
             clock.waiting_for, clock.shown_at = target, None
-            t0, c0 = time.perf_counter(), time.thread_time()
+            t0, c0, w0, g0 = time.perf_counter(), time.thread_time(), runqueue_wait_s(), clock.gc_s
             app._driver.send_message(events.Key(key, key))  # the path a terminal key takes
             while clock.shown_at is None and time.perf_counter() - t0 < 2.0:
                 await asyncio.sleep(0.001)
@@ -92,6 +122,8 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
             else:
                 latencies[phase].append((clock.shown_at - t0) * 1e3)
                 cpu[phase].append((clock.shown_cpu - c0) * 1e3)
+                waits[phase].append((clock.shown_wait - w0) * 1e3)
+                gcs[phase].append((clock.gc_s - g0) * 1e3)
             clock.waiting_for = None
             target = "tab-commission" if target == "tab-sensor" else "tab-sensor"
             if not app.running and (app.result is not None or app.error is not None):
@@ -106,7 +138,8 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
         await pilot.pause(0.2)
         outcome = describe_outcome(app)
         received = app.events_received
-    return {"latencies": latencies, "cpu": cpu, "missed": missed, "wall_s": wall, "outcome": outcome,
+        clock.close()
+    return {"latencies": latencies, "cpu": cpu, "waits": waits, "gc": gcs, "missed": missed, "wall_s": wall, "outcome": outcome,
             "events": received, "frames": clock.frames}
 
 
@@ -130,35 +163,45 @@ def write_markdown(path: Path, stats: dict, args) -> None:
     for phase in sorted(stats["latencies"].keys() | stats["missed"].keys(), key=order.index):
         lat = np.array(stats["latencies"].get(phase, []))
         cpu = np.array(stats["cpu"].get(phase, []))
+        wait = np.array(stats["waits"].get(phase, []))
+        gcms = np.array(stats["gc"].get(phase, []))
         all_lat += list(lat)
         miss = stats["missed"].get(phase, 0)
         if len(lat):
             rows.append(f"| {phase} | {len(lat)} | {np.median(lat):.1f} | {np.percentile(lat, 95):.1f} | "
-                        f"{lat.max():.1f} | {np.median(cpu):.1f} | {miss} | "
+                        f"{lat.max():.1f} | {np.median(cpu):.1f} | {np.percentile(wait, 95):.1f} | {gcms.max():.1f} | {miss} | "
                         f"{'yes' if lat.max() < TARGET_MS and not miss else 'no'} |")
         else:
-            rows.append(f"| {phase} | 0 | - | - | - | - | {miss} | no |")
+            rows.append(f"| {phase} | 0 | - | - | - | - | - | - | {miss} | no |")
     all_lat = np.array(all_lat)
     load = os.getloadavg()
     lines = [
         "# TUI responsiveness",
         "",
         "Key press to screen update while the real commissioning flow runs on the simulated bench",
-        "(camera twin at 45 fps in real time, then fine-tuning on the CPU), measured headless with",
+        "(camera twin at 45 fps in real time, then fine-tuning on the CPU) in the child process `bubble tui`",
+        "runs it in (`calibrate/tui/flow_runner.py`), measured headless with",
         "`App.run_test`: a tab switch key (`1`/`2`, alternating between the steps and the large sensor",
         "view) is posted every "
         f"{args.interval:.2f} s and timed until the first composed frame shows the new tab (the frame is",
         "also rendered to terminal escape codes). Target: < 100 ms. \"UI CPU\" is the CPU time the UI thread",
         "spent between the key and the frame: the latency a quiet machine would show, without waiting",
-        "for the CPU or for the GIL held by the flow thread. Written by `benchmarks/bench_tui.py`.",
+        "for the CPU. \"CPU wait\" is the time the UI thread was ready to run but had no core",
+        "(`/proc/self/task/TID/schedstat`); \"GC\" the time the UI process spent in Python's garbage collector",
+        "between the key and the frame. Written by `benchmarks/bench_tui.py`.",
         "",
         "```",
         f".venv/bin/python benchmarks/bench_tui.py --finetune-minutes {args.finetune_minutes} "
-        f"--poses-per-object {args.poses_per_object} --interval {args.interval} --compute-nice {args.compute_nice}",
+        f"--poses-per-object {args.poses_per_object} --interval {args.interval} --compute-nice {args.compute_nice}"
+        + (" --python-gc" if args.python_gc else ""),
         "```",
         "",
-        "| step running | presses | median ms | p95 ms | max ms | UI CPU median ms | no update in 2 s | max < 100 ms |",
-        "|---|---|---|---|---|---|---|---|",
+        ("Python's default garbage collector settings (`--python-gc`)." if args.python_gc else
+         f"Garbage collector as `bubble tui` sets it (`calibrate.tui.app.tune_gc_for_ui`: collect, freeze, thresholds "
+         f"{UI_GC_THRESHOLDS})."),
+        "",
+        "| step running | presses | median ms | p95 ms | max ms | UI CPU median ms | CPU wait p95 ms | GC max ms | no update in 2 s | max < 100 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|",
         *rows,
         "",
         f"All presses: {len(all_lat)}, median {np.median(all_lat):.1f} ms, p95 {np.percentile(all_lat, 95):.1f} ms, "
@@ -188,7 +231,9 @@ def main() -> int:
     parser.add_argument("--interval", type=float, default=0.3, help="s between key presses")
     parser.add_argument("--max-seconds", type=float, default=600.0)
     parser.add_argument("--compute-nice", type=int, default=COMPUTE_NICE,
-                        help="nice increment of the flow thread in the compute steps")
+                        help="nice increment of the flow in the compute steps")
+    parser.add_argument("--python-gc", action="store_true",
+                        help="keep Python's default garbage collector settings (bubble tui tunes them)")
     parser.add_argument("--base-model", type=Path, help="model to fine-tune from (default: the packaged base model)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "bench_tui.md")
     args = parser.parse_args()
@@ -197,7 +242,7 @@ def main() -> int:
                                   objects=("mug", "box"), poses_per_object=args.poses_per_object,
                                   finetune_minutes=args.finetune_minutes, leak_hold_s=3.0,
                                   base_model=args.base_model)
-        stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.compute_nice))
+        stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.compute_nice, not args.python_gc))
     write_markdown(args.out, stats, args)
     print(args.out.read_text())
     return 0

@@ -95,6 +95,11 @@ class ProgressPrinter:
             self._print(f"[finetune] step {event.step}: loss {event.loss * 1000:.3f} mm{a1}{eta}")
         elif isinstance(event, ev.FaultRaised):
             self._print(f"FAULT {event.kind}: {event.message}")
+        elif isinstance(event, ev.ArmSafeStopped):
+            if event.retracted:
+                self._print(f"arm stopped and retracted, |F| {event.force_after_n:.1f} N")
+            else:
+                self._print("arm stopped but NOT retracted: clear the stop on the pendant")
 
 
 def run_commission(args) -> int:

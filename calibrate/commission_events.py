@@ -92,6 +92,16 @@ class FaultRaised:
 
 
 @dataclass
+class ArmSafeStopped:
+    """The flow stopped the arm and retracted it (stop request, hardware fault or error)."""
+
+    retracted: bool  # False: stopped but could not move (e.g. protective stop)
+    tcp_z_before_m: float  # TCP height before the stop, m (base frame; nan when unreadable)
+    tcp_z_after_m: float  # TCP height after the retract, m (nan when unreadable)
+    force_after_n: float  # |F| at the TCP after the retract, N (nan when unreadable)
+
+
+@dataclass
 class Verdict:
     accepted: bool
     checks: list[dict] = field(default_factory=list)  # {name, value, threshold, passed, reason}
@@ -106,5 +116,6 @@ CommissionEvent = (
     | BenchSnapshot
     | TrainingProgress
     | FaultRaised
+    | ArmSafeStopped
     | Verdict
 )

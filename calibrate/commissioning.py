@@ -46,6 +46,7 @@ import numpy as np
 from calibrate import acceptance
 from calibrate.commission_events import (
     STEPS,
+    ArmSafeStopped,
     BenchSnapshot,
     CollectionProgress,
     CommissionEvent,
@@ -320,7 +321,10 @@ class _Flow:
             return
         try:
             if safe_stop:
-                bench.safe_stop()
+                z_before, _ = _arm_z_and_force(bench)
+                retracted = bench.safe_stop()
+                z_after, force_after = _arm_z_and_force(bench)
+                self.emit(ArmSafeStopped(bool(retracted), z_before, z_after, force_after))
         finally:
             self._bench_cm.__exit__(None, None, None)  # retracts a still-running arm, closes the devices
 
@@ -801,6 +805,15 @@ class _Flow:
 
     def _speed(self) -> float:
         return float(self.config.sim_speed) if self.config.simulated else 1.0
+
+
+def _arm_z_and_force(bench) -> tuple[float, float]:
+    """(TCP z in m, |F| at the TCP in N) of the arm, nan when the arm cannot be read."""
+    try:
+        state = bench.arm.state()
+    except HardwareFault:
+        return math.nan, math.nan
+    return float(state.tcp_pose[2]), float(np.linalg.norm(state.tcp_wrench[:3]))
 
 
 def _gate_failure(rec: dict) -> str | None:

@@ -69,5 +69,5 @@ def run_tui(args) -> int:
         sim_faults=tuple(args.sim_fault),
         sim_speed=args.sim_speed,
     )
-    BenchApp(config).run()
+    BenchApp(config, tune_gc=True).run()
     return 0

@@ -9,6 +9,7 @@ The real flow on the simulated bench is exercised in ``test_tui_commissioning.py
 from __future__ import annotations
 
 import asyncio
+import gc
 import os
 import threading
 from pathlib import Path
@@ -29,7 +30,8 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
-from calibrate.tui.app import COMPUTE_NICE, BenchApp
+from calibrate.tui.app import UI_GC_THRESHOLDS, BenchApp
+from calibrate.tui.flow_runner import COMPUTE_NICE
 from calibrate.tui.widgets.banner import Banner
 from calibrate.tui.widgets.confirm import ConfirmStart
 from collect.errors import HardwareFault
@@ -332,3 +334,21 @@ def test_snapshot_registry(snap_compare, in_tmp):
                           when=datetime(2025, 5, 1, 9, 30, tzinfo=timezone.utc))
     app = BenchApp(make_config(), flow=ScriptedFlow([]), clock=FixedClock())
     assert snap_compare(app, terminal_size=SIZE, press=["4"])
+
+
+def test_the_app_tunes_the_garbage_collector_when_it_owns_the_process(in_tmp):
+    thresholds = gc.get_threshold()
+
+    async def scenario(tune_gc):
+        app = BenchApp(make_config(), flow=ScriptedFlow([]), tune_gc=tune_gc)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.1)
+            return gc.get_threshold(), gc.get_freeze_count()
+
+    try:
+        assert asyncio.run(scenario(False)) == (thresholds, 0)
+        tuned, frozen = asyncio.run(scenario(True))
+        assert tuned == UI_GC_THRESHOLDS and frozen > 10_000
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*thresholds)

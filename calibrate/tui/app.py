@@ -1,14 +1,14 @@
-"""The bench TUI application: runs the commissioning flow in a thread worker and shows its events.
+"""The bench TUI application: runs the commissioning flow away from the UI and shows its events.
 
-Threads: the flow (``calibrate.commissioning.run_commissioning``, the same code as
-``bubble commission``) runs in a textual thread worker. Its ``on_event`` callback only puts the
-event in an ``EventInbox`` and, when the inbox was empty, posts one ``FlowEventsReady`` message
-(``post_message`` is thread-safe); the UI thread drains the whole batch at once. Bench snapshots
-(camera frames, pose, wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never
-floods the UI. The flow runs in a thread of its own; when it reaches the compute steps
-(fine-tuning onwards, the bench is closed by then) that thread lowers its scheduling priority
-(``COMPUTE_NICE``, inherited by torch's worker threads), so the UI thread wins the CPU while
-training keeps every core busy. The bench loops before it keep their normal priority.
+Processes and threads: the flow (``calibrate.commissioning.run_commissioning``, the same code as
+``bubble commission``) runs in a child process (``calibrate.tui.flow_runner``), so the UI thread
+never competes for the GIL with the bench loops, the recorder or the training. A textual thread
+worker waits for the child and receives its events; each one only goes into an ``EventInbox``
+and, when the inbox was empty, posts one ``FlowEventsReady`` message (``post_message`` is
+thread-safe); the UI thread drains the whole batch at once. Bench snapshots (camera frames, pose,
+wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never floods the UI. From
+fine-tuning on (the bench is closed by then) the child lowers its scheduling priority
+(``COMPUTE_NICE``), so the UI wins the CPU while training keeps every core busy.
 
 Safety: the stop key (``s`` or space, a priority binding that works on every screen) sets the
 flow's ``stop_event``; the flow safe-stops the arm, retracts and closes the session file. Nothing
@@ -18,7 +18,7 @@ flow has returned.
 
 from __future__ import annotations
 
-import os
+import gc
 import threading
 import time
 from collections.abc import Callable
@@ -34,6 +34,7 @@ from textual.worker import Worker, WorkerState
 
 from calibrate.commission_events import (
     CollectionProgress,
+    ArmSafeStopped,
     FaultRaised,
     Step,
     StepFinished,
@@ -42,6 +43,7 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
+from calibrate.tui.flow_runner import COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner
 from calibrate.tui.inbox import EventInbox
 from calibrate.tui.widgets.acceptance_table import AcceptanceTable
 from calibrate.tui.widgets.banner import Banner
@@ -54,42 +56,33 @@ from calibrate.tui.widgets.steps_panel import StepsPanel
 from calibrate.tui.widgets.training_curve import TrainingCurve
 from collect.errors import HardwareFault, InputError
 
-#: ``flow(config, on_event=..., stop_event=...) -> CommissionResult``
-Flow = Callable[..., object]
-
 HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
-
-#: Nice increment of the flow thread from the first compute step on (threads it starts then, such
-#: as torch's workers, inherit it): the scheduler prefers the UI thread while training saturates
-#: every core. Bench steps run before and keep the normal priority (no starved camera loop).
-COMPUTE_NICE = 10
-COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
 
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
 
-
-def _lower_thread_priority(increment: int) -> None:
-    """Raise the calling thread's nice value by ``increment`` (Linux: per thread, inherited by the
-    threads it starts later). Without privileges a thread can only lower its priority, never raise
-    it back, hence the dedicated flow thread, which ends with the flow."""
-    if increment <= 0:
-        return
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
-    except (AttributeError, OSError):  # not Linux/Unix, or not permitted: run at normal priority
-        pass
+#: Garbage-collection thresholds of the UI process (Python's default: 700, 10, 10). Rendering a
+#: frame allocates tens of thousands of short-lived objects, many in reference cycles (textual's
+#: ``Strip`` keeps itself in its own caches). With the default, they outlive a few young
+#: collections, reach the oldest generation and make its collections 50-100 ms pauses every few
+#: seconds (docs/bench_tui.md); with a large youngest generation they die young, in collections of
+#: a few ms.
+UI_GC_THRESHOLDS = (20_000, 10, 10)
 
 
-def _default_flow(config, on_event, stop_event):
-    from calibrate.commissioning import run_commissioning
+def tune_gc_for_ui() -> None:
+    """Set this process's garbage collector for short pauses (``BenchApp(tune_gc=True)`` on mount).
 
-    return run_commissioning(config, on_event=on_event, stop_event=stop_event)
+    Collects, then freezes what exists (imported modules, the composed widgets: never traversed
+    again) and sets ``UI_GC_THRESHOLDS``. Process-wide, hence only where the app owns the process.
+    """
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*UI_GC_THRESHOLDS)
 
 
 class FlowEventsReady(Message):
-    """Posted from the flow thread when the inbox has new queued events."""
+    """Posted from the runner's thread when the inbox has new queued events."""
 
 
 class BenchApp(App):
@@ -97,9 +90,11 @@ class BenchApp(App):
 
     ``config``: a ``calibrate.commissioning.CommissionConfig`` (fields used here: ``run_dir``,
     ``simulated``, ``sensor_spec``, ``registry_dir``, ``objects``, ``poses_per_object``).
-    ``flow``: the commissioning entry point (default ``run_commissioning``). ``clock``: monotonic
+    ``flow``: None runs ``run_commissioning`` in a child process; a callable with the same
+    signature runs in a thread of this process instead (test doubles). ``clock``: monotonic
     time in s for ETAs and snapshot ages (tests pass a fixed clock). ``refresh_hz``: rate of the
-    live bench/sensor refresh. ``compute_nice``: nice increment of the flow thread in the compute steps (0 = as the UI).
+    live bench/sensor refresh. ``compute_nice``: nice increment of the flow in the compute steps (0 = as the UI).
+    ``tune_gc``: tune the process's garbage collector once mounted (``tune_gc_for_ui``; ``bubble tui``).
     """
 
     CSS_PATH = "bench.tcss"
@@ -126,17 +121,17 @@ class BenchApp(App):
         clock: Callable[[], float] = time.monotonic,
         refresh_hz: float = 5.0,
         compute_nice: int = COMPUTE_NICE,
+        tune_gc: bool = False,
     ) -> None:
         super().__init__()
         self.config = config
-        self._flow = flow or _default_flow
+        self._flow = flow
         self._clock = clock
         self._refresh_hz = refresh_hz
         self._compute_nice = compute_nice
-        self._compute_niced = False  # the flow thread has lowered its priority
-        self._flow_thread_id: int | None = None
+        self._tune_gc = tune_gc
         self._inbox = EventInbox()
-        self._stop_event: threading.Event | None = None
+        self._runner: FlowRunner | None = None
         self._flow_done = threading.Event()
         self._flow_done.set()
         self._worker: Worker | None = None
@@ -147,6 +142,7 @@ class BenchApp(App):
         self._last_snapshot_at: float | None = None
         self._latest_images = None  # (ir, depth_m) of the latest snapshot
         self._fault_text: str | None = None  # banner text of the run's last FaultRaised
+        self.safe_stop: ArmSafeStopped | None = None  # the run's last safe stop of the arm
         self.result = None  # the last CommissionResult
         self.error: BaseException | None = None  # the last exception raised by the flow
         self.sub_title = ("SIMULATED" if config.simulated else "REAL") + f" · {config.run_dir}"
@@ -188,6 +184,8 @@ class BenchApp(App):
     def on_mount(self) -> None:
         self.banner.show(HINT, "hint")
         self.set_interval(1.0 / self._refresh_hz, self.refresh_live)
+        if self._tune_gc:
+            self.call_after_refresh(tune_gc_for_ui)  # after the first frame: its widgets are frozen too
 
     # ------------------------------------------------------------ state query
     @property
@@ -226,11 +224,11 @@ class BenchApp(App):
             self.start_commissioning()
 
     def start_commissioning(self) -> None:
-        """Start the flow in a thread worker (the confirmation dialog calls this)."""
+        """Start the flow (the confirmation dialog calls this)."""
         if self.running:
             return
         self._reset_views()
-        self._stop_event = threading.Event()
+        self._runner = self._make_runner()
         self._flow_done.clear()
         self._arm_state = "moving"
         self._bench_open = True
@@ -241,27 +239,19 @@ class BenchApp(App):
         )
         self._update_bench_panel(None)
 
+    def _make_runner(self) -> FlowRunner:
+        if self._flow is None:
+            from calibrate.commissioning import run_commissioning
+
+            return ProcessFlowRunner(run_commissioning, self._compute_nice)
+        return ThreadFlowRunner(self._flow, self._compute_nice)
+
     def _run_flow(self):
-        """Worker body: run the flow in its own lower-priority thread and return its result."""
-        outcome: dict = {}
-
-        def flow_thread() -> None:
-            self._flow_thread_id = threading.get_ident()
-            try:
-                outcome["result"] = self._flow(self.config, on_event=self._on_flow_event, stop_event=self._stop_event)
-            except BaseException as err:  # handed to the worker, which reports it
-                outcome["error"] = err
-
+        """Worker body: run the flow to its end and return its result."""
         try:
-            thread = threading.Thread(target=flow_thread, name="commissioning-flow")
-            self._compute_niced = False
-            thread.start()
-            thread.join()
+            return self._runner.run(self.config, self._on_flow_event)
         finally:
             self._flow_done.set()
-        if "error" in outcome:
-            raise outcome["error"]
-        return outcome["result"]
 
     def action_stop(self) -> None:
         """Stop the arm now: the flow safe-stops, retracts and closes the session file."""
@@ -277,8 +267,7 @@ class BenchApp(App):
             self._request_stop("STOP: ending the run (the bench is already closed, the arm is parked)...")
 
     def _request_stop(self, message: str) -> None:
-        assert self._stop_event is not None
-        self._stop_event.set()
+        self._runner.request_stop()
         if self._bench_open:
             self._arm_state = "stopping"
         self.banner.show(message, "warning")
@@ -302,15 +291,7 @@ class BenchApp(App):
 
     # ------------------------------------------------------- flow -> UI events
     def _on_flow_event(self, event: object) -> None:
-        """Called by the flow thread for each event; never blocks."""
-        if (
-            isinstance(event, StepStarted)
-            and event.step in COMPUTE_STEPS
-            and not self._compute_niced
-            and threading.get_ident() == self._flow_thread_id
-        ):
-            self._compute_niced = True
-            _lower_thread_priority(self._compute_nice)
+        """Called by the runner (not the UI thread) for each event; never blocks."""
         if self._inbox.put(event):
             self.post_message(FlowEventsReady())
 
@@ -332,6 +313,10 @@ class BenchApp(App):
                 self.collection.apply(event)
             elif isinstance(event, TrainingProgress):
                 points.append(event)
+            elif isinstance(event, ArmSafeStopped):
+                self.safe_stop = event
+                if self._bench_open:
+                    self._arm_state = "stopped"
             elif isinstance(event, FaultRaised):
                 self._fault_text = f"FAULT {event.kind}: {event.message}"
                 self.banner.show(self._fault_text, "fault")
@@ -377,6 +362,7 @@ class BenchApp(App):
         self._connected = False
         self._last_snapshot_at = None
         self._fault_text = None
+        self.safe_stop = None
         self.banner.clear()
         self.steps.reset()
         self.collection.reset()
@@ -397,7 +383,7 @@ class BenchApp(App):
             self._arm_state = "stopped" if (result.stopped or result.fault) and self._bench_open else "idle"
             session = Path(result.run_dir) / "session.h5"
             if result.stopped:
-                banner.show(f"Stopped by operator: arm retracted. Recorded data kept in {session}", "warning")
+                banner.show(f"Stopped by operator: {self._arm_outcome()}. Recorded data kept in {session}", "warning")
                 self.acceptance.show(None, result.checks, "", "stopped by operator")
             elif result.fault:
                 reported = self._fault_text or f"FAULT {result.fault}"
@@ -425,8 +411,17 @@ class BenchApp(App):
         if self._quit_requested:
             self.exit()
 
+    def _arm_outcome(self) -> str:
+        """What the run's safe stop did to the arm, for the banner."""
+        stop = self.safe_stop
+        if stop is None:
+            return "the arm was already parked"
+        if not stop.retracted:
+            return "arm stopped but NOT retracted (clear the stop on the pendant)"
+        return f"arm retracted, |F| {stop.force_after_n:.1f} N"
+
     def on_unmount(self) -> None:
         """Last line of defence (e.g. the terminal closed): stop the flow and wait for it."""
-        if self.running and self._stop_event is not None:
-            self._stop_event.set()
+        if self.running and self._runner is not None:
+            self._runner.request_stop()
             self._flow_done.wait(QUIT_WAIT_S)

@@ -1,4 +1,4 @@
-"""Thread-safe hand-off of commissioning events from the flow thread to the UI thread.
+"""Thread-safe hand-off of commissioning events from the flow runner's thread to the UI thread.
 
 The flow calls ``on_event`` from its own thread, possibly very often (a ``BenchSnapshot`` per
 camera frame, a ``CollectionProgress`` per recorded frame, a ``StepProgress`` per batch). The

@@ -1,0 +1,247 @@
+"""Where the TUI runs the commissioning flow: a child process (the default) or a thread.
+
+A runner calls ``flow(config, on_event=..., stop_event=...)`` away from the UI thread and
+hands every event to ``on_event`` in the UI process; ``request_stop`` (any thread, any time)
+sets the flow's ``stop_event``: the flow safe-stops the arm, retracts and closes the session file.
+
+* ``ProcessFlowRunner`` (what ``bubble tui`` uses): the flow runs in a spawned child process, so the
+  UI thread never waits for the GIL held by the bench loops, the recorder or the training loop.
+  The child sends its events, then its result or exception, through a ``multiprocessing``
+  queue. From the first compute step on (fine-tuning, the bench is closed by then) the child lowers
+  its scheduling priority (``COMPUTE_NICE``, inherited by torch's worker threads), so the UI
+  process wins the CPU while training keeps every core busy; the bench steps before keep the
+  normal priority (no starved camera loop). The child ignores SIGINT (the UI decides when to
+  stop), stops the arm by itself when the UI process dies, and writes its log (stdout, stderr, log
+  records) to ``RUN_DIR/flow.log`` instead of the terminal the UI draws on.
+* ``ThreadFlowRunner``: the flow runs in a thread of this process, with the same priority rule
+  (per thread on Linux). For flows that cannot be sent to another process (test doubles, embedding).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import pickle
+import queue
+import signal
+import sys
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from pathlib import Path
+
+from calibrate.commission_events import Step, StepStarted
+
+#: ``flow(config, on_event=..., stop_event=...) -> CommissionResult``
+Flow = Callable[..., object]
+OnEvent = Callable[[object], None]
+
+#: Nice increment of the flow from the first compute step on.
+COMPUTE_NICE = 10
+COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
+#: The child's log file inside the run directory.
+FLOW_LOG = "flow.log"
+#: How often the UI side checks that the child is still alive, and the child that the UI is, s.
+POLL_S = 0.25
+#: How long to wait for a child that sent its result to exit, before terminating it, s.
+EXIT_WAIT_S = 10.0
+
+
+def _lower_thread_priority(increment: int) -> None:
+    """Raise the calling thread's nice value by ``increment`` (Linux: per thread, inherited by the
+    threads it starts later). Without privileges a thread can only lower its priority, never raise
+    it back, hence a dedicated flow thread or process, which ends with the flow."""
+    if increment <= 0:
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+    except (AttributeError, OSError):  # not Linux/Unix, or not permitted: run at normal priority
+        pass
+
+
+def _yield_on_compute(on_event: OnEvent, compute_nice: int, flow_thread: int) -> OnEvent:
+    """``on_event`` that first lowers the flow thread's priority at the first compute step.
+
+    ``flow_thread``: ``threading.get_ident()`` of the thread that runs the flow; events from its
+    helper threads (bench snapshots) pass through without touching their priority.
+    """
+    niced = False
+
+    def forward(event: object) -> None:
+        nonlocal niced
+        if (
+            not niced
+            and isinstance(event, StepStarted)
+            and event.step in COMPUTE_STEPS
+            and threading.get_ident() == flow_thread
+        ):
+            niced = True
+            _lower_thread_priority(compute_nice)
+        on_event(event)
+
+    return forward
+
+
+class FlowRunner(ABC):
+    """Runs one commissioning flow away from the UI thread (see the module docstring)."""
+
+    def __init__(self, flow: Flow, compute_nice: int = COMPUTE_NICE) -> None:
+        self.flow = flow
+        self.compute_nice = compute_nice
+
+    @abstractmethod
+    def run(self, config, on_event: OnEvent):
+        """Run the flow to its end (blocks): returns its result or raises its exception.
+
+        ``on_event`` is called from the calling thread (process runner) or the flow's thread.
+        """
+
+    @abstractmethod
+    def request_stop(self) -> None:
+        """Ask the flow to stop (thread-safe; also before ``run`` starts it)."""
+
+
+class ThreadFlowRunner(FlowRunner):
+    """The flow in a dedicated thread of this process."""
+
+    def __init__(self, flow: Flow, compute_nice: int = COMPUTE_NICE) -> None:
+        super().__init__(flow, compute_nice)
+        self._stop_event = threading.Event()
+
+    def request_stop(self) -> None:
+        self._stop_event.set()
+
+    def run(self, config, on_event: OnEvent):
+        outcome: dict = {}
+
+        def flow_thread() -> None:
+            forward = _yield_on_compute(on_event, self.compute_nice, threading.get_ident())
+            try:
+                outcome["result"] = self.flow(config, on_event=forward, stop_event=self._stop_event)
+            except BaseException as err:  # re-raised in the caller's thread
+                outcome["error"] = err
+
+        thread = threading.Thread(target=flow_thread, name="commissioning-flow")
+        thread.start()
+        thread.join()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["result"]
+
+
+class ProcessFlowRunner(FlowRunner):
+    """The flow in a spawned child process; ``flow`` must be picklable (a module-level function)."""
+
+    def __init__(self, flow: Flow, compute_nice: int = COMPUTE_NICE) -> None:
+        super().__init__(flow, compute_nice)
+        _start_resource_tracker()
+        self._context = multiprocessing.get_context("spawn")
+        self._stop_event = self._context.Event()
+
+    def request_stop(self) -> None:
+        self._stop_event.set()
+
+    def run(self, config, on_event: OnEvent):
+        messages = self._context.Queue()
+        child = self._context.Process(
+            target=_child_main,
+            args=(self.flow, config, messages, self._stop_event, self.compute_nice, os.getpid()),
+            name="bubble-commissioning",
+        )
+        child.start()
+        try:
+            while True:
+                try:
+                    kind, payload = messages.get(timeout=POLL_S)
+                except queue.Empty:
+                    if child.is_alive():
+                        continue
+                    try:  # it may have sent its last message just before exiting
+                        kind, payload = messages.get(timeout=1.0)
+                    except queue.Empty:
+                        raise RuntimeError(
+                            f"the commissioning process ended without a result (exit code {child.exitcode}); "
+                            f"see {Path(config.run_dir) / FLOW_LOG}"
+                        ) from None
+                if kind == "event":
+                    on_event(payload)
+                elif kind == "result":
+                    return payload
+                else:
+                    raise payload
+        finally:
+            if child.is_alive():
+                self._stop_event.set()  # the UI side failed: the flow must not go on unattended
+            child.join(EXIT_WAIT_S)
+            if child.is_alive():
+                child.terminate()
+                child.join()
+            messages.close()
+
+
+def _start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker on the real stderr.
+
+    The tracker inherits the descriptor of ``sys.stderr``; a running textual app has replaced
+    ``sys.stderr`` with a capture object whose ``fileno()`` is -1, which makes the spawn fail.
+    """
+    from multiprocessing import resource_tracker
+
+    captured = sys.stderr
+    try:
+        sys.stderr = sys.__stderr__ if sys.__stderr__ is not None else open(os.devnull, "w")
+        resource_tracker.ensure_running()
+    finally:
+        sys.stderr = captured
+
+
+def _stop_when_orphaned(stop_event, parent_pid: int) -> None:
+    """Child thread: set ``stop_event`` when the UI process is gone (re-parented child)."""
+    while not stop_event.is_set():
+        if os.getppid() != parent_pid:
+            logging.getLogger(__name__).error("the UI process is gone: stopping the flow")
+            stop_event.set()
+            return
+        time.sleep(POLL_S)
+
+
+def _redirect_output(run_dir: Path) -> None:
+    """Send fd 1/2 and the log records to ``run_dir/flow.log`` (the terminal belongs to the UI)."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        log_fd = os.open(run_dir / FLOW_LOG, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    except OSError:  # a bad run directory: the flow reports it; nothing may reach the terminal
+        log_fd = os.open(os.devnull, os.O_WRONLY)
+    for fd in (1, 2):
+        os.dup2(log_fd, fd)
+    os.close(log_fd)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)
+    sys.stderr = open(2, "w", buffering=1, closefd=False)
+    logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def _sendable(err: BaseException) -> BaseException:
+    """``err`` when it survives pickling, else a RuntimeError with its type and message."""
+    try:
+        pickle.loads(pickle.dumps(err))
+        return err
+    except Exception:
+        return RuntimeError(f"{type(err).__name__}: {err}")
+
+
+def _child_main(flow: Flow, config, messages, stop_event, compute_nice: int, parent_pid: int) -> None:
+    """Entry point of the child process: run the flow, send events, then the result or the error."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _redirect_output(Path(config.run_dir))
+    threading.Thread(target=_stop_when_orphaned, args=(stop_event, parent_pid), name="orphan-watch", daemon=True).start()
+    forward = _yield_on_compute(lambda event: messages.put(("event", event)), compute_nice, threading.get_ident())
+    try:
+        result = flow(config, on_event=forward, stop_event=stop_event)
+    except BaseException as err:
+        logging.getLogger(__name__).exception("the commissioning flow raised")
+        messages.put(("error", _sendable(err)))
+    else:
+        messages.put(("result", result))

@@ -1,0 +1,105 @@
+"""The child process the TUI runs the commissioning flow in (``calibrate.tui.flow_runner``).
+
+The flows below are module-level functions so that the spawned child can import them; they stand
+in for ``run_commissioning`` (the real flow in a child is exercised in
+``test_tui_commissioning.py``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from types import SimpleNamespace
+
+import pytest
+
+from calibrate.commission_events import Step, StepFinished, StepStarted
+from calibrate.tui.flow_runner import (
+    COMPUTE_NICE,
+    FLOW_LOG,
+    ProcessFlowRunner,
+    ThreadFlowRunner,
+    _stop_when_orphaned,
+)
+from collect.errors import HardwareFault
+
+EVENTS = [StepStarted(Step.COLLECT), StepFinished(Step.COLLECT, True), StepStarted(Step.FINETUNE), StepFinished(Step.FINETUNE, True)]
+
+
+def nice_of_this_thread() -> int:
+    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+
+def emit_and_report(config, on_event, stop_event):
+    """Emits ``EVENTS``; returns (pid, nice after each event, whether stop was seen)."""
+    nice = []
+    for event in EVENTS:
+        on_event(event)
+        nice.append(nice_of_this_thread())
+    print("flow output that must not reach the terminal")
+    print("flow error output", file=sys.stderr)
+    return os.getpid(), nice, stop_event.is_set()
+
+
+def wait_for_stop(config, on_event, stop_event):
+    """Emits one event, then waits (up to 30 s) for the stop request."""
+    on_event(StepStarted(Step.COLLECT))
+    return stop_event.wait(30.0)
+
+
+def raise_fault(config, on_event, stop_event):
+    raise HardwareFault("camera-stall", "camera: no frame for 0.50 s")
+
+
+def die(config, on_event, stop_event):
+    os._exit(7)  # a crash: no result, no exception
+
+
+@pytest.fixture
+def config(tmp_path):
+    return SimpleNamespace(run_dir=tmp_path / "run")
+
+
+def test_child_sends_events_in_order_and_yields_the_cpu_from_fine_tuning_on(config, capfd):
+    received = []
+    ui_nice = nice_of_this_thread()
+    pid, nice, stopped = ProcessFlowRunner(emit_and_report).run(config, received.append)
+    assert received == EVENTS
+    assert pid != os.getpid() and not stopped
+    niced = min(ui_nice + COMPUTE_NICE, 19)
+    assert nice == [ui_nice, ui_nice, niced, niced]
+    assert nice_of_this_thread() == ui_nice
+    out, err = capfd.readouterr()
+    assert "flow" not in out and "flow" not in err
+    log = (config.run_dir / FLOW_LOG).read_text()
+    assert "flow output that must not reach the terminal" in log and "flow error output" in log
+
+
+def test_stop_request_reaches_the_child(config):
+    runner = ProcessFlowRunner(wait_for_stop)
+    assert runner.run(config, lambda event: runner.request_stop()) is True
+
+
+def test_a_fault_in_the_child_is_raised_with_its_kind(config):
+    with pytest.raises(HardwareFault) as info:
+        ProcessFlowRunner(raise_fault).run(config, lambda event: None)
+    assert info.value.kind == "camera-stall" and "no frame" in str(info.value)
+
+
+def test_a_child_that_dies_is_reported_not_waited_for(config):
+    with pytest.raises(RuntimeError, match=f"exit code 7.*{FLOW_LOG}"):
+        ProcessFlowRunner(die).run(config, lambda event: None)
+
+
+def test_the_thread_runner_runs_the_same_flows_in_this_process(config):
+    pid, nice, stopped = ThreadFlowRunner(emit_and_report, compute_nice=0).run(config, lambda event: None)
+    assert pid == os.getpid() and len(set(nice)) == 1 and not stopped
+    with pytest.raises(HardwareFault):
+        ThreadFlowRunner(raise_fault).run(config, lambda event: None)
+
+
+def test_the_child_stops_the_flow_when_the_ui_process_is_gone():
+    stop = threading.Event()
+    _stop_when_orphaned(stop, parent_pid=os.getppid() + 1)  # not our parent: the UI is gone
+    assert stop.is_set()
