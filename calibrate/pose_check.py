@@ -287,7 +287,8 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         vs_true=vs_true, frames=frames,
         settings={"threshold_m": threshold_m, "n_points": n_points, "prior_error_mm": prior_error_mm,
                   "prior_error_deg": prior_error_deg, "seed": seed,
-                  "prior_weight": fitter.prior_weight, "outlier_k": fitter.outlier_k,
+                  "prior_weight": fitter.prior_weight, "prior_rotation_scale_m": fitter.prior_rotation_scale_m,
+                  "outlier_k": fitter.outlier_k,
                   "outlier_floor_m": fitter.outlier_floor_m},
     )
     if plots_dir is not None:

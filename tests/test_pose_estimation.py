@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from calibrate.pose_estimation import (
     Cylinder,
+    PRIOR_WEIGHT,
     GridSDF,
     Pose,
     ProximityPoseEstimator,
@@ -125,12 +126,36 @@ def test_side_patch_fixes_axis_line_and_leaves_symmetric_directions_at_prior():
     obj = np.stack([0.04 * np.cos(ang), 0.04 * np.sin(ang), rng.uniform(0.04, 0.06, 800)], 1)
     prior = _pose([0.0, 0.0, 0.05], [0.001, 0.002, 0.003])  # spin about the axis, shift along it
     fit = ProximityPoseEstimator(CYL).fit(obj, prior)
-    # radial offset and tilt are observable and corrected ...
-    assert abs(fit.pose.position[0]) < 1e-5 and abs(fit.pose.position[1]) < 1e-5
-    np.testing.assert_allclose(quat_to_matrix(fit.pose.quaternion)[:, 2], [0, 0, 1], atol=1e-5)
-    # ... the shift along the axis and the spin about it are not: they stay at the prior
-    assert abs(fit.pose.position[2] - 0.003) < 1e-5
-    assert abs(orientation_error(fit.pose, prior)) < 1e-8
+    rot = quat_to_matrix(fit.pose.quaternion)
+    axis_at_patch = rot @ [0.0, 0.0, 0.05] + fit.pose.position  # on the axis, level with the patch
+    # the axis line where the patch is: observed and corrected (the prior was 2.2 mm off) ...
+    assert np.hypot(*axis_at_patch[:2]) < 3e-5
+    # ... its direction is seen through a 2 cm long patch only: within 1 degree ...
+    assert np.degrees(np.arccos(rot[2, 2])) < 1.0
+    # ... the shift along the axis and the spin about it are not seen: they stay at the prior
+    assert abs(axis_at_patch[2] - 0.053) < 1e-4
+    assert orientation_error(fit.pose, prior) < 1e-4
+
+
+def test_prior_keeps_noisy_fits_of_a_shallow_side_patch_from_wandering():
+    """A 1 cm wide patch on the 4 cm radius side barely fixes the axis's position across itself:
+    with ToF-like depth noise (0.25 mm) the default prior keeps every fit within 0.6 mm of the
+    truth (modulo the symmetry), a 100x weaker one lets some wander by 1.5 mm and more."""
+    true = _pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    prior = _pose([0.02, -0.02, 0.03], [0.001, -0.0015, 0.001])
+    errors = {}
+    for weight in (1e-2, PRIOR_WEIGHT):
+        rng = np.random.default_rng(5)
+        errors[weight] = []
+        for _ in range(10):
+            ang = rng.uniform(-0.12, 0.12, 1500)
+            obj = np.stack([0.04 * np.cos(ang), 0.04 * np.sin(ang), rng.uniform(0.04, 0.06, 1500)], 1)
+            obj[:, 0] += rng.normal(0, 2.5e-4, 1500)
+            fit = ProximityPoseEstimator(CYL, prior_weight=weight).fit(obj, prior)
+            assert fit.success
+            errors[weight].append(position_error(align_symmetry(CYL, fit.pose, true), true))
+    assert max(errors[PRIOR_WEIGHT]) < 6e-4
+    assert max(errors[1e-2]) > 1.5e-3
 
 
 def test_fit_rejects_bad_points():
@@ -227,4 +252,4 @@ def test_outliers_are_dropped_and_the_fit_refined():
     robust = ProximityPoseEstimator(CYL).fit(points, prior)
     plain = ProximityPoseEstimator(CYL, outlier_k=0).fit(points, prior)
     assert robust.n_outliers >= 60 and plain.n_outliers == 0
-    assert position_error(robust.pose, true) < 1e-4 < position_error(plain.pose, true)
+    assert position_error(robust.pose, true) < 3e-4 and position_error(plain.pose, true) > 1e-3
