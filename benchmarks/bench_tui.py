@@ -34,7 +34,7 @@ from textual import events  # noqa: E402
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
 from calibrate.tui.app import UI_GC_THRESHOLDS, BenchApp  # noqa: E402
-from calibrate.tui.flow_runner import COMPUTE_NICE  # noqa: E402
+from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE  # noqa: E402
 
 TARGET_MS = 100.0
 SIZE = (120, 36)
@@ -95,9 +95,9 @@ def running_step(app: BenchApp) -> str:
     return "running" if app.running else "idle"
 
 
-async def measure(config: CommissionConfig, interval: float, max_seconds: float, compute_nice: int,
-                  tune_gc: bool = True) -> dict:
-    app = BenchApp(config, compute_nice=compute_nice, tune_gc=tune_gc)
+async def measure(config: CommissionConfig, interval: float, max_seconds: float, bench_nice: int,
+                  compute_nice: int, tune_gc: bool = True) -> dict:
+    app = BenchApp(config, bench_nice=bench_nice, compute_nice=compute_nice, tune_gc=tune_gc)
     latencies: dict[str, list[float]] = defaultdict(list)
     cpu: dict[str, list[float]] = defaultdict(list)  # UI thread CPU ms from key to frame
     waits: dict[str, list[float]] = defaultdict(list)  # UI thread run-queue wait ms from key to frame
@@ -192,7 +192,7 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "",
         "```",
         f".venv/bin/python benchmarks/bench_tui.py --finetune-minutes {args.finetune_minutes} "
-        f"--poses-per-object {args.poses_per_object} --interval {args.interval} --compute-nice {args.compute_nice}"
+        f"--poses-per-object {args.poses_per_object} --interval {args.interval} --bench-nice {args.bench_nice} --compute-nice {args.compute_nice}"
         + (" --python-gc" if args.python_gc else ""),
         "```",
         "",
@@ -230,6 +230,8 @@ def main() -> int:
     parser.add_argument("--poses-per-object", type=int, default=2)
     parser.add_argument("--interval", type=float, default=0.3, help="s between key presses")
     parser.add_argument("--max-seconds", type=float, default=600.0)
+    parser.add_argument("--bench-nice", type=int, default=BENCH_NICE,
+                        help="nice increment of the flow in the bench steps")
     parser.add_argument("--compute-nice", type=int, default=COMPUTE_NICE,
                         help="nice increment of the flow in the compute steps")
     parser.add_argument("--python-gc", action="store_true",
@@ -242,7 +244,8 @@ def main() -> int:
                                   objects=("mug", "box"), poses_per_object=args.poses_per_object,
                                   finetune_minutes=args.finetune_minutes, leak_hold_s=3.0,
                                   base_model=args.base_model)
-        stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.compute_nice, not args.python_gc))
+        stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.bench_nice, args.compute_nice,
+                                     not args.python_gc))
     write_markdown(args.out, stats, args)
     print(args.out.read_text())
     return 0

@@ -161,6 +161,21 @@ def _recorder_headroom(text: str) -> tuple[float | None, str]:
     return number(headroom), f"chosen filter {headroom}; CPU share while recording at 45 fps: {share or 'not found'}"
 
 
+def _commission_accepted_fraction(text: str) -> tuple[float | None, str]:
+    match = re.search(r"accepted: (\d+) of (\d+)", text)
+    if not match:
+        return None, ""
+    return int(match.group(1)) / int(match.group(2)), f"accepted {match.group(1)} of {match.group(2)} new sensors"
+
+
+def _pose_vs_true_ratio(text: str) -> tuple[float | None, str]:
+    predicted = number(cell(text, "predicted depth vs true pose", "e_x median"))
+    measured = number(cell(text, "measured depth vs true pose", "e_x median"))
+    if predicted is None or not measured:
+        return None, ""
+    return predicted / measured, f"median e_x vs the true pose: predicted depth {predicted} mm, ToF depth {measured} mm"
+
+
 def _accuracy_finetuned_a1(text: str) -> tuple[float | None, str]:
     path = DOCS / "bench_accuracy.json"
     if not path.is_file():
@@ -193,12 +208,16 @@ TARGETS = (
            _regex_value(r"fine-tune step [^:]*: \S+ / \S+ / (\S+) s", 1, "min / median / max")),
     Target("commissioning held-out a1 >= 0.95 (worst sensor)", "commission", ">=", 0.95, "",
            _regex_value(r"held-out a1: (\S+) / \S+ / \S+", 1, "min / median / max")),
+    Target("commissioning accepts every good (defect-free) simulated sensor", "commission", ">=", 1.0, "",
+           _commission_accepted_fraction),
     Target("pose estimates >= 100 per second (1500 points, one core)", "pose", ">=", 100, "Hz",
            _cell_value("patch + warm fit", "rate")),
     Target("pose check: predicted vs measured median e_x <= 1.0 mm", "pose", "<=", 1.0, "mm",
            _cell_value("predicted vs measured depth", "e_x median")),
     Target("pose check: predicted vs measured median e_theta <= 3e-4", "pose", "<=", 3e-4, "",
            _cell_value("predicted vs measured depth", "e_theta median")),
+    Target("pose check vs the true pose: predicted depth at least as good as the ToF (median e_x ratio)", "pose",
+           "<=", 1.0, "x", _pose_vs_true_ratio),
     Target("TUI key to screen update < 100 ms (slowest press)", "tui", "<", 100, "ms",
            _regex_value(r"All presses: (\d+, median [\d.]+ ms, p95 [\d.]+ ms, max ([\d.]+) ms)", 2, "presses", 1)),
     Target("cross-sensor: fine-tuned a1 >= 0.95 on a new sensor's test session (worst sensor)", "accuracy", ">=", 0.95, "",

@@ -31,7 +31,7 @@ from calibrate.commission_events import (
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
 from calibrate.tui.app import UI_GC_THRESHOLDS, BenchApp
-from calibrate.tui.flow_runner import COMPUTE_NICE
+from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE
 from calibrate.tui.widgets.banner import Banner
 from calibrate.tui.widgets.confirm import ConfirmStart
 from collect.errors import HardwareFault
@@ -206,7 +206,7 @@ def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
     asyncio.run(scenario())
 
 
-def test_flow_thread_yields_to_the_ui_from_fine_tuning_on(in_tmp):
+def test_flow_thread_yields_to_the_ui_and_more_from_fine_tuning_on(in_tmp):
     events = [StepStarted(Step.COLLECT, 1.0), StepFinished(Step.COLLECT, True), StepStarted(Step.FINETUNE, 9.0),
               TrainingProgress(1, 0.1, 0.01)]
     ui_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
@@ -220,8 +220,8 @@ def test_flow_thread_yields_to_the_ui_from_fine_tuning_on(in_tmp):
             await wait_for(lambda: app.result is not None, pilot)
         return flow.nice
 
-    niced = min(ui_nice + COMPUTE_NICE, 19)
-    assert asyncio.run(scenario()) == [ui_nice, ui_nice, niced, niced]
+    bench, compute = min(ui_nice + BENCH_NICE, 19), min(ui_nice + COMPUTE_NICE, 19)
+    assert asyncio.run(scenario()) == [bench, bench, compute, compute]
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == ui_nice
 
 

@@ -41,8 +41,8 @@ def test_stop_mid_collection_then_resume_to_a_verdict(tmp_path):
     stop key while the arm works on a contact pose: the arm retracts and session.h5 is readable;
     start again: the run resumes and ends with the verdict, the acceptance table, the report and
     the registry entry; quit."""
-    # compute_nice=0: on a shared test machine a niced fine-tuning would yield to every other process
-    app = BenchApp(tiny_config(tmp_path), compute_nice=0)
+    # no nice: on a shared test machine a niced flow would yield to every other process
+    app = BenchApp(tiny_config(tmp_path), bench_nice=0, compute_nice=0)
     session_path = tmp_path / "run" / "session.h5"
 
     async def scenario():

@@ -16,6 +16,7 @@ import pytest
 
 from calibrate.commission_events import Step, StepFinished, StepStarted
 from calibrate.tui.flow_runner import (
+    BENCH_NICE,
     COMPUTE_NICE,
     FLOW_LOG,
     ProcessFlowRunner,
@@ -61,14 +62,14 @@ def config(tmp_path):
     return SimpleNamespace(run_dir=tmp_path / "run")
 
 
-def test_child_sends_events_in_order_and_yields_the_cpu_from_fine_tuning_on(config, capfd):
+def test_child_sends_events_in_order_and_yields_the_cpu_more_from_fine_tuning_on(config, capfd):
     received = []
     ui_nice = nice_of_this_thread()
     pid, nice, stopped = ProcessFlowRunner(emit_and_report).run(config, received.append)
     assert received == EVENTS
     assert pid != os.getpid() and not stopped
-    niced = min(ui_nice + COMPUTE_NICE, 19)
-    assert nice == [ui_nice, ui_nice, niced, niced]
+    bench, compute = min(ui_nice + BENCH_NICE, 19), min(ui_nice + COMPUTE_NICE, 19)
+    assert nice == [bench, bench, compute, compute]
     assert nice_of_this_thread() == ui_nice
     out, err = capfd.readouterr()
     assert "flow" not in out and "flow" not in err
@@ -93,7 +94,7 @@ def test_a_child_that_dies_is_reported_not_waited_for(config):
 
 
 def test_the_thread_runner_runs_the_same_flows_in_this_process(config):
-    pid, nice, stopped = ThreadFlowRunner(emit_and_report, compute_nice=0).run(config, lambda event: None)
+    pid, nice, stopped = ThreadFlowRunner(emit_and_report, bench_nice=0, compute_nice=0).run(config, lambda event: None)
     assert pid == os.getpid() and len(set(nice)) == 1 and not stopped
     with pytest.raises(HardwareFault):
         ThreadFlowRunner(raise_fault).run(config, lambda event: None)

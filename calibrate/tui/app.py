@@ -43,7 +43,7 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
-from calibrate.tui.flow_runner import COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner
+from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner
 from calibrate.tui.inbox import EventInbox
 from calibrate.tui.widgets.acceptance_table import AcceptanceTable
 from calibrate.tui.widgets.banner import Banner
@@ -93,7 +93,8 @@ class BenchApp(App):
     ``flow``: None runs ``run_commissioning`` in a child process; a callable with the same
     signature runs in a thread of this process instead (test doubles). ``clock``: monotonic
     time in s for ETAs and snapshot ages (tests pass a fixed clock). ``refresh_hz``: rate of the
-    live bench/sensor refresh. ``compute_nice``: nice increment of the flow in the compute steps (0 = as the UI).
+    live bench/sensor refresh. ``bench_nice`` / ``compute_nice``: nice increment of the flow in the
+    bench steps / from fine-tuning on (0 = as the UI; ``calibrate.tui.flow_runner``).
     ``tune_gc``: tune the process's garbage collector once mounted (``tune_gc_for_ui``; ``bubble tui``).
     """
 
@@ -120,6 +121,7 @@ class BenchApp(App):
         flow: Flow | None = None,
         clock: Callable[[], float] = time.monotonic,
         refresh_hz: float = 5.0,
+        bench_nice: int = BENCH_NICE,
         compute_nice: int = COMPUTE_NICE,
         tune_gc: bool = False,
     ) -> None:
@@ -128,6 +130,7 @@ class BenchApp(App):
         self._flow = flow
         self._clock = clock
         self._refresh_hz = refresh_hz
+        self._bench_nice = bench_nice
         self._compute_nice = compute_nice
         self._tune_gc = tune_gc
         self._inbox = EventInbox()
@@ -243,8 +246,8 @@ class BenchApp(App):
         if self._flow is None:
             from calibrate.commissioning import run_commissioning
 
-            return ProcessFlowRunner(run_commissioning, self._compute_nice)
-        return ThreadFlowRunner(self._flow, self._compute_nice)
+            return ProcessFlowRunner(run_commissioning, self._bench_nice, self._compute_nice)
+        return ThreadFlowRunner(self._flow, self._bench_nice, self._compute_nice)
 
     def _run_flow(self):
         """Worker body: run the flow to its end and return its result."""

@@ -7,10 +7,11 @@ sets the flow's ``stop_event``: the flow safe-stops the arm, retracts and closes
 * ``ProcessFlowRunner`` (what ``bubble tui`` uses): the flow runs in a spawned child process, so the
   UI thread never waits for the GIL held by the bench loops, the recorder or the training loop.
   The child sends its events, then its result or exception, through a ``multiprocessing``
-  queue. From the first compute step on (fine-tuning, the bench is closed by then) the child lowers
-  its scheduling priority (``COMPUTE_NICE``, inherited by torch's worker threads), so the UI
-  process wins the CPU while training keeps every core busy; the bench steps before keep the
-  normal priority (no starved camera loop). The child ignores SIGINT (the UI decides when to
+  queue. The flow runs a little below the UI's priority (``BENCH_NICE``: the UI, which needs a
+  few tens of ms of CPU a few times per second, gets a core at once, and the bench loops still get
+  everything else), and from the first compute step on (fine-tuning, the bench is closed by then)
+  well below it (``COMPUTE_NICE``, inherited by torch's worker threads), so the UI process wins
+  the CPU while training keeps every core busy. The child ignores SIGINT (the UI decides when to
   stop), stops the arm by itself when the UI process dies, and writes its log (stdout, stderr, log
   records) to ``RUN_DIR/flow.log`` instead of the terminal the UI draws on.
 * ``ThreadFlowRunner``: the flow runs in a thread of this process, with the same priority rule
@@ -38,7 +39,10 @@ from calibrate.commission_events import Step, StepStarted
 Flow = Callable[..., object]
 OnEvent = Callable[[object], None]
 
-#: Nice increment of the flow from the first compute step on.
+#: Nice increment of the flow from its start (bench steps): the scheduler prefers the UI (CFS weight
+#: 1024 against 526) without starving the bench loops.
+BENCH_NICE = 3
+#: Nice increment of the flow from the first compute step on (total, from the UI's priority).
 COMPUTE_NICE = 10
 COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
 #: The child's log file inside the run directory.
@@ -62,12 +66,14 @@ def _lower_thread_priority(increment: int) -> None:
         pass
 
 
-def _yield_on_compute(on_event: OnEvent, compute_nice: int, flow_thread: int) -> OnEvent:
-    """``on_event`` that first lowers the flow thread's priority at the first compute step.
+def _yield_on_compute(on_event: OnEvent, bench_nice: int, compute_nice: int, flow_thread: int) -> OnEvent:
+    """Lower the calling (flow) thread's priority by ``bench_nice`` now, and return an ``on_event``
+    that lowers it to ``compute_nice`` in all at the first compute step.
 
     ``flow_thread``: ``threading.get_ident()`` of the thread that runs the flow; events from its
     helper threads (bench snapshots) pass through without touching their priority.
     """
+    _lower_thread_priority(bench_nice)
     niced = False
 
     def forward(event: object) -> None:
@@ -79,7 +85,7 @@ def _yield_on_compute(on_event: OnEvent, compute_nice: int, flow_thread: int) ->
             and threading.get_ident() == flow_thread
         ):
             niced = True
-            _lower_thread_priority(compute_nice)
+            _lower_thread_priority(compute_nice - bench_nice)
         on_event(event)
 
     return forward
@@ -88,8 +94,9 @@ def _yield_on_compute(on_event: OnEvent, compute_nice: int, flow_thread: int) ->
 class FlowRunner(ABC):
     """Runs one commissioning flow away from the UI thread (see the module docstring)."""
 
-    def __init__(self, flow: Flow, compute_nice: int = COMPUTE_NICE) -> None:
+    def __init__(self, flow: Flow, bench_nice: int = BENCH_NICE, compute_nice: int = COMPUTE_NICE) -> None:
         self.flow = flow
+        self.bench_nice = min(bench_nice, compute_nice)
         self.compute_nice = compute_nice
 
     @abstractmethod
@@ -107,8 +114,8 @@ class FlowRunner(ABC):
 class ThreadFlowRunner(FlowRunner):
     """The flow in a dedicated thread of this process."""
 
-    def __init__(self, flow: Flow, compute_nice: int = COMPUTE_NICE) -> None:
-        super().__init__(flow, compute_nice)
+    def __init__(self, flow: Flow, bench_nice: int = BENCH_NICE, compute_nice: int = COMPUTE_NICE) -> None:
+        super().__init__(flow, bench_nice, compute_nice)
         self._stop_event = threading.Event()
 
     def request_stop(self) -> None:
@@ -118,7 +125,7 @@ class ThreadFlowRunner(FlowRunner):
         outcome: dict = {}
 
         def flow_thread() -> None:
-            forward = _yield_on_compute(on_event, self.compute_nice, threading.get_ident())
+            forward = _yield_on_compute(on_event, self.bench_nice, self.compute_nice, threading.get_ident())
             try:
                 outcome["result"] = self.flow(config, on_event=forward, stop_event=self._stop_event)
             except BaseException as err:  # re-raised in the caller's thread
@@ -135,8 +142,8 @@ class ThreadFlowRunner(FlowRunner):
 class ProcessFlowRunner(FlowRunner):
     """The flow in a spawned child process; ``flow`` must be picklable (a module-level function)."""
 
-    def __init__(self, flow: Flow, compute_nice: int = COMPUTE_NICE) -> None:
-        super().__init__(flow, compute_nice)
+    def __init__(self, flow: Flow, bench_nice: int = BENCH_NICE, compute_nice: int = COMPUTE_NICE) -> None:
+        super().__init__(flow, bench_nice, compute_nice)
         _start_resource_tracker()
         self._context = multiprocessing.get_context("spawn")
         self._stop_event = self._context.Event()
@@ -148,7 +155,7 @@ class ProcessFlowRunner(FlowRunner):
         messages = self._context.Queue()
         child = self._context.Process(
             target=_child_main,
-            args=(self.flow, config, messages, self._stop_event, self.compute_nice, os.getpid()),
+            args=(self.flow, config, messages, self._stop_event, self.bench_nice, self.compute_nice, os.getpid()),
             name="bubble-commissioning",
         )
         child.start()
@@ -232,12 +239,13 @@ def _sendable(err: BaseException) -> BaseException:
         return RuntimeError(f"{type(err).__name__}: {err}")
 
 
-def _child_main(flow: Flow, config, messages, stop_event, compute_nice: int, parent_pid: int) -> None:
+def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compute_nice: int, parent_pid: int) -> None:
     """Entry point of the child process: run the flow, send events, then the result or the error."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _redirect_output(Path(config.run_dir))
     threading.Thread(target=_stop_when_orphaned, args=(stop_event, parent_pid), name="orphan-watch", daemon=True).start()
-    forward = _yield_on_compute(lambda event: messages.put(("event", event)), compute_nice, threading.get_ident())
+    forward = _yield_on_compute(lambda event: messages.put(("event", event)), bench_nice, compute_nice,
+                                threading.get_ident())
     try:
         result = flow(config, on_event=forward, stop_event=stop_event)
     except BaseException as err:
