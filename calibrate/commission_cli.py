@@ -96,10 +96,7 @@ class ProgressPrinter:
         elif isinstance(event, ev.FaultRaised):
             self._print(f"FAULT {event.kind}: {event.message}")
         elif isinstance(event, ev.ArmSafeStopped):
-            if event.retracted:
-                self._print(f"arm stopped and retracted, |F| {event.force_after_n:.1f} N")
-            else:
-                self._print("arm stopped but NOT retracted: clear the stop on the pendant")
+            self._print(event.summary())
 
 
 def run_commission(args) -> int:

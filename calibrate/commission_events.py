@@ -100,6 +100,12 @@ class ArmSafeStopped:
     tcp_z_after_m: float  # TCP height after the retract, m (nan when unreadable)
     force_after_n: float  # |F| at the TCP after the retract, N (nan when unreadable)
 
+    def summary(self) -> str:
+        """One phrase for the operator: what the stop did to the arm."""
+        if not self.retracted:
+            return "arm stopped but NOT retracted (clear the stop on the pendant)"
+        return f"arm retracted, |F| {self.force_after_n:.1f} N"
+
 
 @dataclass
 class Verdict:

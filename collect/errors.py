@@ -28,6 +28,3 @@ class HardwareFault(Exception):
     def __init__(self, kind: str, message: str):
         super().__init__(message)
         self.kind = kind
-
-    def __reduce__(self):  # keep ``kind`` across processes (the TUI runs the flow in a child)
-        return type(self), (self.kind, str(self))

@@ -6,9 +6,9 @@ never competes for the GIL with the bench loops, the recorder or the training. A
 worker waits for the child and receives its events; each one only goes into an ``EventInbox``
 and, when the inbox was empty, posts one ``FlowEventsReady`` message (``post_message`` is
 thread-safe); the UI thread drains the whole batch at once. Bench snapshots (camera frames, pose,
-wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never floods the UI. From
-fine-tuning on (the bench is closed by then) the child lowers its scheduling priority
-(``COMPUTE_NICE``), so the UI wins the CPU while training keeps every core busy.
+wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never floods the UI. The
+child runs below the UI's scheduling priority (``BENCH_NICE``, and ``COMPUTE_NICE`` from
+fine-tuning on), so the UI wins the CPU while the flow keeps every core busy.
 
 Safety: the stop key (``s`` or space, a priority binding that works on every screen) sets the
 flow's ``stop_event``; the flow safe-stops the arm, retracts and closes the session file. Nothing
@@ -416,12 +416,7 @@ class BenchApp(App):
 
     def _arm_outcome(self) -> str:
         """What the run's safe stop did to the arm, for the banner."""
-        stop = self.safe_stop
-        if stop is None:
-            return "the arm was already parked"
-        if not stop.retracted:
-            return "arm stopped but NOT retracted (clear the stop on the pendant)"
-        return f"arm retracted, |F| {stop.force_after_n:.1f} N"
+        return "the arm was already parked" if self.safe_stop is None else self.safe_stop.summary()
 
     def on_unmount(self) -> None:
         """Last line of defence (e.g. the terminal closed): stop the flow and wait for it."""

@@ -6,7 +6,7 @@ sets the flow's ``stop_event``: the flow safe-stops the arm, retracts and closes
 
 * ``ProcessFlowRunner`` (what ``bubble tui`` uses): the flow runs in a spawned child process, so the
   UI thread never waits for the GIL held by the bench loops, the recorder or the training loop.
-  The child sends its events, then its result or exception, through a ``multiprocessing``
+  The child sends its events, then its result or a record of its exception, through a ``multiprocessing``
   queue. The flow runs a little below the UI's priority (``BENCH_NICE``: the UI, which needs a
   few tens of ms of CPU a few times per second, gets a core at once, and the bench loops still get
   everything else), and from the first compute step on (fine-tuning, the bench is closed by then)
@@ -23,7 +23,6 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-import pickle
 import queue
 import signal
 import sys
@@ -34,6 +33,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from calibrate.commission_events import Step, StepStarted
+from collect.errors import HardwareFault, InputError
 
 #: ``flow(config, on_event=..., stop_event=...) -> CommissionResult``
 Flow = Callable[..., object]
@@ -178,7 +178,7 @@ class ProcessFlowRunner(FlowRunner):
                 elif kind == "result":
                     return payload
                 else:
-                    raise payload
+                    raise _error_from_record(*payload)
         finally:
             if child.is_alive():
                 self._stop_event.set()  # the UI side failed: the flow must not go on unattended
@@ -230,13 +230,22 @@ def _redirect_output(run_dir: Path) -> None:
     logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
-def _sendable(err: BaseException) -> BaseException:
-    """``err`` when it survives pickling, else a RuntimeError with its type and message."""
-    try:
-        pickle.loads(pickle.dumps(err))
-        return err
-    except Exception:
-        return RuntimeError(f"{type(err).__name__}: {err}")
+def _error_record(err: BaseException) -> tuple[str, str, str]:
+    """What the UI needs of the flow's exception, as plain strings: (class, fault kind, message)."""
+    if isinstance(err, HardwareFault):
+        return "HardwareFault", err.kind, str(err)
+    if isinstance(err, InputError):
+        return "InputError", "", str(err)
+    return type(err).__name__, "", str(err)
+
+
+def _error_from_record(name: str, kind: str, message: str) -> BaseException:
+    """The exception the UI shows for a record of ``_error_record``."""
+    if name == "HardwareFault":
+        return HardwareFault(kind, message)
+    if name == "InputError":
+        return InputError(message)
+    return RuntimeError(f"{name}: {message}")
 
 
 def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compute_nice: int, parent_pid: int) -> None:
@@ -250,6 +259,6 @@ def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compu
         result = flow(config, on_event=forward, stop_event=stop_event)
     except BaseException as err:
         logging.getLogger(__name__).exception("the commissioning flow raised")
-        messages.put(("error", _sendable(err)))
+        messages.put(("error", _error_record(err)))
     else:
         messages.put(("result", result))
