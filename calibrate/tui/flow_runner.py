@@ -252,7 +252,8 @@ def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compu
     """Entry point of the child process: run the flow, send events, then the result or the error."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _redirect_output(Path(config.run_dir))
-    threading.Thread(target=_stop_when_orphaned, args=(stop_event, parent_pid), name="orphan-watch", daemon=True).start()
+    watch = threading.Thread(target=_stop_when_orphaned, args=(stop_event, parent_pid), name="orphan-watch", daemon=True)
+    watch.start()
     forward = _yield_on_compute(lambda event: messages.put(("event", event)), bench_nice, compute_nice,
                                 threading.get_ident())
     try:
