@@ -33,7 +33,8 @@ from textual import events  # noqa: E402
 
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
-from calibrate.tui.app import UI_GC_THRESHOLDS, BenchApp  # noqa: E402
+from calibrate.tui.app import BenchApp  # noqa: E402
+from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, OLDER_EVERY, YOUNG_OBJECTS  # noqa: E402
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE  # noqa: E402
 
 TARGET_MS = 100.0
@@ -60,6 +61,7 @@ class FrameClock:
         self.shown_wait: float | None = None  # UI thread run-queue wait (s) when the frame was composed
         self.frames = 0
         self.gc_s = 0.0  # time spent in garbage collections in this process so far, s
+        self.gc_pauses: dict[int, list[float]] = defaultdict(list)  # generation -> pause lengths, ms
         self._gc_started = 0.0
         gc.callbacks.append(self._on_gc)
         original = app._display
@@ -81,7 +83,9 @@ class FrameClock:
         if phase == "start":
             self._gc_started = time.perf_counter()
         else:
-            self.gc_s += time.perf_counter() - self._gc_started
+            pause = time.perf_counter() - self._gc_started
+            self.gc_s += pause
+            self.gc_pauses[info["generation"]].append(pause * 1e3)
 
     def close(self) -> None:
         gc.callbacks.remove(self._on_gc)
@@ -97,12 +101,13 @@ def running_step(app: BenchApp) -> str:
 
 async def measure(config: CommissionConfig, interval: float, max_seconds: float, bench_nice: int,
                   compute_nice: int, tune_gc: bool = True) -> dict:
-    app = BenchApp(config, bench_nice=bench_nice, compute_nice=compute_nice, tune_gc=tune_gc)
+    app = BenchApp(config, bench_nice=bench_nice, compute_nice=compute_nice, tune_gc=tune_gc, warm_up_tabs=True)
     latencies: dict[str, list[float]] = defaultdict(list)
     cpu: dict[str, list[float]] = defaultdict(list)  # UI thread CPU ms from key to frame
     waits: dict[str, list[float]] = defaultdict(list)  # UI thread run-queue wait ms from key to frame
     gcs: dict[str, list[float]] = defaultdict(list)  # garbage collection ms from key to frame
     missed: dict[str, int] = defaultdict(int)
+    presses: list[tuple] = []  # (s since start, step, key, latency, UI CPU, CPU wait, GC) ms
     async with app.run_test(size=SIZE) as pilot:
         clock = FrameClock(app)
         await pilot.pause(0.5)
@@ -124,6 +129,8 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
                 cpu[phase].append((clock.shown_cpu - c0) * 1e3)
                 waits[phase].append((clock.shown_wait - w0) * 1e3)
                 gcs[phase].append((clock.gc_s - g0) * 1e3)
+                presses.append((t0 - t_start, phase, key, latencies[phase][-1], cpu[phase][-1], waits[phase][-1],
+                                gcs[phase][-1]))
             clock.waiting_for = None
             target = "tab-commission" if target == "tab-sensor" else "tab-sensor"
             if not app.running and (app.result is not None or app.error is not None):
@@ -140,7 +147,7 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
         received = app.events_received
         clock.close()
     return {"latencies": latencies, "cpu": cpu, "waits": waits, "gc": gcs, "missed": missed, "wall_s": wall, "outcome": outcome,
-            "events": received, "frames": clock.frames}
+            "events": received, "frames": clock.frames, "gc_pauses": dict(clock.gc_pauses), "presses": presses}
 
 
 def describe_outcome(app: BenchApp) -> str:
@@ -197,8 +204,9 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "```",
         "",
         ("Python's default garbage collector settings (`--python-gc`)." if args.python_gc else
-         f"Garbage collector as `bubble tui` sets it (`calibrate.tui.app.tune_gc_for_ui`: collect, freeze, thresholds "
-         f"{UI_GC_THRESHOLDS})."),
+         f"Garbage collector as `bubble tui` runs it (`calibrate.tui.frame_gap_gc`): frozen after the first frame, "
+         f"then collected between frames by a {1 / CHECK_INTERVAL_S:.0f} Hz timer once {YOUNG_OBJECTS} objects are "
+         f"new (every {OLDER_EVERY}th collection also the middle generation, every {OLDER_EVERY ** 2}th the whole heap)."),
         "",
         "| step running | presses | median ms | p95 ms | max ms | UI CPU median ms | CPU wait p95 ms | GC max ms | no update in 2 s | max < 100 ms |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -209,6 +217,17 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "",
         f"Run: {stats['wall_s']:.0f} s, {stats['events']} flow events received, {stats['frames']} frames composed; "
         f"flow outcome: {stats['outcome']}.",
+        "",
+        "The slowest presses:",
+        "",
+        "| at s | step | key | ms | UI CPU ms | CPU wait ms | GC ms |",
+        "|---|---|---|---|---|---|---|",
+        *(f"| {at:.1f} | {step} | {key} | {ms:.1f} | {cpu_ms:.1f} | {wait_ms:.1f} | {gc_ms:.1f} |"
+          for at, step, key, ms, cpu_ms, wait_ms, gc_ms in sorted(stats["presses"], key=lambda p: -p[3])[:5]),
+        "",
+        "Garbage collections in the UI process during the run: " + ("; ".join(
+            f"generation {gen}: {len(p)}, median {np.median(p):.1f} ms, max {max(p):.1f} ms"
+            for gen, p in sorted(stats["gc_pauses"].items())) or "none") + ".",
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
         f"load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (1/5/15 min); "

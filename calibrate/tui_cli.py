@@ -69,5 +69,5 @@ def run_tui(args) -> int:
         sim_faults=tuple(args.sim_fault),
         sim_speed=args.sim_speed,
     )
-    BenchApp(config, tune_gc=True).run()
+    BenchApp(config, tune_gc=True, warm_up_tabs=True).run()
     return 0

@@ -12,10 +12,12 @@ import asyncio
 import gc
 import os
 import threading
+import weakref
 from pathlib import Path
 
 import numpy as np
 import pytest
+from textual.widgets import TabPane
 
 from calibrate.commission_events import (
     BenchSnapshot,
@@ -30,8 +32,9 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
-from calibrate.tui.app import UI_GC_THRESHOLDS, BenchApp
+from calibrate.tui.app import BenchApp
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE
+from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, YOUNG_OBJECTS
 from calibrate.tui.widgets.banner import Banner
 from calibrate.tui.widgets.confirm import ConfirmStart
 from collect.errors import HardwareFault
@@ -336,19 +339,56 @@ def test_snapshot_registry(snap_compare, in_tmp):
     assert snap_compare(app, terminal_size=SIZE, press=["4"])
 
 
-def test_the_app_tunes_the_garbage_collector_when_it_owns_the_process(in_tmp):
-    thresholds = gc.get_threshold()
+def test_the_app_collects_garbage_between_frames_when_it_owns_the_process(in_tmp):
+    enabled = gc.isenabled()
+
+    class Cycle:
+        def __init__(self):
+            self.me = self
 
     async def scenario(tune_gc):
         app = BenchApp(make_config(), flow=ScriptedFlow([]), tune_gc=tune_gc)
         async with app.run_test(size=SIZE) as pilot:
             await pilot.pause(0.1)
-            return gc.get_threshold(), gc.get_freeze_count()
+            state = gc.isenabled(), gc.get_freeze_count()
+            garbage = [Cycle() for _ in range(2 * YOUNG_OBJECTS)]  # cyclic: only the collector frees them
+            probe = weakref.ref(garbage[-1])
+            del garbage
+            await pilot.pause(4 * CHECK_INTERVAL_S)
+            return state, probe() is None, app.gc_collector.collections if tune_gc else 0
+        # leaving the context unmounts the app
 
     try:
-        assert asyncio.run(scenario(False)) == (thresholds, 0)
-        tuned, frozen = asyncio.run(scenario(True))
-        assert tuned == UI_GC_THRESHOLDS and frozen > 10_000
+        assert asyncio.run(scenario(False))[0] == (enabled, 0)
+        (auto, frozen), freed, collections = asyncio.run(scenario(True))
+        assert not auto and frozen > 10_000  # the composed app is frozen, the automatic collector off
+        assert freed and collections >= 1  # ... and the timer collected the cycles
+        assert gc.isenabled() == enabled and gc.get_freeze_count() == 0  # unmounting gave it back
     finally:
         gc.unfreeze()
-        gc.set_threshold(*thresholds)
+        gc.enable() if enabled else gc.disable()
+
+
+def test_the_app_does_not_animate_unless_the_user_asks(in_tmp, monkeypatch):
+    from textual import constants
+
+    monkeypatch.delenv("TEXTUAL_ANIMATIONS", raising=False)
+    assert BenchApp(make_config(), flow=ScriptedFlow([])).animation_level == "none"
+    monkeypatch.setenv("TEXTUAL_ANIMATIONS", "full")  # the user's choice wins (textual read it at import)
+    assert BenchApp(make_config(), flow=ScriptedFlow([])).animation_level == constants.TEXTUAL_ANIMATIONS
+
+
+def test_warm_up_draws_every_tab_once_and_ends_on_the_first(in_tmp):
+    async def scenario(warm_up):
+        app = BenchApp(make_config(), flow=ScriptedFlow([]), tune_gc=True, warm_up_tabs=warm_up)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.5)
+            return app.tabs.active, app.tabs_warmed_up, app.gc_collector.running
+
+    try:
+        assert asyncio.run(scenario(False)) == ("tab-commission", [], True)
+        assert asyncio.run(scenario(True)) == (
+            "tab-commission", ["tab-sensor", "tab-acceptance", "tab-registry", "tab-commission"], True)
+    finally:
+        gc.unfreeze()
+        gc.enable()

@@ -18,7 +18,7 @@ flow has returned.
 
 from __future__ import annotations
 
-import gc
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -44,6 +44,7 @@ from calibrate.commission_events import (
     Verdict,
 )
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner
+from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, FrameGapCollector
 from calibrate.tui.inbox import EventInbox
 from calibrate.tui.widgets.acceptance_table import AcceptanceTable
 from calibrate.tui.widgets.banner import Banner
@@ -61,24 +62,15 @@ HINT = "Press c to commission (the arm moves only after you confirm). s or space
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
 
-#: Garbage-collection thresholds of the UI process (Python's default: 700, 10, 10). Rendering a
-#: frame allocates tens of thousands of short-lived objects, many in reference cycles (textual's
-#: ``Strip`` keeps itself in its own caches). With the default, they outlive a few young
-#: collections, reach the oldest generation and make its collections 50-100 ms pauses every few
-#: seconds (docs/bench_tui.md); with a large youngest generation they die young, in collections of
-#: a few ms.
-UI_GC_THRESHOLDS = (20_000, 10, 10)
+#: textual's animation level unless the user sets ``TEXTUAL_ANIMATIONS``: none. The only animation
+#: here is the tab underline sliding for 0.3 s after each tab key, which recomposes the screen at up
+#: to 60 frames/s; without it a tab switch composes one frame (docs/tui.md "Responsiveness").
+DEFAULT_ANIMATION_LEVEL = "none"
 
-
-def tune_gc_for_ui() -> None:
-    """Set this process's garbage collector for short pauses (``BenchApp(tune_gc=True)`` on mount).
-
-    Collects, then freezes what exists (imported modules, the composed widgets: never traversed
-    again) and sets ``UI_GC_THRESHOLDS``. Process-wide, hence only where the app owns the process.
-    """
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(*UI_GC_THRESHOLDS)
+#: Start-up tab warm-up (``BenchApp(warm_up_tabs=True)``): how often it checks that the tab it shows
+#: has been laid out, s, and how many checks before it moves on regardless.
+WARM_UP_POLL_S = 1 / 60
+WARM_UP_MAX_POLLS = 30
 
 
 class FlowEventsReady(Message):
@@ -95,7 +87,9 @@ class BenchApp(App):
     time in s for ETAs and snapshot ages (tests pass a fixed clock). ``refresh_hz``: rate of the
     live bench/sensor refresh. ``bench_nice`` / ``compute_nice``: nice increment of the flow in the
     bench steps / from fine-tuning on (0 = as the UI; ``calibrate.tui.flow_runner``).
-    ``tune_gc``: tune the process's garbage collector once mounted (``tune_gc_for_ui``; ``bubble tui``).
+    ``tune_gc``: once mounted, run the process's garbage collector between frames
+    (``calibrate.tui.frame_gap_gc``; ``bubble tui``, which owns its process). ``warm_up_tabs``: show
+    every tab for one frame at start-up, so that no first switch to a tab is slow (``bubble tui``).
     """
 
     CSS_PATH = "bench.tcss"
@@ -124,15 +118,20 @@ class BenchApp(App):
         bench_nice: int = BENCH_NICE,
         compute_nice: int = COMPUTE_NICE,
         tune_gc: bool = False,
+        warm_up_tabs: bool = False,
     ) -> None:
         super().__init__()
+        if "TEXTUAL_ANIMATIONS" not in os.environ:
+            self.animation_level = DEFAULT_ANIMATION_LEVEL
         self.config = config
         self._flow = flow
         self._clock = clock
         self._refresh_hz = refresh_hz
         self._bench_nice = bench_nice
         self._compute_nice = compute_nice
-        self._tune_gc = tune_gc
+        self.gc_collector = FrameGapCollector() if tune_gc else None
+        self._warm_up_tabs = warm_up_tabs
+        self.tabs_warmed_up: list[str] = []  # tab ids drawn by the start-up warm-up, in order
         self._inbox = EventInbox()
         self._runner: FlowRunner | None = None
         self._flow_done = threading.Event()
@@ -187,8 +186,38 @@ class BenchApp(App):
     def on_mount(self) -> None:
         self.banner.show(HINT, "hint")
         self.set_interval(1.0 / self._refresh_hz, self.refresh_live)
-        if self._tune_gc:
-            self.call_after_refresh(tune_gc_for_ui)  # after the first frame: its widgets are frozen too
+        if self._warm_up_tabs:
+            shown = self.tabs.active
+            others = [pane.id for pane in self.tabs.query(TabPane) if pane.id != shown]
+            self.call_after_refresh(self._show_tabs_once, [*others, shown])
+        else:
+            self.call_after_refresh(self._start_gc)  # after the first frame: its widgets are frozen too
+
+    def _show_tabs_once(self, order: list[str], polls: int = 0) -> None:
+        """Start-up (``warm_up_tabs``): show each tab until it has been laid out (drawn), ending on
+        the first one.
+
+        A pane's first display costs up to ~90 ms more than later ones (the large sensor view:
+        docs/tui.md); paying it at start-up keeps it out of the operator's first key presses.
+        """
+        self.tabs.active = order[0]
+        drawn = self.tabs.get_pane(order[0]).size.area > 0
+        if not drawn and polls < WARM_UP_MAX_POLLS:
+            self.set_timer(WARM_UP_POLL_S, lambda: self._show_tabs_once(order, polls + 1))
+            return
+        if drawn:
+            self.tabs_warmed_up.append(order[0])
+        if len(order) > 1:
+            self._show_tabs_once(order[1:])
+        else:
+            self.call_after_refresh(self._start_gc)
+
+    def _start_gc(self) -> None:
+        """After the first frames (their widgets are frozen too): collect garbage between frames."""
+        if self.gc_collector is None:
+            return
+        self.gc_collector.start()
+        self.set_interval(CHECK_INTERVAL_S, self.gc_collector.tick)
 
     # ------------------------------------------------------------ state query
     @property
@@ -423,3 +452,5 @@ class BenchApp(App):
         if self.running and self._runner is not None:
             self._runner.request_stop()
             self._flow_done.wait(QUIT_WAIT_S)
+        if self.gc_collector is not None:
+            self.gc_collector.stop()

@@ -40,8 +40,9 @@ Flow = Callable[..., object]
 OnEvent = Callable[[object], None]
 
 #: Nice increment of the flow from its start (bench steps): the scheduler prefers the UI (CFS weight
-#: 1024 against 526) without starving the bench loops.
-BENCH_NICE = 3
+#: 1024 against 272) without starving the bench loops (the UI wants ~15 % of one core). With 3
+#: (weight 526) the UI still waited up to 30 ms for a core during collection (docs/bench_tui.md).
+BENCH_NICE = 6
 #: Nice increment of the flow from the first compute step on (total, from the UI's priority).
 COMPUTE_NICE = 10
 COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
@@ -158,7 +159,7 @@ class ProcessFlowRunner(FlowRunner):
             args=(self.flow, config, messages, self._stop_event, self.bench_nice, self.compute_nice, os.getpid()),
             name="bubble-commissioning",
         )
-        child.start()
+        _start_niced(child, self.bench_nice)
         try:
             while True:
                 try:
@@ -203,6 +204,26 @@ def _start_resource_tracker() -> None:
         resource_tracker.ensure_running()
     finally:
         sys.stderr = captured
+
+
+def _start_niced(child, nice: int) -> None:
+    """Start ``child`` from a short-lived thread that lowered its own priority by ``nice`` first:
+    the child inherits it from birth, so its start-up (interpreter, imports: ~1 s of CPU) already
+    runs below the UI instead of competing with it (a key press in that second waited 48 ms)."""
+    failure: list[BaseException] = []
+
+    def start() -> None:
+        _lower_thread_priority(nice)
+        try:
+            child.start()
+        except BaseException as err:  # re-raised in the caller's thread
+            failure.append(err)
+
+    starter = threading.Thread(target=start, name="flow-starter")
+    starter.start()
+    starter.join()
+    if failure:
+        raise failure[0]
 
 
 def _stop_when_orphaned(stop_event, parent_pid: int) -> None:
@@ -254,7 +275,8 @@ def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compu
     _redirect_output(Path(config.run_dir))
     watch = threading.Thread(target=_stop_when_orphaned, args=(stop_event, parent_pid), name="orphan-watch", daemon=True)
     watch.start()
-    forward = _yield_on_compute(lambda event: messages.put(("event", event)), bench_nice, compute_nice,
+    # born at bench_nice (_start_niced): only the step to compute_nice is left to take
+    forward = _yield_on_compute(lambda event: messages.put(("event", event)), 0, compute_nice - bench_nice,
                                 threading.get_ident())
     try:
         result = flow(config, on_event=forward, stop_event=stop_event)
