@@ -24,3 +24,15 @@ def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_
     text = card.read_text()
     assert text.startswith("# Model card") and "<!-- begin:pretraining -->" in text and "SYN-0, SYN-1" in text
     assert main(["train", "--work", str(tmp_path / "empty"), "--out", str(out)]) == 2
+
+
+def test_pretrain_refuses_to_package_into_its_own_training_directory(tmp_path, capsys):
+    work = tmp_path / "work"
+    work.mkdir()
+    for i in range(2):
+        make_synthetic_session(work / f"sensor_{i:05d}.h5", height=48, width=64, poses_per_object=1,
+                               sensor_serial=f"SYN-{i}", seed=i)
+    assert main(["train", "--work", str(work), "--out", str(work / "model"), "--val-sensors", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "checkpoint" in err[0]
+    assert not (work / "model").exists()  # refused before training

@@ -35,6 +35,9 @@ MAX_BASE_MODEL_BYTES = 20 * 1024 * 1024
 MODEL_CARD = Path(__file__).resolve().parents[1] / "docs" / "model_card.md"
 
 
+#: Directory inside ``--work`` where ``train`` keeps its model and checkpoint (packaged to ``--out``).
+TRAIN_DIR = "model"
+
 #: Longest a single ``bubble`` command may run before it counts as hung (s).
 COMMAND_TIMEOUT_S = 1800.0
 
@@ -136,10 +139,12 @@ def run_train(args: argparse.Namespace) -> int:
     if len(sessions) <= args.val_sensors:
         raise InputError(f"{len(sessions)} sessions in {work}: need more than --val-sensors {args.val_sensors}")
     train, val = sessions[: -args.val_sensors], sessions[-args.val_sensors :]
+    if Path(args.out).resolve() == (work / TRAIN_DIR).resolve():
+        raise InputError(f"--out {args.out} is where training keeps its checkpoint; package the base model elsewhere")
     config = TrainConfig(
         data=[str(p) for p in train],
         val_data=[str(p) for p in val],
-        out=str(work / "model"),
+        out=str(work / TRAIN_DIR),
         arch=args.arch,
         width=args.width,
         init=args.init,
