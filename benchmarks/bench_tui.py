@@ -24,6 +24,7 @@ import threading
 import time
 from collections import defaultdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -78,7 +79,6 @@ class FrameClock:
 
         app._display = display
 
-
     def _on_gc(self, phase: str, info: dict) -> None:
         if phase == "start":
             self._gc_started = time.perf_counter()
@@ -89,6 +89,18 @@ class FrameClock:
 
     def close(self) -> None:
         gc.callbacks.remove(self._on_gc)
+
+
+class Press(NamedTuple):
+    """One measured key press: when, during which step, and where its latency went (ms)."""
+
+    at_s: float  # since the start of the run
+    step: str
+    key: str
+    ms: float  # key posted -> first frame showing the new tab
+    cpu_ms: float  # UI thread CPU time in that span
+    wait_ms: float  # UI thread run-queue wait in that span
+    gc_ms: float  # garbage collection in the UI process in that span
 
 
 def running_step(app: BenchApp) -> str:
@@ -102,12 +114,8 @@ def running_step(app: BenchApp) -> str:
 async def measure(config: CommissionConfig, interval: float, max_seconds: float, bench_nice: int,
                   compute_nice: int, tune_gc: bool = True) -> dict:
     app = BenchApp(config, bench_nice=bench_nice, compute_nice=compute_nice, tune_gc=tune_gc, warm_up_tabs=True)
-    latencies: dict[str, list[float]] = defaultdict(list)
-    cpu: dict[str, list[float]] = defaultdict(list)  # UI thread CPU ms from key to frame
-    waits: dict[str, list[float]] = defaultdict(list)  # UI thread run-queue wait ms from key to frame
-    gcs: dict[str, list[float]] = defaultdict(list)  # garbage collection ms from key to frame
-    missed: dict[str, int] = defaultdict(int)
-    presses: list[tuple] = []  # (s since start, step, key, latency, UI CPU, CPU wait, GC) ms
+    presses: list[Press] = []
+    missed: dict[str, int] = defaultdict(int)  # step -> presses with no frame in 2 s
     async with app.run_test(size=SIZE) as pilot:
         clock = FrameClock(app)
         await pilot.pause(0.5)
@@ -125,12 +133,9 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
             if clock.shown_at is None:
                 missed[phase] += 1
             else:
-                latencies[phase].append((clock.shown_at - t0) * 1e3)
-                cpu[phase].append((clock.shown_cpu - c0) * 1e3)
-                waits[phase].append((clock.shown_wait - w0) * 1e3)
-                gcs[phase].append((clock.gc_s - g0) * 1e3)
-                presses.append((t0 - t_start, phase, key, latencies[phase][-1], cpu[phase][-1], waits[phase][-1],
-                                gcs[phase][-1]))
+                presses.append(Press(t0 - t_start, phase, key, (clock.shown_at - t0) * 1e3,
+                                     (clock.shown_cpu - c0) * 1e3, (clock.shown_wait - w0) * 1e3,
+                                     (clock.gc_s - g0) * 1e3))
             clock.waiting_for = None
             target = "tab-commission" if target == "tab-sensor" else "tab-sensor"
             if not app.running and (app.result is not None or app.error is not None):
@@ -146,8 +151,8 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
         outcome = describe_outcome(app)
         received = app.events_received
         clock.close()
-    return {"latencies": latencies, "cpu": cpu, "waits": waits, "gc": gcs, "missed": missed, "wall_s": wall, "outcome": outcome,
-            "events": received, "frames": clock.frames, "gc_pauses": dict(clock.gc_pauses), "presses": presses}
+    return {"presses": presses, "missed": missed, "wall_s": wall, "outcome": outcome, "events": received,
+            "frames": clock.frames, "gc_pauses": dict(clock.gc_pauses)}
 
 
 def describe_outcome(app: BenchApp) -> str:
@@ -165,14 +170,13 @@ def describe_outcome(app: BenchApp) -> str:
 
 def write_markdown(path: Path, stats: dict, args) -> None:
     rows = []
-    all_lat = []
+    by_step: dict[str, list[Press]] = defaultdict(list)
+    for press in stats["presses"]:
+        by_step[press.step].append(press)
     order = ["idle", *[s.value for s in STEPS], "running"]
-    for phase in sorted(stats["latencies"].keys() | stats["missed"].keys(), key=order.index):
-        lat = np.array(stats["latencies"].get(phase, []))
-        cpu = np.array(stats["cpu"].get(phase, []))
-        wait = np.array(stats["waits"].get(phase, []))
-        gcms = np.array(stats["gc"].get(phase, []))
-        all_lat += list(lat)
+    for phase in sorted(by_step.keys() | stats["missed"].keys(), key=order.index):
+        lat, cpu, wait, gcms = (np.array([getattr(p, f) for p in by_step[phase]])
+                                for f in ("ms", "cpu_ms", "wait_ms", "gc_ms"))
         miss = stats["missed"].get(phase, 0)
         if len(lat):
             rows.append(f"| {phase} | {len(lat)} | {np.median(lat):.1f} | {np.percentile(lat, 95):.1f} | "
@@ -180,7 +184,7 @@ def write_markdown(path: Path, stats: dict, args) -> None:
                         f"{'yes' if lat.max() < TARGET_MS and not miss else 'no'} |")
         else:
             rows.append(f"| {phase} | 0 | - | - | - | - | - | - | {miss} | no |")
-    all_lat = np.array(all_lat)
+    all_lat = np.array([p.ms for p in stats["presses"]])
     load = os.getloadavg()
     lines = [
         "# TUI responsiveness",
@@ -222,8 +226,8 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "",
         "| at s | step | key | ms | UI CPU ms | CPU wait ms | GC ms |",
         "|---|---|---|---|---|---|---|",
-        *(f"| {at:.1f} | {step} | {key} | {ms:.1f} | {cpu_ms:.1f} | {wait_ms:.1f} | {gc_ms:.1f} |"
-          for at, step, key, ms, cpu_ms, wait_ms, gc_ms in sorted(stats["presses"], key=lambda p: -p[3])[:5]),
+        *(f"| {p.at_s:.1f} | {p.step} | {p.key} | {p.ms:.1f} | {p.cpu_ms:.1f} | {p.wait_ms:.1f} | {p.gc_ms:.1f} |"
+          for p in sorted(stats["presses"], key=lambda p: -p.ms)[:5]),
         "",
         "Garbage collections in the UI process during the run: " + ("; ".join(
             f"generation {gen}: {len(p)}, median {np.median(p):.1f} ms, max {max(p):.1f} ms"

@@ -356,7 +356,6 @@ def test_the_app_collects_garbage_between_frames_when_it_owns_the_process(in_tmp
             del garbage
             await pilot.pause(4 * CHECK_INTERVAL_S)
             return state, probe() is None, app.gc_collector.collections if tune_gc else 0
-        # leaving the context unmounts the app
 
     try:
         assert asyncio.run(scenario(False))[0] == (enabled, 0)

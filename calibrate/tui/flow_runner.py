@@ -7,7 +7,7 @@ sets the flow's ``stop_event``: the flow safe-stops the arm, retracts and closes
 * ``ProcessFlowRunner`` (what ``bubble tui`` uses): the flow runs in a spawned child process, so the
   UI thread never waits for the GIL held by the bench loops, the recorder or the training loop.
   The child sends its events, then its result or a record of its exception, through a ``multiprocessing``
-  queue. The flow runs a little below the UI's priority (``BENCH_NICE``: the UI, which needs a
+  queue. The flow runs below the UI's priority from birth (``BENCH_NICE``: the UI, which needs a
   few tens of ms of CPU a few times per second, gets a core at once, and the bench loops still get
   everything else), and from the first compute step on (fine-tuning, the bench is closed by then)
   well below it (``COMPUTE_NICE``, inherited by torch's worker threads), so the UI process wins
