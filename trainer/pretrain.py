@@ -33,8 +33,6 @@ from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_
 MAX_BASE_MODEL_BYTES = 20 * 1024 * 1024
 #: The model card, whose "pretraining" section ``train`` rewrites (in a source checkout).
 MODEL_CARD = Path(__file__).resolve().parents[1] / "docs" / "model_card.md"
-
-
 #: Directory inside ``--work`` where ``train`` keeps its model and checkpoint (packaged to ``--out``).
 TRAIN_DIR = "model"
 

@@ -57,11 +57,8 @@ class FrameGapCollector:
         if not self.running or gc.get_count()[0] < self.young_objects:
             return None
         self.collections += 1
-        generation = 0
-        if self.collections % self.older_every == 0:
-            generation = 1
-        if self.collections % (self.older_every * self.older_every) == 0:
-            generation = 2
+        n, k = self.collections, self.older_every
+        generation = 2 if n % (k * k) == 0 else 1 if n % k == 0 else 0
         gc.collect(generation)
         return generation
 
