@@ -117,9 +117,23 @@ class SimCameraDevice:
             self._true_depth[seq] = true_depth
             while len(self._true_depth) > TRUE_DEPTH_KEEP:
                 self._true_depth.popitem(last=False)
-        self.depth_queue.send(depth_msg)
-        self.amplitude_queue.send(amp_msg)
+        _send_without_drop(self.depth_queue, depth_msg)
+        _send_without_drop(self.amplitude_queue, amp_msg)
         self.frames_sent += 1
+
+
+def _send_without_drop(queue, msg) -> None:
+    """Send ``msg`` into a non-blocking ``dai.MessageQueue``, making room first if it is full.
+
+    On a full queue depthai's ``send()`` drops the oldest message itself, with the GIL released and
+    the queue's lock held, and freeing a message made in Python takes the GIL. A reader in
+    ``tryGet()`` holds the GIL while it waits for that lock: the two threads deadlock (seen once as a
+    hung test). Taking the oldest message out here, with the GIL held, keeps ``send()`` from ever
+    dropping one (the reader only takes messages out, so the room stays).
+    """
+    if queue.isFull():
+        queue.tryGet()
+    queue.send(msg)
 
 
 class SimToFCamera(QueueToFCamera):

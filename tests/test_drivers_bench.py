@@ -203,3 +203,16 @@ def test_a_cpu_starved_camera_twin_slows_simulated_time_instead_of_stalling(monk
         assert [f.seq for f in frames] == list(range(frames[0].seq, frames[0].seq + 20))
         # 20 frames at 45 fps of simulated time (up to 8 were already queued), not 20x real time
         assert elapsed_sim < 1.0 and elapsed_sim < 2.0 * elapsed_real
+
+
+def test_the_simulated_camera_makes_room_in_a_full_queue_instead_of_letting_depthai_drop():
+    import depthai as dai
+
+    from hw_mocks.fake_camera import _img_frame, _send_without_drop
+
+    queue = dai.MessageQueue("depth", 3, False)
+    for seq in range(5):
+        _send_without_drop(queue, _img_frame(np.zeros((2, 2), np.uint16), seq, float(seq), float(seq)))
+    assert queue.getSize() == 3  # the newest three, oldest first, as depthai's own drop would keep
+    assert [queue.tryGet().getSequenceNum() for _ in range(3)] == [2, 3, 4]
+    assert queue.tryGet() is None
