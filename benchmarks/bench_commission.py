@@ -6,8 +6,8 @@
 For each seed (sensors the base model never saw: pretraining uses seeds 1000 and up):
 
 1. draw the sensor (``draw_sensor(seed)``) and commission it with the product's defaults (4 objects
-   x 8 poses, 2.5 min fine-tune, real-time simulated clock) through ``run_commissioning``, timing
-   every step from its events (wall clock);
+   x 10 poses, 7 of them fine-tune and 3 validate, 2.5 min fine-tune, real-time simulated clock)
+   through ``run_commissioning``, timing every step from its events (wall clock);
 2. commissioned model on objects it never saw: record a small session on meshes that are not in
    the calibration set (a sphere and a capsule, written as STL files and pressed through the same
    ``bubble collect`` code) and evaluate the commissioned model on it (``trainer.evaluation``).
@@ -110,6 +110,10 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
         "tof_a1": (doc.get("vs_true") or {}).get("tof", {}).get("a1"),
         "dropout_a1": (doc.get("vs_true") or {}).get("model_on_tof_dropout", {}).get("a1"),
     }
+    pose = state.get("pose_check", {}).get("pose", {})
+    row["pose_by_pose"] = pose.get("e_x_mm median per held-out pose", {})
+    for key, source in (("pred_vs_true", "predicted"), ("tof_vs_true", "measured")):
+        row[key] = (pose.get(f"{source} vs true pose: e_x_mm / e_theta (median)") or [None])[0]
     print(f"seed {seed}: {'ACCEPTED' if result.accepted else 'REJECTED'} in {total:.0f} s, a1 {_f(row['a1'], '.3f')} "
           f"{result.reason}", flush=True)
     if (config.run_dir / "model" / "metadata.json").is_file():
@@ -156,14 +160,16 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         + (" (other processes were running: provisional numbers)." if load[0] > 1.5 else "."),
         "",
         f"Each sensor is new (`draw_sensor(seed)`, seeds unused by pretraining) and commissioned with the product's "
-        f"defaults: 4 objects x 8 poses, {args.minutes} min fine-tune from "
+        f"defaults: 4 objects x {CommissionConfig.poses_per_object} poses (70 % fine-tune, 30 % validate), "
+        f"{args.minutes} min fine-tune from "
         f"{args.base_model or 'the packaged base model'}, real-time "
         f"simulated clock. Targets: total <= {TARGET_TOTAL_S / 60:.0f} min, fine-tune step <= "
         f"{TARGET_FINETUNE_S / 60:.0f} min, held-out a1 >= {TARGET_A1}.",
         "",
         "| seed | verdict | total (s) | " + " | ".join(steps) + " | held-out a1 | abs_rel | rmse (mm) | contact rmse (mm) | "
-        "a1 vs truth (model / ToF) | a1 on ToF dropouts | pose e_x (mm) | a1 unseen meshes |",
-        "|---" * (11 + len(steps)) + "|",
+        "a1 vs truth (model / ToF) | a1 on ToF dropouts | pose e_x (mm) | e_x per held-out mug pose (mm) | "
+        "pose vs true, e_x (mm): predicted / ToF | a1 unseen meshes |",
+        "|---" * (13 + len(steps)) + "|",
     ]
     for r in rows:
         lines.append(
@@ -172,7 +178,8 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
             + f" | {_f(r['a1'], '.3f')} | {_f(r['abs_rel'], '.4f')} | {_f(r['rmse'] and r['rmse'] * 1e3, '.3f')} | "
             f"{_f(r['contact_rmse'], '.3f')} | "
             f"{_f(r['truth_a1'], '.3f')} / {_f(r['tof_a1'], '.3f')} | {_f(r['dropout_a1'], '.3f')} | {_f(r['pose_e_x'], '.2f')} | "
-            f"{_f(r.get('unseen_a1'), '.3f')} |"
+            f"{', '.join(f'{v:.2f}' for v in r['pose_by_pose'].values()) or '-'} | "
+            f"{_f(r['pred_vs_true'], '.2f')} / {_f(r['tof_vs_true'], '.2f')} | {_f(r.get('unseen_a1'), '.3f')} |"
         )
     lines += [
         "",
@@ -184,6 +191,11 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         f"{_spread([r['train_s'] for r in rows], '.0f')} s",
         f"* held-out a1: {_spread([r['a1'] for r in rows], '.3f')}",
         f"* a1 on unseen meshes (sphere, capsule): {_spread([r.get('unseen_a1') for r in rows], '.3f')}",
+        f"* pose check, median e_x predicted vs measured: {_spread([r['pose_e_x'] for r in rows], '.2f')} mm; "
+        f"per held-out mug pose: "
+        f"{_spread([v for r in rows for v in r['pose_by_pose'].values()], '.2f')} mm",
+        f"* pose vs true pose, median e_x: predicted depth {_spread([r['pred_vs_true'] for r in rows], '.2f')} mm, "
+        f"ToF {_spread([r['tof_vs_true'] for r in rows], '.2f')} mm",
         f"* accepted: {sum(r['accepted'] for r in rows)} of {len(rows)}",
         "",
     ]

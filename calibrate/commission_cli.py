@@ -18,6 +18,8 @@ from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
 
 
 def register(subparsers) -> None:
+    from calibrate.commissioning import CommissionConfig
+
     p = subparsers.add_parser(
         "commission",
         help="commission a sensor: leak test, camera health, calibration set, fine-tune, validate, report",
@@ -31,10 +33,12 @@ def register(subparsers) -> None:
     p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
     p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
-    p.add_argument("--finetune-minutes", type=float, default=2.5, metavar="M", help="fine-tuning time budget (default 2.5)")
+    p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M",
+                   help="fine-tuning time budget (default %(default)s)")
     p.add_argument("--leak-hold-s", type=float, default=10.0, metavar="S", help="leak-test hold, s of bench time (default 10)")
     p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
-    p.add_argument("--poses-per-object", type=int, default=8, metavar="K")
+    p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
+                   help="contact poses per object; 30 %% of them validate (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the pose plan and of the simulated sensor")
     p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS", help="inject a fault (simulated bench)")
     p.add_argument("--sim-speed", type=float, default=1.0, help="simulated clock speed-up (simulated bench)")

@@ -12,10 +12,11 @@
 4. reference: no-contact reference frames (``reference.h5``; their median depth goes to the registry);
 5. collect: the calibration set, objects x poses (``collect.collection.run_collection`` into
    ``session.h5``);
-6. fine-tune from the base model within the time budget (``trainer.training.train_model`` into ``model/``);
-7. validate on the held-out contact poses of the trainer's pose split, against the ToF and, on
+6. fine-tune from the base model within the time budget (``trainer.training.train_model`` into ``model/``)
+   on the trainer's pose split: 70 % of each object's contact poses (7 of the default 10);
+7. validate on the held-out contact poses (3 of 10 per object), against the ToF and, on
    simulated runs, against the true depth;
-8. pose check on the mug (``calibrate.pose_check.run_pose_check``);
+8. pose check on the mug's held-out poses (``calibrate.pose_check.run_pose_check``);
 9. verdict: acceptance checks (``calibrate.acceptance``), ``acceptance.json``, ``report.html``,
    and the sensor registry (``calibrate.sensor_registry``).
 
@@ -109,7 +110,10 @@ class CommissionConfig:
     base_model: Path | None = None  # None -> the packaged base model
     finetune_minutes: float = 2.5
     objects: tuple[str, ...] = ("mug", "wine_glass", "box", "fingers")
-    poses_per_object: int = 8
+    #: 10 presses per object: the 70/30 pose split holds out 3 of each object's poses, so the pose
+    #: check's median over the mug's held-out frames lies in the middle pose (one hard pose cannot
+    #: decide the verdict; with 8 it held out 2) and the fine-tune keeps 7 (see docs/pose.md).
+    poses_per_object: int = 10
     seed: int = 0
     sim_faults: tuple[str, ...] = ()  # "KIND@SECONDS"
     sim_speed: float = 1.0  # simulated clock speed factor
@@ -601,6 +605,7 @@ class _Flow:
             "frames_used": f"{result.n_used}/{result.n_hold_frames}",
             "e_x_mm (median/mean/var)": [result.e_x_mm.median, result.e_x_mm.mean, result.e_x_mm.variance],
             "e_theta (median/mean/var)": [result.e_theta.median, result.e_theta.mean, result.e_theta.variance],
+            "e_x_mm median per held-out pose": {str(p): round(v, 3) for p, v in result.e_x_median_by_pose().items()},
             "hz": result.hz,
         }
         for src, stats in result.vs_true.items():

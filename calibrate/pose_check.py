@@ -108,6 +108,13 @@ class PoseCheckResult:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
+    def e_x_median_by_pose(self) -> dict[int, float]:
+        """Median ``e_x`` (mm, predicted vs measured) over the used frames of each contact pose."""
+        by_pose: dict[int, list[float]] = {}
+        for f in self.frames:
+            by_pose.setdefault(f.pose_id, []).append(f.e_x_mm)
+        return {pose: float(np.median(v)) for pose, v in sorted(by_pose.items())}
+
     def summary(self) -> str:
         """Two or three lines for the terminal."""
         lines = [

@@ -11,6 +11,8 @@ from collect.errors import InputError
 
 
 def register(subparsers) -> None:
+    from calibrate.commissioning import CommissionConfig
+
     p = subparsers.add_parser(
         "tui",
         help="terminal UI: bench state, live sensor view, commissioning with stop key",
@@ -21,9 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="sensor spec of the simulated sensor")
     p.add_argument("--out", type=Path, metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
     p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
-    p.add_argument("--poses-per-object", type=int, default=8, metavar="K")
+    p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--finetune-minutes", type=float, default=2.5, metavar="M")
+    p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M")
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from")
     p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds")
     p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory")

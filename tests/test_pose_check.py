@@ -120,6 +120,8 @@ def test_pose_check_on_a_geometric_session(tmp_path):
         assert result.vs_true[src]["e_x_mm"].median < 0.3, src
         assert result.vs_true[src]["e_theta"].median < 1e-4, src
     assert result.vs_true["true"]["e_x_mm"].median < 0.05  # noiseless: the fit is exact
+    by_pose = result.e_x_median_by_pose()
+    assert list(by_pose) == [0, 1, 2] and max(by_pose.values()) < 0.3
     assert (tmp_path / "plots" / "pose_errors.png").stat().st_size > 1000
     assert (tmp_path / "plots" / "pose_vs_true.png").stat().st_size > 1000
     doc = json.loads(json.dumps(result.to_dict()))

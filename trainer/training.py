@@ -36,7 +36,7 @@ from trainer.metrics import depth_metrics
 from trainer.model_dir import ModelMetadata, load_network, resolve_model_dir, save_model
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
-from trainer.splits import split_holdout_object, split_in_class
+from trainer.splits import TRAIN_FRACTION, split_holdout_object, split_in_class
 
 #: Default width multiplier per architecture: the widest whose deployed inference keeps >= 60 fps
 #: batch 1 at 224 x 224 on a 2-core CPU for ``resnet`` (see docs/bench_trainer.md).
@@ -148,7 +148,7 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
         info = {"kind": "holdout-object", "object": config.holdout_object}
     else:
         train_idx, val_idx = split_in_class(frames, by=config.split, seed=config.seed)
-        info = {"kind": f"in-class-{config.split}", "train_fraction": 0.7, "seed": config.seed}
+        info = {"kind": f"in-class-{config.split}", "train_fraction": TRAIN_FRACTION, "seed": config.seed}
     if len(train_idx) == 0 or len(val_idx) == 0:
         raise InputError(f"the {info['kind']} split leaves no training or no validation frames; record more poses")
     return frames.subset(train_idx), frames.subset(val_idx), info
