@@ -161,6 +161,31 @@ def perturbed_prior(pose: Pose, rng: np.random.Generator, error_mm: float, error
     return Pose.from_matrix(transform)
 
 
+def _frame_stats(frames: list[FramePoses]) -> dict:
+    """``e_x_mm``, ``e_theta`` and ``vs_true`` (``PoseCheckResult`` fields) over ``frames``."""
+    sources = frames[0].vs_true.keys()
+    return {
+        "e_x_mm": ErrorStats.of([f.e_x_mm for f in frames]),
+        "e_theta": ErrorStats.of([f.e_theta for f in frames]),
+        "vs_true": {s: {"e_x_mm": ErrorStats.of([f.vs_true[s]["e_x_mm"] for f in frames]),
+                        "e_theta": ErrorStats.of([f.vs_true[s]["e_theta"] for f in frames])}
+                    for s in sources},
+    }
+
+
+def pooled_result(results: list[PoseCheckResult]) -> PoseCheckResult:
+    """One result over the frames of several runs of the same object (e.g. several sensors): the
+    errors over all their frames, counts summed, ``hz`` the runs' mean, sessions joined by ``;``."""
+    frames = [f for r in results for f in r.frames]
+    return PoseCheckResult(
+        session="; ".join(r.session for r in results), object_name=results[0].object_name,
+        shape=results[0].shape, n_hold_frames=sum(r.n_hold_frames for r in results), n_used=len(frames),
+        skipped={k: sum(r.skipped[k] for r in results) for k in results[0].skipped},
+        hz=float(np.mean([r.hz for r in results])), frames=frames, settings=results[0].settings,
+        **_frame_stats(frames),
+    )
+
+
 def _errors(pose: Pose, reference: Pose) -> dict[str, float]:
     return {"e_x_mm": 1e3 * position_error(pose, reference), "e_theta": orientation_error(pose, reference)}
 
@@ -279,19 +304,13 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         reasons = ", ".join(f"{k} {v}" for k, v in skipped.items() if v) or "none"
         raise InputError(f"{session_name}: no usable hold frame of {object_name!r} for the pose check "
                          f"({len(hold_idx)} hold frames; skipped: {reasons})")
-    vs_true = {}
-    if simulated:
-        vs_true = {s: {"e_x_mm": ErrorStats.of([f.vs_true[s]["e_x_mm"] for f in frames]),
-                       "e_theta": ErrorStats.of([f.vs_true[s]["e_theta"] for f in frames])}
-                   for s in sources}
     result = PoseCheckResult(
         session=session_name, object_name=object_name,
         shape="cylinder" if isinstance(shape, Cylinder) else "mesh_sdf",
         n_hold_frames=int(len(hold_idx)), n_used=len(frames), skipped=skipped,
-        e_x_mm=ErrorStats.of([f.e_x_mm for f in frames]),
-        e_theta=ErrorStats.of([f.e_theta for f in frames]),
         hz=n_fits / fit_seconds if fit_seconds > 0 else 0.0,
-        vs_true=vs_true, frames=frames,
+        frames=frames,
+        **_frame_stats(frames),
         settings={"threshold_m": threshold_m, "n_points": n_points, "prior_error_mm": prior_error_mm,
                   "prior_error_deg": prior_error_deg, "seed": seed,
                   "prior_weight": fitter.prior_weight, "prior_rotation_scale_m": fitter.prior_rotation_scale_m,

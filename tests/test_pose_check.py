@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from calibrate.pose_check import SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, run_pose_check
+from calibrate.pose_check import SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, pooled_result, run_pose_check
 from calibrate.pose_estimation import quat_to_matrix
 from collect import session_format as sf
 from collect.errors import InputError
@@ -127,6 +127,19 @@ def test_pose_check_on_a_geometric_session(tmp_path):
     doc = json.loads(json.dumps(result.to_dict()))
     assert set(doc["e_x_mm"]) == {"median", "mean", "variance"} and doc["hz"] > 0
     assert len(doc["frames"]) == 9 and len(doc["frames"][0]["poses"]["bench"]) == 7
+
+
+def test_pooled_result_takes_the_errors_over_every_run_frame(tmp_path):
+    runs = [run_pose_check(DecodingEstimator(noise_m=noise), write_cylinder_session(tmp_path / f"c{i}.h5", seed=i), "mug")
+            for i, noise in enumerate((5e-5, 3e-4))]
+    pooled = pooled_result(runs)
+    assert pooled.n_used == 18 and pooled.n_hold_frames == 18 and len(pooled.frames) == 18
+    every_e_x = [f.e_x_mm for r in runs for f in r.frames]
+    assert pooled.e_x_mm.median == pytest.approx(np.median(every_e_x))
+    assert pooled.e_x_mm.mean == pytest.approx((runs[0].e_x_mm.mean + runs[1].e_x_mm.mean) / 2)  # 9 frames each
+    assert pooled.vs_true["true"]["e_x_mm"].median == pytest.approx(
+        np.median([f.vs_true["true"]["e_x_mm"] for r in runs for f in r.frames]))
+    assert pooled.session == f"{runs[0].session}; {runs[1].session}"
 
 
 def test_pose_check_counts_skipped_frames_and_fails_with_no_usable_frame(tmp_path):
