@@ -10,8 +10,8 @@ cold fits from a perturbed prior; plus the contact-patch extraction on a 224x172
 Accuracy: ``run_pose_check`` on simulated sessions of the mug (predicted vs measured depth, and
 each vs the true pose), the errors taken over the frames of all sessions together and per session.
 Without ``--session``/``--model`` it records one session per sensor seed (``--seeds``, three new
-sensors by default: one run moves by a few tenths of a millimetre with the fine-tune's step count)
-with ``bubble collect --sim`` and fine-tunes the base model on each with ``bubble train``
+sensors by default: one sensor's result moved by up to 0.6 mm between runs with the fine-tune's
+step count) with ``bubble collect --sim`` and fine-tunes the base model on each with ``bubble train``
 (held out: the mug, so the check runs on an object the model was not trained on, as in the paper).
 Writes ``docs/bench_pose.md`` (``--out``).
 """
@@ -211,7 +211,7 @@ def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: l
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--session", type=Path, help="simulated session with the mug (default: record one)")
+    ap.add_argument("--session", type=Path, help="simulated session with the mug (default: record one per --seeds)")
     ap.add_argument("--model", type=Path, help="model directory (default: fine-tune the base model)")
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--seeds", default="0,1,2", help="simulated sensors to record and fine-tune (default 0,1,2)")
