@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
 from calibrate.commissioning import CommissionConfig, run_commissioning  # noqa: E402
+from trainer.splits import TRAIN_FRACTION  # noqa: E402
 
 TARGET_TOTAL_S = 300.0
 TARGET_FINETUNE_S = 180.0
@@ -160,7 +161,7 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         + (" (other processes were running: provisional numbers)." if load[0] > 1.5 else "."),
         "",
         f"Each sensor is new (`draw_sensor(seed)`, seeds unused by pretraining) and commissioned with the product's "
-        f"defaults: 4 objects x {CommissionConfig.poses_per_object} poses (70 % fine-tune, 30 % validate), "
+        f"defaults: 4 objects x {CommissionConfig.poses_per_object} poses ({TRAIN_FRACTION:.0%} fine-tune, the rest validate), "
         f"{args.minutes} min fine-tune from "
         f"{args.base_model or 'the packaged base model'}, real-time "
         f"simulated clock. Targets: total <= {TARGET_TOTAL_S / 60:.0f} min, fine-tune step <= "

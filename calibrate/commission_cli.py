@@ -38,7 +38,7 @@ def register(subparsers) -> None:
     p.add_argument("--leak-hold-s", type=float, default=10.0, metavar="S", help="leak-test hold, s of bench time (default 10)")
     p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
-                   help="contact poses per object; 30 %% of them validate (default %(default)s)")
+                   help="contact poses per object (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the pose plan and of the simulated sensor")
     p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS", help="inject a fault (simulated bench)")
     p.add_argument("--sim-speed", type=float, default=1.0, help="simulated clock speed-up (simulated bench)")
