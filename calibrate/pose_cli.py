@@ -9,7 +9,7 @@ def register(subparsers) -> None:
         help="pose of the mug from predicted vs measured depth (the paper's downstream check)",
         description="Estimate the object's pose from the contact patch of every hold frame, once from the "
                     "model's predicted depth and once from the measured ToF depth, and compare them "
-                    "(e_x = ||p1-p2|| mm, e_theta = 1-|q1.q2|); simulated sessions are also compared "
+                    "(e_x = ||p1-p2|| mm at the shape's centre, e_theta = 1-|q1.q2|); simulated sessions are also compared "
                     "with the true pose.",
     )
     p.add_argument("--model", required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")

@@ -57,7 +57,13 @@ PRIOR_ROTATION_SCALE_M = 0.1
 
 
 class Shape(Protocol):
-    """A shape with a proximity field in its own (object) frame."""
+    """A shape with a proximity field in its own (object) frame.
+
+    ``center`` ``(3,)`` m, object frame: the point whose position ``e_x`` compares (the shape's own
+    reference point, not the object's origin on the fixture, which may lie a lever arm away).
+    """
+
+    center: tuple[float, float, float]
 
     def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``points (N,3) m`` in the object frame -> ``(phi (N,) m, grad (N,3))``, negative inside."""
@@ -119,8 +125,9 @@ class GridSDF:
     """
 
     values: np.ndarray
-    origin: np.ndarray  # (3,) m
+    origin: np.ndarray  # (3,) m, the grid's first sample
     spacing: float  # m
+    center: tuple[float, float, float]  # m, the centre of the mesh's bounding box
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, spacing: float = 1.5e-3,
@@ -159,7 +166,8 @@ class GridSDF:
         far_dist = band + ndimage.distance_transform_edt(far) * spacing
         far_sign = np.where(np.isin(labels, outside_labels[outside_labels > 0]), 1.0, -1.0)
         values[~in_band] = (far_sign * far_dist)[far]
-        return cls(values=values.reshape(shape), origin=lo, spacing=float(spacing))
+        return cls(values=values.reshape(shape), origin=lo, spacing=float(spacing),
+                   center=tuple(float(c) for c in mesh.bounds.mean(axis=0)))
 
     def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = np.asarray(points, dtype=np.float64)
@@ -270,9 +278,13 @@ class Pose:
         return np.concatenate([self.position, self.quaternion])
 
 
-def position_error(a: Pose, b: Pose) -> float:
-    """``e_x = ||p1 - p2||`` (m)."""
-    return float(np.linalg.norm(a.position - b.position))
+def position_error(a: Pose, b: Pose, point=(0.0, 0.0, 0.0)) -> float:
+    """``e_x = ||p1 - p2||`` (m): the distance between where the two poses put ``point`` ``(3,)``
+    (object frame, m; the object's origin by default, a shape's ``center`` in the pose check)."""
+    point = np.asarray(point, dtype=np.float64)
+    p1 = quat_to_matrix(a.quaternion) @ point + a.position
+    p2 = quat_to_matrix(b.quaternion) @ point + b.position
+    return float(np.linalg.norm(p1 - p2))
 
 
 def orientation_error(a: Pose, b: Pose) -> float:

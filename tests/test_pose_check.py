@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calibrate.pose_check import SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, pooled_result, run_pose_check
-from calibrate.pose_estimation import quat_to_matrix
+from calibrate.pose_estimation import Pose, align_symmetry, position_error, quat_to_matrix, shape_from_object
 from collect import session_format as sf
 from collect.errors import InputError
 from collect.session_writer import SessionWriter
@@ -127,6 +127,12 @@ def test_pose_check_on_a_geometric_session(tmp_path):
     doc = json.loads(json.dumps(result.to_dict()))
     assert set(doc["e_x_mm"]) == {"median", "mean", "variance"} and doc["hz"] > 0
     assert len(doc["frames"]) == 9 and len(doc["frames"][0]["poses"]["bench"]) == 7
+    # e_x is where the poses put the cylinder's centre, not the object's origin (AXIS_Z below it)
+    frame = result.frames[0]
+    pred, meas = (Pose(np.array(frame.poses[s][:3]), np.array(frame.poses[s][3:])) for s in ("predicted", "measured"))
+    aligned = align_symmetry(shape_from_object(MUG), pred, meas)
+    assert frame.e_x_mm == pytest.approx(1e3 * position_error(aligned, meas, MUG["center"]))
+    assert frame.e_x_mm != pytest.approx(1e3 * position_error(aligned, meas), rel=1e-3)
 
 
 def test_pooled_result_takes_the_errors_over_every_run_frame(tmp_path):

@@ -174,6 +174,7 @@ def test_grid_sdf_of_mesh_matches_cylinder_and_fits_the_same_pose():
     mesh.apply_translation([0, 0, 0.05])
     grid = shape_from_object({"type": "mesh"}, mesh.vertices, mesh.faces)
     assert isinstance(grid, GridSDF)
+    np.testing.assert_allclose(grid.center, CYL.center, atol=1e-12)  # the mesh's bounding-box centre
     rng = np.random.default_rng(5)
     probe = np.concatenate([_side_and_rim_patch(rng, 300) * [1.1, 1.1, 1.05],
                             rng.uniform([-0.1, -0.1, -0.05], [0.1, 0.1, 0.2], (300, 3))])
@@ -221,6 +222,19 @@ def test_tilted_axis_cylinder_matches_canonical_and_jacobian():
                          - point_residuals(theta - eps * e, pts, lying, False)[0]) / (2 * eps)
                         for e in np.eye(7)], axis=1)
     np.testing.assert_allclose(jac, numeric, atol=1e-6)
+
+
+def test_position_error_at_a_point_adds_the_lever_arm_of_a_turn():
+    true = _pose([0.3, -0.2, 0.5], [0.01, -0.02, 0.09])
+    # turned by 0.01 rad about the x axis through the cylinder's centre (0, 0, 0.05), 50 mm above the origin
+    turn = Rotation.from_rotvec([0.01, 0.0, 0.0]).as_matrix()
+    about_center = np.eye(4)
+    about_center[:3, :3] = turn
+    about_center[:3, 3] = np.array(CYL.center) - turn @ CYL.center
+    turned = Pose.from_matrix(true.matrix() @ about_center)
+    assert position_error(turned, true, CYL.center) < 1e-12
+    assert abs(position_error(turned, true) - 0.05 * 2 * np.sin(0.005)) < 1e-9  # at the origin
+    assert orientation_error(turned, true) > 1e-5
 
 
 def test_align_symmetry_removes_spin_and_slide_only():
