@@ -37,6 +37,7 @@ from calibrate.pose_estimation import (
     Cylinder,
     Pose,
     ProximityPoseEstimator,
+    Shape,
     align_symmetry,
     orientation_error,
     position_error,
@@ -189,7 +190,7 @@ def pooled_result(results: list[PoseCheckResult]) -> PoseCheckResult:
     )
 
 
-def _errors(shape, pose: Pose, reference: Pose) -> dict[str, float]:
+def _errors(shape: Shape, pose: Pose, reference: Pose) -> dict[str, float]:
     """``e_x`` (mm, at the shape's centre) and ``e_theta`` of ``pose`` against ``reference``."""
     return {"e_x_mm": 1e3 * position_error(pose, reference, shape.center),
             "e_theta": orientation_error(pose, reference)}
