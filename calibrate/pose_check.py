@@ -191,9 +191,11 @@ def pooled_result(results: list[PoseCheckResult]) -> PoseCheckResult:
 
 
 def _errors(shape: Shape, pose: Pose, reference: Pose) -> dict[str, float]:
-    """``e_x`` (mm, at the shape's centre) and ``e_theta`` of ``pose`` against ``reference``."""
-    return {"e_x_mm": 1e3 * position_error(pose, reference, shape.center),
-            "e_theta": orientation_error(pose, reference)}
+    """``e_x`` (mm, at the shape's centre) and ``e_theta`` of ``pose`` against ``reference``,
+    modulo the shape's symmetry (``pose`` aligned to ``reference`` first)."""
+    aligned = align_symmetry(shape, pose, reference)
+    return {"e_x_mm": 1e3 * position_error(aligned, reference, shape.center),
+            "e_theta": orientation_error(aligned, reference)}
 
 
 def _load_estimator(model):
@@ -295,15 +297,14 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
             skipped[reason] += 1
             continue
         warm = {src: fit.pose for src, fit in fits.items()}
-        pred, meas = fits["predicted"].pose, fits["measured"].pose
         frames.append(FramePoses(
             frame=int(frame), pose_id=int(pose_ids[k]),
-            **_errors(shape, align_symmetry(shape, pred, meas), meas),
+            **_errors(shape, fits["predicted"].pose, fits["measured"].pose),
             n_points={s: f.n_points for s, f in fits.items()},
             n_outliers={s: f.n_outliers for s, f in fits.items()},
             rms_mm={s: 1e3 * f.rms_m for s, f in fits.items()},
             poses={**{s: f.pose.theta().tolist() for s, f in fits.items()}, "bench": truth.theta().tolist()},
-            vs_true={s: _errors(shape, align_symmetry(shape, f.pose, truth), truth)
+            vs_true={s: _errors(shape, f.pose, truth)
                      for s, f in fits.items()} if simulated else {},
         ))
     if not frames:
