@@ -26,6 +26,18 @@ def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_
     assert main(["train", "--work", str(tmp_path / "empty"), "--out", str(out)]) == 2
 
 
+def test_pretrain_continues_a_model_in_its_own_architecture(tmp_path):
+    work = tmp_path / "work"
+    work.mkdir()
+    for i in range(2):
+        make_synthetic_session(work / f"sensor_{i:05d}.h5", height=48, width=64, poses_per_object=1,
+                               sensor_serial=f"SYN-{i}", seed=i)
+    common = ["train", "--work", str(work), "--val-sensors", "1", "--epochs", "0.2", "--model-card", ""]
+    assert main([*common, "--out", str(tmp_path / "first"), "--arch", "packnet", "--width", "0.125"]) == 0
+    assert main([*common, "--out", str(tmp_path / "second"), "--init", str(tmp_path / "first")]) == 0
+    assert load_metadata(tmp_path / "second").arch == "packnet"
+
+
 def test_pretrain_refuses_to_package_into_its_own_training_directory(tmp_path, capsys):
     work = tmp_path / "work"
     work.mkdir()

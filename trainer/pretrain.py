@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--work", required=True)
     t.add_argument("--out", default=str(BASE_MODEL_DIR))
     t.add_argument("--val-sensors", type=int, default=2, help="last sessions held out for validation")
-    t.add_argument("--arch", default="resnet")
+    t.add_argument("--arch", help="network (default: resnet, or the --init model's)")
     t.add_argument("--width", type=float)
     t.add_argument("--init", metavar="MODEL_DIR", help="continue from this model directory ('base' = the shipped base model)")
     t.add_argument("--contact-weight", type=float, help="extra L1 weight of the contact patches (default: the trainer's)")
