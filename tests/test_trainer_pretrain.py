@@ -5,12 +5,17 @@ from trainer.model_dir import WEIGHTS_FILE, load_metadata
 from trainer.pretrain import main
 
 
-def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_path):
-    work = tmp_path / "work"
+def _sensor_sessions(work, n):
+    """``n`` small synthetic sessions of sensors SYN-0.. in ``work`` (created); returns ``work``."""
     work.mkdir()
-    for i in range(3):
+    for i in range(n):
         make_synthetic_session(work / f"sensor_{i:05d}.h5", height=48, width=64, poses_per_object=1,
                                sensor_serial=f"SYN-{i}", seed=i)
+    return work
+
+
+def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_path):
+    work = _sensor_sessions(tmp_path / "work", 3)
     card = tmp_path / "card.md"
     card.write_text("# Model card\n")
     out = tmp_path / "base"
@@ -27,11 +32,7 @@ def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_
 
 
 def test_pretrain_continues_a_model_in_its_own_architecture(tmp_path):
-    work = tmp_path / "work"
-    work.mkdir()
-    for i in range(2):
-        make_synthetic_session(work / f"sensor_{i:05d}.h5", height=48, width=64, poses_per_object=1,
-                               sensor_serial=f"SYN-{i}", seed=i)
+    work = _sensor_sessions(tmp_path / "work", 2)
     common = ["train", "--work", str(work), "--val-sensors", "1", "--epochs", "0.2", "--model-card", ""]
     assert main([*common, "--out", str(tmp_path / "first"), "--arch", "packnet", "--width", "0.125"]) == 0
     assert main([*common, "--out", str(tmp_path / "second"), "--init", str(tmp_path / "first")]) == 0
@@ -39,11 +40,7 @@ def test_pretrain_continues_a_model_in_its_own_architecture(tmp_path):
 
 
 def test_pretrain_refuses_to_package_into_its_own_training_directory(tmp_path, capsys):
-    work = tmp_path / "work"
-    work.mkdir()
-    for i in range(2):
-        make_synthetic_session(work / f"sensor_{i:05d}.h5", height=48, width=64, poses_per_object=1,
-                               sensor_serial=f"SYN-{i}", seed=i)
+    work = _sensor_sessions(tmp_path / "work", 2)
     assert main(["train", "--work", str(work), "--out", str(work / "model"), "--val-sensors", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "checkpoint" in err[0]
