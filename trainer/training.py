@@ -33,7 +33,7 @@ from trainer.dataset import FrameSet, NetworkTensors, load_frames, to_network_te
 from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
-from trainer.model_dir import ModelMetadata, load_network, resolve_model_dir, save_model
+from trainer.model_dir import ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
 from trainer.splits import TRAIN_FRACTION, split_holdout_object, split_in_class
@@ -170,6 +170,12 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"input size {w}x{h} must be a multiple of {INPUT_MULTIPLE} in both directions")
     if config.arch is not None and config.arch not in ARCHITECTURES:
         raise InputError(f"unknown architecture {config.arch!r}; choose one of {', '.join(ARCHITECTURES)}")
+    if config.init:  # before the data loads: a pretraining set takes minutes
+        init_meta = load_metadata(resolve_model_dir(config.init))
+        if config.arch is not None and config.arch != init_meta.arch:
+            raise InputError(f"--arch {config.arch} differs from the init model's architecture {init_meta.arch}")
+        if config.width is not None and config.width != init_meta.width:
+            raise InputError(f"width {config.width} differs from the init model's width {init_meta.width}")
 
 
 def _build(config: TrainConfig, frames: FrameSet) -> tuple[nn.Module, ModelMetadata, dict | None]:
@@ -177,10 +183,6 @@ def _build(config: TrainConfig, frames: FrameSet) -> tuple[nn.Module, ModelMetad
     init_info = None
     if config.init:
         network, init_meta = load_network(resolve_model_dir(config.init))
-        if config.arch is not None and config.arch != init_meta.arch:
-            raise InputError(f"--arch {config.arch} differs from the init model's architecture {init_meta.arch}")
-        if config.width is not None and config.width != init_meta.width:
-            raise InputError(f"width {config.width} differs from the init model's width {init_meta.width}")
         arch, width = init_meta.arch, init_meta.width
         min_depth, max_depth = init_meta.min_depth, init_meta.max_depth
         input_size = (init_meta.geometry.input_height, init_meta.geometry.input_width)
