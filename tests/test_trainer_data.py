@@ -73,6 +73,13 @@ def test_normalization_turns_gain_into_offset_and_tensors_mask_padding(synthetic
     assert (t.depth[:, :, :26] == 0).all() and int(t.content.sum()) == 172 * 224
     aug = augment_ir(t.x[:2], t.content, norm.std, torch.Generator().manual_seed(0))
     assert (aug[:, :, :26] == 0).all() and not torch.equal(aug, t.x[:2])
+    # without pixel noise (fine-tuning) each image is an affine map of itself: gain and contrast only
+    inside = t.content[0, 0].bool()
+    for src, out in zip(t.x[:2, 0], aug[:, 0]):
+        slope, offset = np.polyfit(src[inside].numpy(), out[inside].numpy(), 1)
+        assert np.allclose(out[inside].numpy(), slope * src[inside].numpy() + offset, atol=1e-4)
+    noisy = augment_ir(t.x[:2], t.content, norm.std, torch.Generator().manual_seed(0), noise_std=0.03)
+    assert 0.02 < float((noisy - aug)[:, :, inside].std()) < 0.04 and (noisy[:, :, :26] == 0).all()
 
 
 def test_masked_l1_ignores_invalid_pixels():

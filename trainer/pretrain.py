@@ -26,6 +26,7 @@ from pathlib import Path
 
 from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_BAD_INPUT, InputError
+from trainer.augmentation import PRETRAIN_NOISE_STD
 from trainer.doc_sections import update_section
 from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE, load_metadata
 
@@ -155,6 +156,7 @@ def run_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         resume=args.resume,
         eval_interval_s=args.eval_interval,
+        ir_noise_std=PRETRAIN_NOISE_STD,
     )
 
     def show(p) -> None:

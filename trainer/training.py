@@ -76,6 +76,7 @@ class TrainConfig:
     inverse_depth_loss: bool = False
     contact_weight: float = DEFAULT_CONTACT_WEIGHT  # extra loss weight of the contact patches (0 = plain L1)
     augment: bool = True
+    ir_noise_std: float = 0.0  # pixel noise of the augmentation (normalized IR units); pretraining's is 0.03
     min_depth: float = DEFAULT_MIN_DEPTH
     max_depth: float = DEFAULT_MAX_DEPTH
     input_size: tuple[int, int] = DEFAULT_INPUT_SIZE
@@ -310,7 +311,7 @@ def train_model(
             idx = shard[b * config.batch_size : (b + 1) * config.batch_size]
             x = train_t.x[idx]
             if config.augment:
-                x = augment_ir(x, train_t.content, metadata.normalization.std, gen)
+                x = augment_ir(x, train_t.content, metadata.normalization.std, gen, config.ir_noise_std)
             target = train_t.depth[idx].to(ctx.device)
             valid = (target > metadata.min_depth) & (target < metadata.max_depth)
             weight = contact_weights(train_t.contact[idx], config.contact_weight).to(ctx.device) \
@@ -368,6 +369,7 @@ def train_model(
             "loss": "l1-inverse-depth" if config.inverse_depth_loss else "l1-depth",
             "contact_weight": config.contact_weight,
             "augment": config.augment,
+            "ir_noise_std": config.ir_noise_std if config.augment else 0.0,
             "seed": config.seed,
             "frame_stride": config.frame_stride,
             "peak_rss_mb": peak,
