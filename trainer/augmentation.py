@@ -5,8 +5,8 @@ contrast change and, optionally, pixel noise. Pixels never move, so depth and va
 measured (no flips: the principal point is off centre, so a flipped image would not match its depth).
 
 Pixel noise is for pretraining across many sensors only: in a fine-tune on one sensor it blurs
-the fine IR shading that tells a dent's shape, and the pose check on an object left out of the
-fine-tune came out worse with it on 12 of 16 simulated sensors (docs/pose.md, session 13).
+the fine IR shading that tells a dent's shape: without it the pose check on an object left out of
+the fine-tune came out better on 10-12 of 16 simulated sensors (docs/pose.md, session 13).
 """
 
 from __future__ import annotations

@@ -76,7 +76,7 @@ class TrainConfig:
     inverse_depth_loss: bool = False
     contact_weight: float = DEFAULT_CONTACT_WEIGHT  # extra loss weight of the contact patches (0 = plain L1)
     augment: bool = True
-    ir_noise_std: float = 0.0  # pixel noise of the augmentation (normalized IR units); pretraining's is 0.03
+    ir_noise_std: float = 0.0  # augmentation's pixel noise (normalized IR units); pretraining: PRETRAIN_NOISE_STD
     min_depth: float = DEFAULT_MIN_DEPTH
     max_depth: float = DEFAULT_MAX_DEPTH
     input_size: tuple[int, int] = DEFAULT_INPUT_SIZE
