@@ -4,9 +4,8 @@ Only the IR intensities change: a random emitter gain (an offset in log amplitud
 contrast change and, optionally, pixel noise. Pixels never move, so depth and validity stay as
 measured (no flips: the principal point is off centre, so a flipped image would not match its depth).
 
-Pixel noise is for pretraining across many sensors only: in a fine-tune on one sensor it blurs
-the fine IR shading that tells a dent's shape: without it the pose check on an object left out of
-the fine-tune came out better on 10-12 of 16 simulated sensors (docs/pose.md, session 13).
+Pixel noise is for pretraining across many sensors only; a fine-tune on one sensor does better
+without it (docs/trainer.md, "Augmentation").
 """
 
 from __future__ import annotations
