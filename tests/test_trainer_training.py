@@ -3,6 +3,7 @@
 import json
 import shutil
 import threading
+import time
 
 import h5py
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 import torch
 
 import calibrate.cli
+from collect.errors import InputError
 from conftest import make_synthetic_session
 from trainer.checkpoint import has_checkpoint
 from trainer.inference import DepthEstimator
@@ -101,6 +103,29 @@ def test_stop_event_ends_training_early(session, tmp_path):
 
     result = train_model(_config([session], tmp_path / "m", export_onnx=False), on_progress, stop)
     assert result.stopped and result.steps == 2 and (tmp_path / "m" / WEIGHTS_FILE).is_file()
+
+
+def test_deadline_bounds_the_whole_call_and_drives_the_schedule(session, tmp_path):
+    events = []
+    start = time.perf_counter()
+    result = train_model(_config([session], tmp_path / "m", epochs=10_000, deadline_s=6.0), events.append)
+    wall = time.perf_counter() - start
+    assert result.ended_at_deadline and not result.stopped and result.epochs < 10_000
+    assert wall < 30.0  # the epoch budget alone would take hours
+    steps = [e for e in events if e.event == "step"]
+    assert steps[-1].fraction == pytest.approx(1.0)  # progress (and ETA) follow the deadline
+    assert steps[-1].lr == pytest.approx(2e-3 * 0.25)  # both halvings happened within it
+    meta = load_metadata(result.model_dir)
+    assert meta.training["ended_at_deadline"] and meta.training["deadline_s"] == 6.0
+    assert meta.inference["runtime"] in ("onnx", "torch")  # the export still ran
+
+
+def test_generous_deadline_leaves_the_budget_alone(session, tmp_path):
+    result = train_model(_config([session], tmp_path / "m", epochs=1, deadline_s=600.0, export_onnx=False))
+    assert not result.ended_at_deadline and result.epochs == pytest.approx(1.0)
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(InputError, match="deadline"):
+            train_model(_config([session], tmp_path / "bad", deadline_s=bad))
 
 
 def test_fine_tune_from_init_model_keeps_its_architecture(trained, session, tmp_path):

@@ -8,7 +8,10 @@ into the model directory so that ``resume`` continues an interrupted run. Under 
 the same loop runs data-parallel (``trainer.distributed``).
 
 Budget accounting: ``minutes`` counts training time only (validation and checkpoints excluded),
-so that curves of accuracy against minutes mean the same on every run.
+so that curves of accuracy against minutes mean the same on every run. ``deadline_s`` bounds the
+wall time of the whole call instead (loading, validations, final validation and ONNX export
+included): training then ends as soon as what is left after it would overrun, the learning-rate
+schedule following whichever budget binds first.
 """
 
 from __future__ import annotations
@@ -52,6 +55,11 @@ DEFAULT_CONTACT_WEIGHT = 10.0
 #: The learning rate halves after every this fraction of the budget (paper: every 40 of 100 epochs).
 LR_HALVING_FRACTION = 0.4
 
+#: Writing the model, the ONNX export and the runtime selection after training, in frames of
+#: validation they cost about (tracing, a check at two batch sizes, 2 x 20 single-frame timings):
+#: 87-91 measured on the 2-core CPU of docs/benchmarks.md, with a margin.
+EXPORT_COST_IN_EVAL_FRAMES = 120
+
 
 @dataclass
 class TrainConfig:
@@ -82,6 +90,7 @@ class TrainConfig:
     input_size: tuple[int, int] = DEFAULT_INPUT_SIZE
     eval_interval_s: float = 20.0
     eval_frames: int = 64  # validation frames used for the periodic (live) metrics
+    deadline_s: float | None = None  # wall-time limit (s) of the whole train_model call; None: budget only
     export_onnx: bool = True
     threads: int | None = None  # torch CPU threads; None: the cores shared by local processes
 
@@ -111,6 +120,7 @@ class TrainResult:
     train_s: float
     stopped: bool  # True when stop_event ended the run before its budget
     peak_rss_mb: float
+    ended_at_deadline: bool = False  # True when config.deadline_s ended training before its budget
 
 
 def _learning_rate(base_lr: float, fraction: float) -> float:
@@ -162,6 +172,8 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"epochs must be positive, got {config.epochs}")
     if config.minutes is not None and not config.minutes > 0:
         raise InputError(f"minutes must be positive, got {config.minutes}")
+    if config.deadline_s is not None and not (math.isfinite(config.deadline_s) and config.deadline_s > 0):
+        raise InputError(f"the wall-time deadline must be a positive number of seconds, got {config.deadline_s}")
     if not (math.isfinite(config.contact_weight) and config.contact_weight >= 0):
         raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
     if config.batch_size < 1:
@@ -224,6 +236,7 @@ def train_model(
     ends training early (the model so far is still written). Raises ``InputError`` for bad
     data or settings. Under torchrun only rank 0 returns a result (the others None).
     """
+    call_start = time.perf_counter()
     _check_config(config)
     ctx = DistContext.from_env()
     torch.set_num_threads(config.threads or ctx.cpu_threads())
@@ -264,8 +277,25 @@ def train_model(
         raise InputError(f"{len(train_t)} training frames cannot be shared by {ctx.world_size} processes")
     steps_per_epoch = math.ceil(n_per_rank / config.batch_size)
 
-    def fraction_done(epoch: float, train_s: float) -> float:
+    deadline = None if config.deadline_s is None else call_start + config.deadline_s
+    # validation frames' worth of work left after the last step: the final validation (whole split
+    # and live subsample), writing the model and the ONNX export
+    tail_frames = len(val_t) + len(live_val) + (EXPORT_COST_IN_EVAL_FRAMES if config.export_onnx else 0)
+    eval_s_per_frame: float | None = None  # measured by every live validation
+    loop_start: float | None = None  # when this call's first training step began
+    step_s = 0.0  # duration of the latest training step (the next one must fit too)
+
+    def budget_fraction(epoch: float, train_s: float) -> float:
         return train_s / budget_s if budget_s is not None else epoch / config.epochs
+
+    def fraction_done(epoch: float, train_s: float) -> float:
+        """Share of the budget done; with a deadline, of the wall time training may last if larger."""
+        frac = budget_fraction(epoch, train_s)
+        if deadline is None or eval_s_per_frame is None or loop_start is None:
+            return frac
+        train_end = deadline - eval_s_per_frame * tail_frames - step_s
+        wall = 1.0 if train_end <= loop_start else (time.perf_counter() - loop_start) / (train_end - loop_start)
+        return max(frac, wall)
 
     gen = torch.Generator().manual_seed(config.seed * 7919 + ctx.rank)
     epoch_f, step, train_s = float(progress["epoch"]), int(progress["step"]), float(progress["train_s"])
@@ -273,7 +303,7 @@ def train_model(
     running = progress["loss"]
     last_eval = time.perf_counter()
     val_live: dict | None = history[-1] if history else None
-    stopped = False
+    stopped = at_deadline = False
 
     def report(event: str) -> None:
         if progress_callback is None or not ctx.is_main:
@@ -283,9 +313,11 @@ def train_model(
         progress_callback(TrainProgress(epoch_f, step, running, _learning_rate(config.lr, frac), train_s, frac, eta, val_live, event))
 
     def validate_and_checkpoint(checkpoint: bool = True) -> None:
-        nonlocal val_live
+        nonlocal val_live, eval_s_per_frame
         if ctx.is_main:
+            t0 = time.perf_counter()
             metrics = evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)
+            eval_s_per_frame = (time.perf_counter() - t0) / len(live_val)
             val_live = {"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running, **metrics}
             history.append(val_live)
             if checkpoint:
@@ -298,6 +330,7 @@ def train_model(
         validate_and_checkpoint(checkpoint=False)
     model.train()
     (done,) = ctx.any_flags(fraction_done(epoch_f, train_s) >= 1.0)
+    loop_start = time.perf_counter()
     while not done:
         epoch = int(epoch_f)
         perm = torch.randperm(len(train_t), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
@@ -324,7 +357,8 @@ def train_model(
             running = value if not math.isfinite(running) else 0.9 * running + 0.1 * value
             step += 1
             epoch_f = epoch + (b + 1) / steps_per_epoch
-            train_s += time.perf_counter() - t0
+            step_s = time.perf_counter() - t0
+            train_s += step_s
             report("step")
             stop, over, eval_due = ctx.any_flags(
                 stop_event is not None and stop_event.is_set(),
@@ -333,6 +367,7 @@ def train_model(
             )
             if stop or over:
                 stopped = not over
+                at_deadline = over and budget_fraction(epoch_f, train_s) < 1.0
                 done = True
                 break
             if eval_due:
@@ -361,6 +396,8 @@ def train_model(
             "steps": step,
             "train_s": train_s,
             "stopped_early": stopped,
+            "deadline_s": config.deadline_s,
+            "ended_at_deadline": at_deadline,
             "batch_size": config.batch_size * ctx.world_size,
             "world_size": ctx.world_size,
             "optimizer": {"name": "adam", "betas": [0.9, 0.999], "lr": config.lr,
@@ -382,7 +419,7 @@ def train_model(
             export_and_select_runtime(out_dir)
         for name in (CHECKPOINT_WEIGHTS, CHECKPOINT_STATE):
             (out_dir / name).unlink(missing_ok=True)
-        result = TrainResult(out_dir, metadata.metrics, history, epoch_f, step, train_s, stopped, peak)
+        result = TrainResult(out_dir, metadata.metrics, history, epoch_f, step, train_s, stopped, peak, at_deadline)
         val_live = history[-1]
         report("done")
     ctx.barrier()
