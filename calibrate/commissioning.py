@@ -501,7 +501,7 @@ class _Flow:
             out=str(model_dir),
             init=str(self.config.base_model) if self.config.base_model else "base",
             minutes=self.config.finetune_minutes,
-            deadline_s=budget_s + FINETUNE_OVERHEAD_S - (time.monotonic() - started),
+            deadline_s=budget_s + FINETUNE_OVERHEAD_S,
             seed=self.config.seed,
             split="poses",
             eval_interval_s=max(10.0, budget_s / 8),
