@@ -14,6 +14,7 @@ import calibrate.cli
 from collect.errors import InputError
 from conftest import make_synthetic_session
 from trainer.checkpoint import has_checkpoint
+from trainer.distributed import DistContext
 from trainer.inference import DepthEstimator
 from trainer.metrics import METRIC_KEYS
 from trainer.model_dir import WEIGHTS_FILE, load_metadata
@@ -126,6 +127,12 @@ def test_generous_deadline_leaves_the_budget_alone(session, tmp_path):
     for bad in (0.0, -5.0, float("nan")):
         with pytest.raises(InputError, match="deadline"):
             train_model(_config([session], tmp_path / "bad", deadline_s=bad))
+
+
+def test_deadline_refused_under_torchrun(session, tmp_path, monkeypatch):
+    monkeypatch.setattr(DistContext, "from_env", classmethod(lambda cls: DistContext(rank=0, world_size=2)))
+    with pytest.raises(InputError, match="torchrun"):
+        train_model(_config([session], tmp_path / "m", deadline_s=60.0))
 
 
 def test_fine_tune_from_init_model_keeps_its_architecture(trained, session, tmp_path):

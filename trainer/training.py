@@ -244,6 +244,8 @@ def train_model(
     call_start = time.perf_counter()
     _check_config(config)
     ctx = DistContext.from_env()
+    if ctx.enabled and config.deadline_s is not None:  # rank 0 alone times the validations
+        raise InputError("a wall-time deadline is for single-process training, not under torchrun")
     torch.set_num_threads(config.threads or ctx.cpu_threads())
     torch.manual_seed(config.seed)
     out_dir = Path(config.out)
