@@ -126,6 +126,11 @@ class CommissionConfig:
     sim_speed: float = 1.0  # simulated clock speed factor
     leak_hold_s: float = LEAK_HOLD_S  # bench-clock seconds of the leak-test hold
 
+    @property
+    def finetune_step_limit_s(self) -> float:
+        """Wall time (s) the fine-tune step may take: the training budget + ``FINETUNE_OVERHEAD_S``."""
+        return 60.0 * self.finetune_minutes + FINETUNE_OVERHEAD_S
+
 
 @dataclass
 class CommissionResult:
@@ -501,7 +506,7 @@ class _Flow:
             out=str(model_dir),
             init=str(self.config.base_model) if self.config.base_model else "base",
             minutes=self.config.finetune_minutes,
-            deadline_s=budget_s + FINETUNE_OVERHEAD_S,
+            deadline_s=self.config.finetune_step_limit_s,
             seed=self.config.seed,
             split="poses",
             eval_interval_s=max(10.0, budget_s / 8),
@@ -753,7 +758,7 @@ class _Flow:
         }
         etas = {
             Step.LEAK_TEST: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed(),
-            Step.FINETUNE: 60.0 * self.config.finetune_minutes + FINETUNE_OVERHEAD_S,
+            Step.FINETUNE: self.config.finetune_step_limit_s,
         }
         if self.state.done(Step.VERDICT) and (self.run_dir / ACCEPTANCE_FILE).is_file():
             return self._finished_before()
