@@ -106,7 +106,9 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
     checks = {c["name"]: c["value"] for c in doc["checks"]}
     row = {
         "seed": seed, "serial": spec.serial, "accepted": result.accepted, "reason": result.reason, "total_s": total,
-        "steps": durations, "train_s": state.get("finetune", {}).get("train_s"), "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
+        "steps": durations, "train_s": state.get("finetune", {}).get("train_s"),
+        "finetune_deadline_s": state.get("finetune", {}).get("deadline_s"),
+        "run_budget_cut": bool(state.get("finetune", {}).get("deadline_from_run_budget")), "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
         "truth_a1": checks.get("truth_a1"), "contact_rmse": checks.get("contact_rmse_mm"), "pose_e_x": checks.get("pose_e_x_median_mm"),
         "tof_a1": (doc.get("vs_true") or {}).get("tof", {}).get("a1"),
         "dropout_a1": (doc.get("vs_true") or {}).get("model_on_tof_dropout", {}).get("a1"),
@@ -190,6 +192,9 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         f"* fine-tune step (data loading, training, final validation, ONNX export): "
         f"{_spread([r['steps'].get('finetune') for r in rows], '.0f')} s, of which training "
         f"{_spread([r['train_s'] for r in rows], '.0f')} s",
+        f"* fine-tune step deadline: {_spread([r['finetune_deadline_s'] for r in rows], '.0f')} s; shortened to fit "
+        f"the run's {CommissionConfig.total_minutes:g}-min budget (the steps before it ran long) on "
+        f"{', '.join(str(r['seed']) for r in rows if r['run_budget_cut']) or 'no sensor'}",
         f"* held-out a1: {_spread([r['a1'] for r in rows], '.3f')}",
         f"* a1 on unseen meshes (sphere, capsule): {_spread([r.get('unseen_a1') for r in rows], '.3f')}",
         f"* pose check, median e_x predicted vs measured: {_spread([r['pose_e_x'] for r in rows], '.2f')} mm; "

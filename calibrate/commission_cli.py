@@ -35,6 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
     p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M",
                    help="fine-tuning time budget (default %(default)s)")
+    p.add_argument("--total-minutes", type=float, default=CommissionConfig.total_minutes, metavar="M",
+                   help="wall-time budget of the whole run; the fine-tune is shortened to fit it (default %(default)s)")
     p.add_argument("--leak-hold-s", type=float, default=10.0, metavar="S", help="leak-test hold, s of bench time (default 10)")
     p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
@@ -125,6 +127,7 @@ def run_commission(args) -> int:
         registry_dir=args.registry,
         base_model=args.base_model,
         finetune_minutes=args.finetune_minutes,
+        total_minutes=args.total_minutes,
         objects=objects,
         poses_per_object=args.poses_per_object,
         seed=args.seed,

@@ -15,7 +15,9 @@
 6. fine-tune from the base model within the time budget (``trainer.training.train_model`` into ``model/``)
    on the trainer's pose split: 70 % of each object's contact poses (7 of the default 10); the
    step ends within ``finetune_minutes`` of training plus ``FINETUNE_OVERHEAD_S`` of wall time
-   (3 min by default), training ending early on a CPU too slow for the rest to fit;
+   (3 min by default), training ending early on a CPU too slow for the rest to fit, and earlier
+   still when the steps before it ran so long that the run would overrun ``total_minutes``
+   (5 min by default; ``CommissionConfig.finetune_deadline_s``);
 7. validate on the held-out contact poses (3 of 10 per object), against the ToF and, on
    simulated runs, against the true depth;
 8. pose check on the mug's held-out poses (``calibrate.pose_check.run_pose_check``);
@@ -100,6 +102,14 @@ RESTART_GAP = 45
 #: CPU of docs/benchmarks.md, 28-35 s on one half as fast). The trainer's deadline cuts training
 #: short where they take longer, so the step lasts at most ``finetune_minutes`` + this.
 FINETUNE_OVERHEAD_S = 30.0
+#: Wall time (s) kept for the steps after the fine-tune when it is shortened to fit the run's
+#: ``total_minutes``: validate, pose check and verdict took 18-27 s on the 2-core CPU of
+#: docs/benchmarks.md (bench_commission, session 14), also in a slow spell of that machine.
+AFTER_FINETUNE_S = 35.0
+#: The shortest fine-tune step the run budget can leave (s): one minute of training plus
+#: ``FINETUNE_OVERHEAD_S``. Steps before it that ran longer make the run overrun its budget
+#: rather than leave the sensor with a model fine-tuned for seconds.
+MIN_FINETUNE_STEP_S = 60.0 + FINETUNE_OVERHEAD_S
 #: Settings that must match when a run directory is resumed.
 RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed")
 
@@ -125,11 +135,29 @@ class CommissionConfig:
     sim_faults: tuple[str, ...] = ()  # "KIND@SECONDS"
     sim_speed: float = 1.0  # simulated clock speed factor
     leak_hold_s: float = LEAK_HOLD_S  # bench-clock seconds of the leak-test hold
+    #: Wall-time budget of one run of the flow (min; None or inf: none). Counted from the start of this
+    #: invocation (a resumed run gets it afresh); only the fine-tune step gives way to it.
+    total_minutes: float | None = 5.0
 
     @property
     def finetune_step_limit_s(self) -> float:
         """Wall time (s) the fine-tune step may take: the training budget + ``FINETUNE_OVERHEAD_S``."""
         return 60.0 * self.finetune_minutes + FINETUNE_OVERHEAD_S
+
+    def finetune_deadline_s(self, elapsed_s: float) -> tuple[float, bool]:
+        """Wall time (s) for a fine-tune step that starts ``elapsed_s`` s into the run, and whether
+        the run budget (not ``finetune_step_limit_s``) set it.
+
+        The step gets ``finetune_step_limit_s`` unless the run would then overrun
+        ``total_minutes`` with ``AFTER_FINETUNE_S`` left for the steps after it; it never gets
+        less than ``MIN_FINETUNE_STEP_S`` (or the step limit, if that is shorter).
+        """
+        limit = self.finetune_step_limit_s
+        if self.total_minutes is None:
+            return limit, False
+        fits = 60.0 * self.total_minutes - elapsed_s - AFTER_FINETUNE_S
+        deadline = min(limit, max(fits, MIN_FINETUNE_STEP_S))
+        return deadline, deadline < limit
 
 
 @dataclass
@@ -227,6 +255,7 @@ def _settings(config: CommissionConfig, sensor_id: str) -> dict:
         "poses_per_object": int(config.poses_per_object),
         "seed": int(config.seed),
         "finetune_minutes": float(config.finetune_minutes),
+        "total_minutes": None if config.total_minutes is None else float(config.total_minutes),
         "base_model": str(config.base_model) if config.base_model else "base",
         "thresholds": str(config.thresholds) if config.thresholds else "packaged",
         "sim_faults": list(config.sim_faults),
@@ -489,6 +518,7 @@ class _Flow:
         curve: list[dict] = []
         started = time.monotonic()
         budget_s = 60.0 * self.config.finetune_minutes
+        deadline_s, run_bound = self.config.finetune_deadline_s(started - self.started)
 
         def on_progress(p) -> None:
             a1 = p.val.get("a1") if (p.event == "eval" and p.val) else None
@@ -506,7 +536,7 @@ class _Flow:
             out=str(model_dir),
             init=str(self.config.base_model) if self.config.base_model else "base",
             minutes=self.config.finetune_minutes,
-            deadline_s=self.config.finetune_step_limit_s,
+            deadline_s=deadline_s,
             seed=self.config.seed,
             split="poses",
             eval_interval_s=max(10.0, budget_s / 8),
@@ -514,11 +544,16 @@ class _Flow:
         result = train_model(config, on_progress, self.stop_event)
         if result.stopped:
             raise _Stopped()
+        cut = ""
+        if result.ended_at_deadline:
+            cut = (f" (cut short to fit the run's {self.config.total_minutes:g}-min budget)" if run_bound
+                   else " (cut short by the step deadline)")
         return {
-            "summary": f"{result.steps} steps, {result.epochs:.1f} epochs in {result.train_s:.0f} s"
-            f"{' (cut short by the step deadline)' if result.ended_at_deadline else ''}; "
+            "summary": f"{result.steps} steps, {result.epochs:.1f} epochs in {result.train_s:.0f} s{cut}; "
             f"validation a1 {result.metrics.get('a1', float('nan')):.3f}",
             "train_s": result.train_s,
+            "deadline_s": deadline_s,
+            "deadline_from_run_budget": run_bound,
             "ended_at_deadline": result.ended_at_deadline,
             "steps": result.steps,
             "epochs": result.epochs,
@@ -743,6 +778,7 @@ class _Flow:
 
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
+        self.started = time.monotonic()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         sensor_id = self.sensor_spec.serial if self.sensor_spec is not None else "hardware"
         self.state = RunState.open(self.run_dir, _settings(self.config, sensor_id))
@@ -756,9 +792,9 @@ class _Flow:
             Step.VALIDATE: self.step_validate,
             Step.POSE_CHECK: self.step_pose_check,
         }
-        etas = {
-            Step.LEAK_TEST: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed(),
-            Step.FINETUNE: self.config.finetune_step_limit_s,
+        etas = {  # s, when the step starts
+            Step.LEAK_TEST: lambda: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed(),
+            Step.FINETUNE: lambda: self.config.finetune_deadline_s(time.monotonic() - self.started)[0],
         }
         if self.state.done(Step.VERDICT) and (self.run_dir / ACCEPTANCE_FILE).is_file():
             return self._finished_before()
@@ -784,7 +820,7 @@ class _Flow:
                     continue
                 self.check_stop()
                 if step != Step.COLLECT:
-                    self.emit(StepStarted(step, etas.get(step)))
+                    self.emit(StepStarted(step, etas[step]() if step in etas else None))
                 rec = handlers[step]()
                 rec.setdefault("ok", all(c["passed"] for c in rec.get("checks", [])))
                 self.state.record(step, rec)
@@ -985,6 +1021,8 @@ def _validate_config(config: CommissionConfig) -> None:
         raise InputError(f"poses per object must be at least 1, got {config.poses_per_object}")
     if not (math.isfinite(config.finetune_minutes) and config.finetune_minutes > 0):
         raise InputError(f"fine-tune minutes must be positive, got {config.finetune_minutes}")
+    if config.total_minutes is not None and not config.total_minutes > 0:  # inf: no budget
+        raise InputError(f"total minutes must be positive, got {config.total_minutes}")
     if not (math.isfinite(config.leak_hold_s) and config.leak_hold_s > 0):
         raise InputError(f"leak-test hold must be positive, got {config.leak_hold_s} s")
     if config.base_model is not None and not Path(config.base_model).is_dir():

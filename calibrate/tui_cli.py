@@ -26,6 +26,8 @@ def register(subparsers) -> None:
     p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M")
+    p.add_argument("--total-minutes", type=float, default=CommissionConfig.total_minutes, metavar="M",
+                   help="wall-time budget of the whole run; the fine-tune is shortened to fit it")
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from")
     p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds")
     p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory")
@@ -41,6 +43,8 @@ def run_tui(args) -> int:
         raise InputError("--poses-per-object must be at least 1")
     if args.finetune_minutes <= 0:
         raise InputError("--finetune-minutes must be positive")
+    if not args.total_minutes > 0:
+        raise InputError("--total-minutes must be positive")
     if args.sim_speed <= 0:
         raise InputError("--sim-speed must be positive")
     if args.sensor is not None and not args.sensor.is_file():
@@ -65,6 +69,7 @@ def run_tui(args) -> int:
         registry_dir=args.registry,
         base_model=args.base_model,
         finetune_minutes=args.finetune_minutes,
+        total_minutes=args.total_minutes,
         objects=objects,
         poses_per_object=args.poses_per_object,
         seed=args.seed,

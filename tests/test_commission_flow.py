@@ -1,19 +1,22 @@
 """The commissioning flow end to end on the simulated bench, at tiny size.
 
 One module-scoped run is interrupted by a camera fault in the middle, then resumed to an accepted
-verdict; the tests below inspect its events and its run directory. The thresholds of the
+verdict (with its whole-run budget already spent, so the fine-tune is shortened to its floor);
+the tests below inspect its events and its run directory. The thresholds of the
 held-out model checks are relaxed in a lab override file (a 3 s fine-tune cannot reach the real
 ones; the benchmark measures those), every hardware and data check keeps its packaged value.
 """
 
 import dataclasses
 import json
+import math
 import threading
 import time
 
 import numpy as np
 import pytest
 
+from calibrate import commissioning
 from calibrate.cli import main
 from calibrate.commission_events import (
     STEPS,
@@ -71,9 +74,13 @@ def faulted_then_resumed(tmp_path_factory):
     first = run_commissioning(config, first_events.append)
     state_after_fault = json.loads((config.run_dir / "state.json").read_text())
     files_after_fault = {p.name: p.stat().st_size for p in config.run_dir.iterdir()}
-    resumed_config = dataclasses.replace(config, sim_faults=())
+    # The resumed run has spent its whole-run budget before its fine-tune: the step gets the
+    # floor (8 s here instead of 90 s, to keep the test short) instead of its 90 s limit.
+    resumed_config = dataclasses.replace(config, sim_faults=(), finetune_minutes=1.0, total_minutes=0.01)
     events: list = []
-    result = run_commissioning(resumed_config, events.append)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(commissioning, "MIN_FINETUNE_STEP_S", 8.0)
+        result = run_commissioning(resumed_config, events.append)
     return {
         "config": resumed_config, "first": first, "first_events": first_events, "state_after_fault": state_after_fault,
         "files_after_fault": files_after_fault, "result": result, "events": events,
@@ -108,6 +115,26 @@ def test_rerun_resumes_after_the_last_completed_step(faulted_then_resumed):
     result = faulted_then_resumed["result"]
     assert result.accepted and result.fault is None and not result.stopped, result.reason
     assert finished["pose_check"].skipped  # no mug in this calibration set
+
+
+def test_run_budget_shortens_the_finetune_step(faulted_then_resumed):
+    config = faulted_then_resumed["config"]
+    rec = json.loads((config.run_dir / "state.json").read_text())["steps"]["finetune"]
+    assert rec["deadline_s"] == 8.0 and rec["deadline_from_run_budget"] and rec["ended_at_deadline"]
+    assert "cut short to fit the run's 0.01-min budget" in rec["summary"]
+    etas = [e.eta_s for e in faulted_then_resumed["events"] if isinstance(e, StepStarted) and e.step == Step.FINETUNE]
+    assert etas == [8.0]
+
+
+def test_run_budget_gives_way_only_when_the_steps_before_ran_long(tmp_path):
+    config = CommissionConfig(run_dir=tmp_path)  # 2.5 min fine-tune: a 180 s step; 5 min in all
+    assert config.finetune_deadline_s(80.0) == (180.0, False)  # a usual run: 74-87 s to the fine-tune
+    assert config.finetune_deadline_s(126.0) == (300.0 - 126.0 - commissioning.AFTER_FINETUNE_S, True)
+    assert config.finetune_deadline_s(250.0) == (commissioning.MIN_FINETUNE_STEP_S, True)  # never below the floor
+    for unlimited in (None, math.inf):
+        assert dataclasses.replace(config, total_minutes=unlimited).finetune_deadline_s(1e4) == (180.0, False)
+    short = dataclasses.replace(config, finetune_minutes=0.5)  # a 60 s step, below the floor
+    assert short.finetune_deadline_s(1e4) == (60.0, False)
 
 
 def test_live_events_reach_the_consumer(faulted_then_resumed):
@@ -228,6 +255,7 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
         (None, ["--objects", "teapot"], "teapot"),
         ("version: 1\nchecks: {heldout_a1: {min: x}}\n", ["--thresholds", "{tmp}/given"], "finite number"),
         (None, ["--poses-per-object", "0"], "poses per object"),
+        (None, ["--total-minutes", "0"], "total minutes"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragment):

@@ -154,6 +154,7 @@ def test_formats():
     "args, fragment",
     [
         (["--sim", "--poses-per-object", "0"], "--poses-per-object must be at least 1"),
+        (["--sim", "--total-minutes", "-1"], "--total-minutes must be positive"),
         (["--sim", "--sensor", "missing.yaml"], "sensor spec missing.yaml does not exist"),
         (["--sim-fault", "camera-stall@3"], "need --sim"),
         (["--sim", "--objects", " , "], "--objects is empty"),
