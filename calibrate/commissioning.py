@@ -104,7 +104,7 @@ RESTART_GAP = 45
 FINETUNE_OVERHEAD_S = 30.0
 #: Wall time (s) kept for the steps after the fine-tune when it is shortened to fit the run's
 #: ``total_minutes``: validate, pose check and verdict took 18-27 s on the 2-core CPU of
-#: docs/benchmarks.md (bench_commission, session 14), also in a slow spell of that machine.
+#: docs/benchmarks.md (bench_commission, session 14) and 29-37 s with that CPU 2.2x slower.
 AFTER_FINETUNE_S = 35.0
 #: The shortest fine-tune step the run budget can leave (s): one minute of training plus
 #: ``FINETUNE_OVERHEAD_S``. Steps before it that ran longer make the run overrun its budget
