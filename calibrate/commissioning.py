@@ -255,7 +255,7 @@ def _settings(config: CommissionConfig, sensor_id: str) -> dict:
         "poses_per_object": int(config.poses_per_object),
         "seed": int(config.seed),
         "finetune_minutes": float(config.finetune_minutes),
-        "total_minutes": None if config.total_minutes is None else float(config.total_minutes),
+        "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
         "base_model": str(config.base_model) if config.base_model else "base",
         "thresholds": str(config.thresholds) if config.thresholds else "packaged",
         "sim_faults": list(config.sim_faults),
