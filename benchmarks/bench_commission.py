@@ -104,11 +104,11 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
     doc = json.loads((config.run_dir / "acceptance.json").read_text())
     state = json.loads((config.run_dir / "state.json").read_text())["steps"]
     checks = {c["name"]: c["value"] for c in doc["checks"]}
+    finetune = state.get("finetune", {})
     row = {
         "seed": seed, "serial": spec.serial, "accepted": result.accepted, "reason": result.reason, "total_s": total,
-        "steps": durations, "train_s": state.get("finetune", {}).get("train_s"),
-        "finetune_deadline_s": state.get("finetune", {}).get("deadline_s"),
-        "run_budget_cut": bool(state.get("finetune", {}).get("deadline_from_run_budget")), "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
+        "steps": durations, "train_s": finetune.get("train_s"), "finetune_deadline_s": finetune.get("deadline_s"),
+        "run_budget_cut": bool(finetune.get("deadline_from_run_budget")), "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
         "truth_a1": checks.get("truth_a1"), "contact_rmse": checks.get("contact_rmse_mm"), "pose_e_x": checks.get("pose_e_x_median_mm"),
         "tof_a1": (doc.get("vs_true") or {}).get("tof", {}).get("a1"),
         "dropout_a1": (doc.get("vs_true") or {}).get("model_on_tof_dropout", {}).get("a1"),

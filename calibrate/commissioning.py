@@ -519,6 +519,7 @@ class _Flow:
         started = time.monotonic()
         budget_s = 60.0 * self.config.finetune_minutes
         deadline_s, run_bound = self.config.finetune_deadline_s(started - self.started)
+        self.emit(StepStarted(Step.FINETUNE, deadline_s))
 
         def on_progress(p) -> None:
             a1 = p.val.get("a1") if (p.event == "eval" and p.val) else None
@@ -792,10 +793,7 @@ class _Flow:
             Step.VALIDATE: self.step_validate,
             Step.POSE_CHECK: self.step_pose_check,
         }
-        etas = {  # s, when the step starts
-            Step.LEAK_TEST: lambda: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed(),
-            Step.FINETUNE: lambda: self.config.finetune_deadline_s(time.monotonic() - self.started)[0],
-        }
+        etas = {Step.LEAK_TEST: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed()}
         if self.state.done(Step.VERDICT) and (self.run_dir / ACCEPTANCE_FILE).is_file():
             return self._finished_before()
         pending_bench = [s for s in BENCH_STEPS if not self.state.done(s)]
@@ -819,8 +817,8 @@ class _Flow:
                     self.emit(StepFinished(step, False, f"not run: {gate_failure}", skipped=True))
                     continue
                 self.check_stop()
-                if step != Step.COLLECT:
-                    self.emit(StepStarted(step, etas[step]() if step in etas else None))
+                if step not in (Step.COLLECT, Step.FINETUNE):  # these announce their own ETA
+                    self.emit(StepStarted(step, etas.get(step)))
                 rec = handlers[step]()
                 rec.setdefault("ok", all(c["passed"] for c in rec.get("checks", [])))
                 self.state.record(step, rec)
