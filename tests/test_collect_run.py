@@ -67,37 +67,43 @@ def test_collect_sim_records_every_phase(box_session, capsys):
     assert "box" in out and "closed cleanly" in out and "dropped 0" in out
 
 
+def _error_line(capsys) -> str:
+    """The single ``bubble: error:`` line a refused command printed (fails on anything else)."""
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: error: ") and err.count("\n") == 1, err
+    return err
+
+
 def test_collect_refuses_bad_output_and_other_plan(box_session, tmp_path, capsys):
     size = box_session.stat().st_size
     rc, _ = _collect(box_session.parent, name=box_session.name)
-    assert rc == 2 and "already exists; use --resume" in capsys.readouterr().err
+    assert rc == 2 and "already exists; use --resume" in _error_line(capsys)
     assert box_session.stat().st_size == size
     assert _collect(tmp_path / "missing-dir")[0] == 2
-    assert "directory" in capsys.readouterr().err
+    assert "directory" in _error_line(capsys)
     assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "2", "--quiet", "--resume",
                  "--out", str(box_session)]) == 2  # seed 0 draws another sensor than seed 3
-    assert "recorded with sensor" in capsys.readouterr().err
+    assert "recorded with sensor" in _error_line(capsys)
     assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "3", "--seed", "3", "--quiet",
                  "--resume", "--out", str(box_session)]) == 2
-    err = capsys.readouterr().err
-    assert "another plan" in err and err.count("\n") == 1
+    assert "another plan" in _error_line(capsys)
     with Session.open(box_session) as s:
         assert s.closed_cleanly and len(s.select(pose_id=1)) > 0
     assert main(["collect", "--objects", "box", "--out", str(tmp_path / "real.h5")]) == 2
-    assert "--bench" in capsys.readouterr().err
+    assert "--bench" in _error_line(capsys)
     assert main(["collect", "--sim", "--objects", "teapot", "--out", str(tmp_path / "t.h5")]) == 2
-    assert "unknown object 'teapot'" in capsys.readouterr().err
+    assert "unknown object 'teapot'" in _error_line(capsys)
 
 
 def test_resume_refuses_other_format_version_and_truncated_files(tmp_path, synthetic_session, capsys):
     with h5py.File(synthetic_session, "a") as f:
         f.attrs[sf.ATTR_FORMAT_VERSION] = sf.FORMAT_VERSION + 1
     assert _collect(synthetic_session.parent, "--resume", name=synthetic_session.name)[0] == 2
-    assert "format version" in capsys.readouterr().err
+    assert "format version" in _error_line(capsys)
     truncated = tmp_path / "cut.h5"
     truncated.write_bytes(synthetic_session.read_bytes()[:5000])
     assert _collect(tmp_path, "--resume", name="cut.h5")[0] == 2
-    assert "truncated file" in capsys.readouterr().err
+    assert "truncated file" in _error_line(capsys)
 
 
 def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):

@@ -50,6 +50,6 @@ def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert cli.main(["pose", "--model", str(model), "--data", str(session), "--object", "cup"]) == 2
     # an untrained network sees no contact: no usable frame
     assert cli.main(["pose", "--model", str(model), "--data", str(session)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and all(line.startswith("bubble: error: ") for line in err)
     assert "no object 'cup'" in err[1] and "no usable hold frame" in err[2]

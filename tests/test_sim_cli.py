@@ -23,7 +23,7 @@ def test_new_sensor_and_preview(tmp_path, capsys):
 
 def _fails_with_one_line(capsys, argv, needle):
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
+    err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err
 
 

@@ -42,6 +42,6 @@ def test_pretrain_continues_a_model_in_its_own_architecture(tmp_path):
 def test_pretrain_refuses_to_package_into_its_own_training_directory(tmp_path, capsys):
     work = _sensor_sessions(tmp_path / "work", 2)
     assert main(["train", "--work", str(work), "--out", str(work / "model"), "--val-sensors", "1"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "checkpoint" in err[0]
     assert not (work / "model").exists()  # refused before training

@@ -143,7 +143,8 @@ def run_train(args: argparse.Namespace) -> int:
     try:
         result = train_model(config, progress_callback=on_progress)
     finally:
-        bar.stop()
+        if task is not None:  # stopping a bar never started prints an empty line before the error
+            bar.stop()
     if result is None:  # a non-zero torchrun rank
         return 0
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))
