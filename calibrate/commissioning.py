@@ -279,6 +279,8 @@ class _Flow:
         self._latest_frame = None
         self._snapshot_stop = threading.Event()
         self._snapshot_thread: threading.Thread | None = None
+        #: ``time.monotonic()`` when ``run()`` began (s): the run's wall-time budget counts from there.
+        self.started = time.monotonic()
 
     # ------------------------------------------------------------------ events and helpers
     def emit(self, event: CommissionEvent) -> None:
