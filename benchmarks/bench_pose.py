@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_pose.py                      # speed + accuracy (simulates data)
     .venv/bin/python benchmarks/bench_pose.py --session S.h5 --model MODEL_DIR   # accuracy on these
     .venv/bin/python benchmarks/bench_pose.py --speed-only
-    .venv/bin/python benchmarks/bench_pose.py --work runs/bp   # keep the sessions and models there
+    .venv/bin/python benchmarks/bench_pose.py --work runs/bp   # keep the sessions and models there (reused by a rerun)
 
 Speed (one core: BLAS/OpenMP threads pinned to 1 before numpy loads): pose estimates per second
 with 1500 points on the mug's cylinder, a hold sequence warm-started from the previous frame, and
@@ -41,6 +41,7 @@ sys.path.insert(0, str(ROOT))
 from calibrate.contact_patch import contact_points  # noqa: E402
 from calibrate.pose_estimation import Pose, ProximityPoseEstimator, quat_to_matrix, shape_from_object  # noqa: E402
 from hw_mocks.objects import load_object  # noqa: E402
+from trainer.model_dir import METADATA_FILE  # noqa: E402
 
 #: The built-in mug's primitive: a cylinder lying on its side, axis along object x.
 MUG = shape_from_object(load_object("mug").primitive)
@@ -120,16 +121,28 @@ def _bubble(*args: str) -> None:
     subprocess.run(cmd, check=True, cwd=ROOT)
 
 
-def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Path]:
-    """Record a simulated session of all built-in objects and fine-tune the base model without the mug."""
+def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Path, bool]:
+    """Record a simulated session of all built-in objects and fine-tune the base model without the mug.
+
+    A session already in ``workdir``, and a finished model (its ``metadata.json`` follows the weights),
+    are reused, so that a rerun with the same ``--work`` checks the same data with the current code.
+    Returns the session, the model and whether both were reused."""
     workdir.mkdir(parents=True, exist_ok=True)
     session = workdir / "session.h5"
     model = workdir / "model"
-    _bubble("collect", "--sim", "--objects", "mug,wine_glass,box,fingers", "--poses-per-object", "8",
-            "--seed", str(seed), "--out", str(session))
-    _bubble("train", "--data", str(session), "--init", "base", "--holdout-object", "mug",
-            "--minutes", str(minutes), "--out", str(model))
-    return session, model
+    reused_session = session.exists()
+    reused_model = (model / METADATA_FILE).exists()
+    if reused_session:
+        print(f"reusing {session}", flush=True)
+    else:
+        _bubble("collect", "--sim", "--objects", "mug,wine_glass,box,fingers", "--poses-per-object", "8",
+                "--seed", str(seed), "--out", str(session))
+    if reused_model:
+        print(f"reusing {model}", flush=True)
+    else:
+        _bubble("train", "--data", str(session), "--init", "base", "--holdout-object", "mug",
+                "--minutes", str(minutes), "--out", str(model))
+    return session, model, reused_session and reused_model
 
 
 def bench_accuracy(inputs: list[tuple[str, Path, Path]], plots: Path) -> tuple[dict, list[tuple[str, dict]]]:
@@ -149,7 +162,9 @@ def _stats_row(name: str, e_x: dict, e_theta: dict) -> str:
 
 
 def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: list[tuple[str, dict]],
-                   command: str) -> None:
+                   command: str, reused: list[str]) -> None:
+    """Write the page; ``reused``: labels of the sessions whose recording and model came from an
+    earlier run in ``--work`` (only the pose check ran again)."""
     lines = [
         "# Pose estimation benchmark",
         "",
@@ -176,7 +191,9 @@ def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: l
             f"{len(per_session)} session(s), errors over all their frames: {accuracy['n_used']} of "
             f"{accuracy['n_hold_frames']} hold frames used (skipped: "
             f"{', '.join(f'{k} {v}' for k, v in accuracy['skipped'].items() if v) or 'none'}); "
-            f"{accuracy['hz']:.0f} pose estimates/s in the run.",
+            f"{accuracy['hz']:.0f} pose estimates/s in the run."
+            + (f" Recordings and fine-tuned models of {', '.join(reused)} reused from an earlier run "
+               "in the same `--work` folder; only the pose check ran again." if reused else ""),
             "",
             "| comparison | e_x median (mm) | e_x mean | e_x variance (mm^2) | e_theta median | e_theta mean | e_theta variance |",
             "|---|---|---|---|---|---|---|",
@@ -220,7 +237,7 @@ def main(argv=None) -> int:
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--seeds", default="0,1,2", help="simulated sensors to record and fine-tune (default 0,1,2)")
     ap.add_argument("--train-minutes", type=float, default=3.0)
-    ap.add_argument("--work", type=Path, help="keep the recorded sessions and models here (default: a temporary folder)")
+    ap.add_argument("--work", type=Path, help="keep the recorded sessions and models here, or reuse those already there (default: a temporary folder)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_pose.md")
     args = ap.parse_args(argv)
     if (args.session is None) != (args.model is None):
@@ -228,17 +245,21 @@ def main(argv=None) -> int:
     command = "python benchmarks/bench_pose.py " + " ".join(argv if argv is not None else sys.argv[1:])
     speed = bench_speed()
     print({k: round(v, 3) for k, v in speed.items()}, flush=True)
-    accuracy, per_session = None, []
+    accuracy, per_session, reused = None, [], []
     if not args.speed_only:
         with tempfile.TemporaryDirectory() as tmp:
             work = args.work or Path(tmp)
             if args.session is not None:
                 inputs = [(str(args.session), args.session, args.model)]
             else:
-                inputs = [(f"sensor seed {seed}", *simulated_inputs(work / f"seed_{seed}", seed, args.train_minutes))
-                          for seed in (int(x) for x in args.seeds.split(",") if x.strip())]
+                inputs = []
+                for seed in (int(x) for x in args.seeds.split(",") if x.strip()):
+                    session, model, was_reused = simulated_inputs(work / f"seed_{seed}", seed, args.train_minutes)
+                    inputs.append((f"sensor seed {seed}", session, model))
+                    if was_reused:
+                        reused.append(f"sensor seed {seed}")
             accuracy, per_session = bench_accuracy(inputs, args.out.parent / "bench_pose_plots")
-    write_markdown(args.out, speed, accuracy, per_session, command.strip())
+    write_markdown(args.out, speed, accuracy, per_session, command.strip(), reused)
     print(f"wrote {args.out}")
     return 0
 

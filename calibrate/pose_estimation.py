@@ -93,13 +93,28 @@ class Cylinder:
         basis = self.basis
         p = (np.asarray(points, dtype=np.float64) - np.asarray(self.center)) @ basis
         r = np.hypot(p[:, 0], p[:, 1])
+        d_r = r - self.radius  # distance to the side wall (signed)
+        d_z = np.abs(p[:, 2]) - 0.5 * self.height  # distance to the nearer cap plane (signed)
+        # Most points of a patch lie beside the side wall, between the cap planes, where the wall
+        # is the nearest surface: phi = d_r, gradient radial. The others take the general case.
+        beside_wall = (d_z <= np.minimum(d_r, 0.0)) & (r > 1e-12)
+        phi = d_r
+        grad = p / np.where(beside_wall, r, 1.0)[:, None]
+        grad[:, 2] = 0.0
+        if not beside_wall.all():
+            rest = ~beside_wall
+            phi[rest], grad[rest] = self._near_caps(p[rest], r[rest], d_r[rest], d_z[rest])
+        return phi, grad @ basis.T
+
+    @staticmethod
+    def _near_caps(p: np.ndarray, r: np.ndarray, d_r: np.ndarray, d_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(phi (M,) m, grad (M,3))`` in the cylinder frame of any points ``p (M,3)`` (radius
+        ``r``, side-wall and cap-plane distances ``d_r``, ``d_z``, all ``(M,)`` m): outside
+        the rims, beyond the caps, or inside nearer a cap than the wall."""
         safe_r = np.where(r > 1e-12, r, 1.0)
         radial = np.stack([p[:, 0] / safe_r, p[:, 1] / safe_r, np.zeros_like(r)], axis=1)
         radial[r <= 1e-12] = (1.0, 0.0, 0.0)
         sign_z = np.where(p[:, 2] >= 0.0, 1.0, -1.0)
-        d_r = r - self.radius  # distance to the side wall (signed)
-        d_z = np.abs(p[:, 2]) - 0.5 * self.height  # distance to the nearer cap plane (signed)
-
         a = np.maximum(d_r, 0.0)
         b = np.maximum(d_z, 0.0)
         outside_d = np.hypot(a, b)
@@ -112,7 +127,7 @@ class Cylinder:
         w_z = np.where(outside, b / safe_d, (~inside_side).astype(np.float64))
         grad = radial * w_r[:, None]
         grad[:, 2] += w_z * sign_z
-        return phi, grad @ basis.T
+        return phi, grad
 
 
 @dataclass(frozen=True)
@@ -326,11 +341,21 @@ def align_symmetry(shape: Shape, pose: Pose, reference: Pose) -> Pose:
 # Residuals and their analytic Jacobian.
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of ``(N,3)`` (or ``(3,)``) arrays; much faster than ``np.cross`` here."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+#: Column indices that lay out the outer products ``v_i g_j`` of two ``(N,3)`` arrays as ``(N,9)``.
+_OUTER_I = np.repeat(np.arange(3), 3)
+_OUTER_J = np.tile(np.arange(3), 3)
+
+
+def _rotation_derivatives(u: np.ndarray) -> np.ndarray:
+    """``(4,3,3)`` derivatives of the rotation matrix ``R(q)`` (homogeneous quadratic form, equal to
+    ``quat_to_matrix`` on unit quaternions) with respect to ``w, x, y, z``, at ``u`` ``(4,)``."""
+    w, x, y, z = u
+    return 2.0 * np.array([
+        [[w, -z, y], [z, w, -x], [-y, x, w]],
+        [[x, y, z], [y, -x, -w], [z, w, -x]],
+        [[-y, x, w], [x, y, z], [-w, z, -y]],
+        [[-z, -w, x], [w, -z, y], [x, y, z]],
+    ])
 
 
 def point_residuals(theta: np.ndarray, points: np.ndarray, shape: Shape,
@@ -344,30 +369,18 @@ def point_residuals(theta: np.ndarray, points: np.ndarray, shape: Shape,
     q = theta[3:]
     q_norm = float(np.linalg.norm(q))
     u = q / q_norm
-    w = u[0]
-    a = -u[1:]  # vector part of the conjugate: R(u)^T v = rotate v by conj(u)
+    rot = quat_to_matrix(u)
     v = points - t
-    # f = R(u)^T v = (w^2 - |a|^2) v + 2 (a.v) a + 2 w (a x v)
-    a_dot_v = v @ a
-    a_cross_v = _cross(a, v)
-    p_obj = (w * w - a @ a) * v + 2.0 * a_dot_v[:, None] * a + 2.0 * w * a_cross_v
+    p_obj = v @ rot  # rows R^T v: camera -> object frame
     phi, g = shape.signed_distance(p_obj)
     if not with_jacobian:
         return phi, None
 
     jac = np.empty((len(points), 7))
-    rot = quat_to_matrix(u)
     jac[:, :3] = -(g @ rot.T)  # dr/dt = -(R g)^T
-    g_dot_v = np.einsum("ij,ij->i", g, v)
-    g_dot_a = g @ a
-    # dr/dw = g . (2 w v + 2 a x v)
-    dr_dw = 2.0 * w * g_dot_v + 2.0 * np.einsum("ij,ij->i", g, a_cross_v)
-    # dr/da = -2 (g.v) a + 2 (a.v) g + 2 (g.a) v - 2 w (g x v); dr/d(vector part) = -dr/da
-    dr_da = (-2.0 * g_dot_v[:, None] * a + 2.0 * a_dot_v[:, None] * g
-             + 2.0 * g_dot_a[:, None] * v - 2.0 * w * _cross(g, v))
-    dr_du = np.concatenate([dr_dw[:, None], -dr_da], axis=1)
-    # u = q/|q|: du/dq = (I - u u^T)/|q|
-    jac[:, 3:] = (dr_du - np.outer(dr_du @ u, u)) / q_norm
+    # dr/du_k = g . (dR_k^T v) = sum_ij v_i (dR_k)_ij g_j; then u = q/|q|: du/dq = (I - u u^T)/|q|
+    to_q = _rotation_derivatives(u).reshape(4, 9).T @ (np.eye(4) - np.outer(u, u)) / q_norm
+    jac[:, 3:] = (v[:, _OUTER_I] * g[:, _OUTER_J]) @ to_q
     return phi, jac
 
 
