@@ -150,6 +150,23 @@ def test_formats():
     assert number(0.123456) == "0.1235" and number(True) == "yes" and number(None) == "-" and number("< 5") == "< 5"
 
 
+def test_step_lines_are_fixed_width_columns():
+    from calibrate.tui.widgets.steps_panel import _FIXED_CELLS, StepsPanel, _cell
+
+    assert _cell("abcdef", 4, "dim").plain == "abc…"
+    padded = _cell("ab", 4, "dim")
+    assert padded.plain == "ab  " and padded.style == "dim"  # the padding keeps the column's style
+    assert _cell("7%", 4, right=True).plain == "  7%" and _cell("x", 0).plain == ""
+    panel = StepsPanel()
+    panel.rows[Step.CONNECT].summary = "sensor SB-SIM-000000, camera 224x172 中文 " * 3
+    panel.rows[Step.LEAK_TEST].summary = "ok"
+    for bar, summary in ((10, 20), (24, 60)):
+        lines = [panel._line(row, bar, summary) for row in panel.rows.values()]
+        assert {line.cell_len for line in lines} == {_FIXED_CELLS + bar + summary}
+        assert lines[0].plain.endswith("…") and lines[1].plain.rstrip().endswith(" ok")
+        assert lines[0].plain.startswith("· Connect       ━") and "   0%" in lines[0].plain
+
+
 @pytest.mark.parametrize(
     "args, fragment",
     [

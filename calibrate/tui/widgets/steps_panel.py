@@ -1,14 +1,14 @@
 """Commissioning steps, each with a status mark, progress bar, ETA / duration and summary.
 
-One widget draws every step as a row of a table (no child widgets): the panel is updated many
-times a second during a run and must stay cheap to lay out and render.
+One widget draws every step as a line of fixed-width columns (no child widgets, no ``rich`` table
+to measure): the panel is updated many times a second during a run and redrawn on every switch to
+its tab, so it must stay cheap to lay out and render.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rich.table import Table
 from rich.text import Text
 from textual.widgets import Static
 
@@ -42,8 +42,10 @@ _LOOK = {
 _MIN_FRACTION_FOR_RATE = 0.05
 #: Bar width range, cells: the bar gives way to the summary column in narrow terminals.
 BAR_WIDTH = (10, 24)
-#: Cells of the other fixed columns with their gaps (title 15, percent 4, time 9, 4 gaps of 1).
-_FIXED_CELLS = 32
+#: Cells of the fixed columns other than the bar: title, percent, time.
+_TITLE_CELLS, _PERCENT_CELLS, _TIME_CELLS = 15, 4, 9
+#: Cells of the title, percent and time columns with the 4 one-cell gaps between the columns.
+_FIXED_CELLS = _TITLE_CELLS + _PERCENT_CELLS + _TIME_CELLS + 4
 #: Summary cells kept before the bar shrinks.
 _MIN_SUMMARY = 24
 
@@ -141,19 +143,31 @@ class StepsPanel(Static):
 
     def _redraw(self) -> None:
         bar_width = self._bar_width()
-        grid = Table.grid(padding=(0, 1), expand=True)
-        grid.add_column(width=15, no_wrap=True)
-        grid.add_column(width=bar_width, no_wrap=True)
-        grid.add_column(width=4, justify="right", no_wrap=True)
-        grid.add_column(width=9, no_wrap=True)
-        grid.add_column(ratio=1, no_wrap=True, overflow="ellipsis")
-        for row in self.rows.values():
-            mark, title_style, bar_style = _LOOK[row.status]
-            grid.add_row(
-                Text(f"{mark} {STEP_TITLES[row.step]}", style=title_style),
-                text_bar(row.fraction, bar_width, bar_style),
-                f"{row.fraction * 100:.0f}%",
-                Text(row.time_text(self._now), style="dim"),
-                Text(row.summary, style="dim"),
-            )
-        self.update(grid, layout=False)
+        width = self.content_region.width if self.is_mounted else 0
+        summary_width = max(width - _FIXED_CELLS - bar_width, 0)
+        lines = [self._line(row, bar_width, summary_width) for row in self.rows.values()]
+        self.update(Text("\n", no_wrap=True, end="").join(lines), layout=False)
+
+    def _line(self, row: StepState, bar_width: int, summary_width: int) -> Text:
+        """One step: mark and title, bar, percent, ETA / duration, summary; one space between."""
+        mark, title_style, bar_style = _LOOK[row.status]
+        return Text(" ", end="").join([
+            _cell(f"{mark} {STEP_TITLES[row.step]}", _TITLE_CELLS, title_style),
+            text_bar(row.fraction, bar_width, bar_style),
+            _cell(f"{row.fraction * 100:.0f}%", _PERCENT_CELLS, right=True),
+            _cell(row.time_text(self._now), _TIME_CELLS, "dim"),
+            _cell(row.summary, summary_width, "dim"),
+        ])
+
+
+def _cell(content: str, width: int, style: str = "", right: bool = False) -> Text:
+    """``content`` in ``style`` cut to ``width`` cells (an ellipsis marks the cut) and padded to
+    exactly ``width`` (on the left when ``right``) with spaces in the same style."""
+    text = Text(content if width > 0 else "", style=style, end="")
+    text.truncate(width, overflow="ellipsis")
+    padding = width - text.cell_len
+    if right:
+        text.pad_left(padding)
+    else:
+        text.pad_right(padding)
+    return text
