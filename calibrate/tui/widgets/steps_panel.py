@@ -163,11 +163,6 @@ class StepsPanel(Static):
 def _cell(content: str, width: int, style: str = "", right: bool = False) -> Text:
     """``content`` in ``style`` cut to ``width`` cells (an ellipsis marks the cut) and padded to
     exactly ``width`` (on the left when ``right``) with spaces in the same style."""
-    text = Text(content if width > 0 else "", style=style, end="")
-    text.truncate(width, overflow="ellipsis")
-    padding = width - text.cell_len
-    if right:
-        text.pad_left(padding)
-    else:
-        text.pad_right(padding)
+    text = Text(content if width > 0 else "", style=style, end="", overflow="ellipsis")
+    text.align("right" if right else "left", width)
     return text
