@@ -32,7 +32,7 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
-from calibrate.tui.app import BenchApp
+from calibrate.tui.app import IDLE_HINT, RUN_HINT, BenchApp
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, YOUNG_OBJECTS
 from calibrate.tui.widgets.banner import Banner
@@ -186,6 +186,24 @@ def test_confirmation_guards_the_start(in_tmp):
             await pilot.press("c", "s")  # the stop key also cancels the dialog
             assert not isinstance(app.screen, ConfirmStart)
             assert flow.calls == 0 and not app.running
+
+    asyncio.run(scenario())
+
+
+def test_banner_keeps_its_line_when_a_run_starts(in_tmp):
+    """The idle hint gives way to the run's stop hint in place: nothing below it moves."""
+    async def scenario():
+        flow = ScriptedFlow([])
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            assert app.banner.level == "hint" and str(app.banner.content) == IDLE_HINT
+            main_before = app.query_one("#main").region
+            await start_and_wait(pilot, flow)
+            assert app.running and app.banner.display and str(app.banner.content) == RUN_HINT
+            assert app.query_one("#main").region == main_before
+            flow.release.set()
+            await wait_for(lambda: not app.running and app.result is not None, pilot)
 
     asyncio.run(scenario())
 
@@ -381,8 +399,8 @@ def test_warm_up_draws_every_tab_once_and_ends_on_the_first(in_tmp):
     async def scenario(warm_up):
         app = BenchApp(make_config(), flow=ScriptedFlow([]), tune_gc=True, warm_up_tabs=warm_up)
         async with app.run_test(size=SIZE) as pilot:
-            # the garbage collector starts once the start-up is over (0.6 s with the warm-up here)
-            await wait_for(lambda: app.gc_collector.running, pilot)
+            # the garbage collector starts when the start-up is over (0.6 s with the warm-up here)
+            await wait_for(lambda: app.started_up, pilot)
             return app.tabs.active, app.tabs_warmed_up, app.gc_collector.running
 
     try:

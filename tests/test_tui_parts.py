@@ -10,6 +10,7 @@ import pytest
 from calibrate.commission_events import (
     BenchSnapshot,
     CollectionProgress,
+    FaultRaised,
     Step,
     StepFinished,
     StepProgress,
@@ -49,8 +50,18 @@ def test_inbox_keeps_order_coalesces_fast_events_and_wakes_once_per_batch():
     assert inbox.take_snapshot().pressure_hpa == 1049.0
     assert inbox.take_snapshot() is None
     assert inbox.drain() == []
-    assert inbox.put(_progress(5)) is True  # empty again: the next event wakes the UI
-    assert inbox.received == 157
+    assert inbox.received == 156
+
+
+def test_inbox_leaves_progress_to_the_refresh_timer_and_wakes_for_anything_else():
+    inbox = EventInbox()
+    progress = [_progress(1), StepProgress(Step.COLLECT, 0.5), TrainingProgress(1, 0.1, 0.5)]
+    assert [inbox.put(event) for event in progress] == [False] * 3  # the timer drains them
+    assert inbox.put(FaultRaised("camera-stall", "no frame for 0.5 s")) is True  # shown at once
+    assert inbox.put(StepFinished(Step.COLLECT, False)) is False  # that batch is already due
+    assert [type(e).__name__ for e in inbox.drain()] == [
+        "CollectionProgress", "StepProgress", "TrainingProgress", "FaultRaised", "StepFinished"]
+    assert inbox.put(StepStarted(Step.FINETUNE, 60.0)) is True  # drained: the next batch wakes again
 
 
 def test_inbox_does_not_merge_across_other_events_or_steps():

@@ -3,10 +3,11 @@
 Processes and threads: the flow (``calibrate.commissioning.run_commissioning``, the same code as
 ``bubble commission``) runs in a child process (``calibrate.tui.flow_runner``), so the UI thread
 never competes for the GIL with the bench loops, the recorder or the training. A textual thread
-worker waits for the child and receives its events; each one only goes into an ``EventInbox``
-and, when the inbox was empty, posts one ``FlowEventsReady`` message (``post_message`` is
-thread-safe); the UI thread drains the whole batch at once. Bench snapshots (camera frames, pose,
-wrench) are picked up by a timer at ``refresh_hz``, so a 45 fps bench never floods the UI. The
+worker waits for the child and receives its events; each one only goes into an ``EventInbox``.
+A step boundary, a fault or the verdict posts one ``FlowEventsReady`` message (``post_message`` is
+thread-safe) and the UI thread drains the whole batch at once. Progress reports and bench snapshots
+(camera frames, pose, wrench) are picked up by a timer at ``refresh_hz``, so a flow that reports at
+the camera's 45 fps never makes the UI compose a frame per report. The
 child runs below the UI's scheduling priority (``BENCH_NICE``, and ``COMPUTE_NICE`` from
 fine-tuning on), so the UI wins the CPU while the flow keeps every core busy.
 
@@ -57,7 +58,11 @@ from calibrate.tui.widgets.steps_panel import StepsPanel
 from calibrate.tui.widgets.training_curve import TrainingCurve
 from collect.errors import HardwareFault, InputError
 
-HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
+#: The banner's line when idle, and during a run until a stop, a fault or the outcome replaces it. It never
+#: hides once shown: hiding it would shift the whole screen up a line and re-lay every panel out in
+#: the frame that answers the start (docs/tui.md "Responsiveness").
+IDLE_HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
+RUN_HINT = "Commissioning... s or space stops the arm and retracts it; recorded data is kept."
 
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
@@ -132,6 +137,7 @@ class BenchApp(App):
         self.gc_collector = FrameGapCollector() if tune_gc else None
         self._warm_up_tabs = warm_up_tabs
         self.tabs_warmed_up: list[str] = []  # tab ids drawn by the start-up warm-up, in order
+        self.started_up = False  # the first frames are drawn, the warm-up (if any) is over, the collector runs
         self._inbox = EventInbox()
         self._runner: FlowRunner | None = None
         self._flow_done = threading.Event()
@@ -184,14 +190,14 @@ class BenchApp(App):
         yield Footer()
 
     def on_mount(self) -> None:
-        self.banner.show(HINT, "hint")
+        self.banner.show(IDLE_HINT, "hint")
         self.set_interval(1.0 / self._refresh_hz, self.refresh_live)
         if self._warm_up_tabs:
             shown = self.tabs.active
             others = [pane.id for pane in self.tabs.query(TabPane) if pane.id != shown]
             self.call_after_refresh(self._show_tabs_once, [*others, shown])
         else:
-            self.call_after_refresh(self._start_gc)  # after the first frame: its widgets are frozen too
+            self.call_after_refresh(self._finish_start_up)  # after the first frame: its widgets are frozen too
 
     def _show_tabs_once(self, order: list[str], polls: int = 0) -> None:
         """Start-up (``warm_up_tabs``): show each tab until it has been laid out (drawn), ending on
@@ -210,14 +216,14 @@ class BenchApp(App):
         if len(order) > 1:
             self._show_tabs_once(order[1:])
         else:
-            self.call_after_refresh(self._start_gc)
+            self.call_after_refresh(self._finish_start_up)
 
-    def _start_gc(self) -> None:
+    def _finish_start_up(self) -> None:
         """After the first frames (their widgets are frozen too): collect garbage between frames."""
-        if self.gc_collector is None:
-            return
-        self.gc_collector.start()
-        self.set_interval(CHECK_INTERVAL_S, self.gc_collector.tick)
+        if self.gc_collector is not None:
+            self.gc_collector.start()
+            self.set_interval(CHECK_INTERVAL_S, self.gc_collector.tick)
+        self.started_up = True
 
     # ------------------------------------------------------------ state query
     @property
@@ -365,7 +371,8 @@ class BenchApp(App):
         self.collection.complete()
 
     def refresh_live(self) -> None:
-        """Timer: show the latest bench snapshot and refresh ETAs (a few times per second)."""
+        """Timer: show the queued progress, the latest bench snapshot and the ETAs (a few times per second)."""
+        self._drain_inbox()
         now = self._clock()
         snapshot = self._inbox.take_snapshot()
         if snapshot is not None:
@@ -395,7 +402,7 @@ class BenchApp(App):
         self._last_snapshot_at = None
         self._fault_text = None
         self.safe_stop = None
-        self.banner.clear()
+        self.banner.show(RUN_HINT, "hint")
         self.steps.reset()
         self.collection.reset()
         self.training.reset()

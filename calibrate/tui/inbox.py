@@ -10,15 +10,22 @@ UI must never fall behind, so the inbox coalesces:
   when that is still the last queued event (order with the other events is kept);
 * everything else (step boundaries, training points, faults, the verdict) is queued in order.
 
-``put`` returns True when the queue went from empty to non-empty: the producer then wakes the UI
-once (one message per batch, not per event); the UI takes the whole batch with ``drain``.
+``put`` returns True when the UI should be woken: for the first event since the last ``drain``
+that is not progress (a step boundary, a fault, the verdict: shown at once), one message per batch.
+Progress (``CollectionProgress``, ``StepProgress``, ``TrainingProgress``) never wakes the UI: it
+waits in the queue for the UI's refresh timer (a few Hz) or the next waking event, so a flow that
+reports progress at the camera's frame rate does not make the UI compose a frame for each report.
+The UI takes the whole batch with ``drain``.
 """
 
 from __future__ import annotations
 
 import threading
 
-from calibrate.commission_events import BenchSnapshot, CollectionProgress, StepProgress
+from calibrate.commission_events import BenchSnapshot, CollectionProgress, StepProgress, TrainingProgress
+
+#: Events that wait for the UI's refresh timer instead of waking it.
+PROGRESS = (CollectionProgress, StepProgress, TrainingProgress)
 
 
 def _replaces(new: object, last: object) -> bool:
@@ -35,6 +42,7 @@ class EventInbox:
         self._lock = threading.Lock()
         self._queue: list[object] = []
         self._snapshot: BenchSnapshot | None = None
+        self._woken = False  # a waking event was put since the last drain
         self.received = 0  # events put so far (all kinds), for diagnostics and benchmarks
 
     def put(self, event: object) -> bool:
@@ -48,12 +56,16 @@ class EventInbox:
                 self._queue[-1] = event
                 return False
             self._queue.append(event)
-            return len(self._queue) == 1
+            if isinstance(event, PROGRESS) or self._woken:
+                return False
+            self._woken = True
+            return True
 
     def drain(self) -> list[object]:
         """Take every queued event (oldest first), leaving the queue empty."""
         with self._lock:
             events, self._queue = self._queue, []
+            self._woken = False
         return events
 
     def take_snapshot(self) -> BenchSnapshot | None:

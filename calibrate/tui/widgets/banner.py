@@ -1,4 +1,4 @@
-"""One-line banner across the top for faults, stop requests and run outcomes."""
+"""One-line banner across the top for hints, faults, stop requests and run outcomes."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ LEVELS = ("fault", "warning", "info", "hint")
 
 
 class Banner(Static):
-    """Hidden until ``show``; the level picks the colours (CSS classes ``-fault/-warning/-info/-hint``)."""
+    """Hidden until the first ``show``; the level picks the colours (CSS classes ``-fault/-warning/-info/-hint``)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("", **kwargs)
@@ -23,8 +23,3 @@ class Banner(Static):
         self.level = level
         self.update(text)
         self.display = True
-
-    def clear(self) -> None:
-        self.level = None
-        self.update("")
-        self.display = False
