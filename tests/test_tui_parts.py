@@ -64,12 +64,15 @@ def test_inbox_leaves_progress_to_the_refresh_timer_and_wakes_for_anything_else(
     assert inbox.put(StepStarted(Step.FINETUNE, 60.0)) is True  # drained: the next batch wakes again
 
 
-def test_inbox_does_not_merge_across_other_events_or_steps():
+def test_inbox_merges_progress_across_progress_but_not_across_other_events_or_steps():
     inbox = EventInbox()
     for event in (_progress(1), StepProgress(Step.COLLECT, 0.5), _progress(2),
-                  StepProgress(Step.FINETUNE, 0.1), StepProgress(Step.COLLECT, 0.6)):
+                  StepProgress(Step.FINETUNE, 0.1), StepProgress(Step.COLLECT, 0.6),
+                  StepFinished(Step.COLLECT, True), _progress(3), StepProgress(Step.COLLECT, 0.7)):
         inbox.put(event)
-    assert len(inbox.drain()) == 5
+    assert [(type(e).__name__, getattr(e, "frames", None), getattr(e, "fraction", None)) for e in inbox.drain()] == [
+        ("CollectionProgress", 2, None), ("StepProgress", None, 0.1), ("StepProgress", None, 0.6),
+        ("StepFinished", None, None), ("CollectionProgress", 3, None), ("StepProgress", None, 0.7)]
 
 
 def test_inbox_loses_nothing_under_concurrent_producers():

@@ -7,7 +7,8 @@ UI must never fall behind, so the inbox coalesces:
 * ``BenchSnapshot``: only the latest one is kept, in its own slot, and the UI picks it up at its
   own refresh rate (a few Hz) with ``take_snapshot``;
 * ``CollectionProgress`` and ``StepProgress`` (same step): a new one replaces the previous one
-  when that is still the last queued event (order with the other events is kept);
+  when only progress has been queued after it (the collection reports both for every frame); it
+  never passes a step boundary, a fault or the verdict;
 * everything else (step boundaries, training points, faults, the verdict) is queued in order.
 
 ``put`` returns True when the UI should be woken: for the first event since the last ``drain``
@@ -28,11 +29,11 @@ from calibrate.commission_events import BenchSnapshot, CollectionProgress, StepP
 PROGRESS = (CollectionProgress, StepProgress, TrainingProgress)
 
 
-def _replaces(new: object, last: object) -> bool:
-    """Whether ``new`` makes ``last`` (the last queued event) obsolete."""
-    if isinstance(new, CollectionProgress) and isinstance(last, CollectionProgress):
+def _replaces(new: object, queued: object) -> bool:
+    """Whether ``new`` makes ``queued`` (a queued progress event) obsolete."""
+    if isinstance(new, CollectionProgress) and isinstance(queued, CollectionProgress):
         return True
-    return isinstance(new, StepProgress) and isinstance(last, StepProgress) and new.step == last.step
+    return isinstance(new, StepProgress) and isinstance(queued, StepProgress) and new.step == queued.step
 
 
 class EventInbox:
@@ -52,9 +53,13 @@ class EventInbox:
             if isinstance(event, BenchSnapshot):
                 self._snapshot = event
                 return False
-            if self._queue and _replaces(event, self._queue[-1]):
-                self._queue[-1] = event
-                return False
+            for k in range(len(self._queue) - 1, -1, -1):  # the progress queued since the last other event
+                queued = self._queue[k]
+                if _replaces(event, queued):
+                    del self._queue[k]
+                    break
+                if not isinstance(queued, PROGRESS):
+                    break
             self._queue.append(event)
             if isinstance(event, PROGRESS) or self._woken:
                 return False
