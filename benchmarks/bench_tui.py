@@ -198,7 +198,8 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         "runs it in (`calibrate/tui/flow_runner.py`), measured headless with",
         "`App.run_test`: a tab switch key (`1`/`2`, alternating between the steps and the large sensor",
         "view) is posted every "
-        f"{args.interval:.2f} s, the first in the instant the run starts (once the app's start-up is over), and timed until the first composed frame shows the new tab (the frame is",
+        f"{args.interval:.2f} s, the first in the instant the run starts (once the app's start-up is over),",
+        "and timed until the first composed frame shows the new tab (the frame is",
         "also rendered to terminal escape codes). Target: < 100 ms. \"UI CPU\" is the CPU time the UI thread",
         "spent between the key and the frame: the latency a quiet machine would show, without waiting",
         "for the CPU. \"CPU wait\" is the time the UI thread was ready to run but had no core",

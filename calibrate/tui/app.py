@@ -7,9 +7,9 @@ worker waits for the child and receives its events; each one only goes into an `
 A step boundary, a fault or the verdict posts one ``FlowEventsReady`` message (``post_message`` is
 thread-safe) and the UI thread drains the whole batch at once. Progress reports and bench snapshots
 (camera frames, pose, wrench) are picked up by a timer at ``refresh_hz``, so a flow that reports at
-the camera's 45 fps never makes the UI compose a frame per report. The
-child runs below the UI's scheduling priority (``BENCH_NICE``, and ``COMPUTE_NICE`` from
-fine-tuning on), so the UI wins the CPU while the flow keeps every core busy.
+the camera's 45 fps never makes the UI compose a frame per report. The child runs below the UI's
+scheduling priority (``BENCH_NICE``, and ``COMPUTE_NICE`` from fine-tuning on), so the UI wins the
+CPU while the flow keeps every core busy.
 
 Safety: the stop key (``s`` or space, a priority binding that works on every screen) sets the
 flow's ``stop_event``; the flow safe-stops the arm, retracts and closes the session file. Nothing
@@ -219,7 +219,8 @@ class BenchApp(App):
             self.call_after_refresh(self._finish_start_up)
 
     def _finish_start_up(self) -> None:
-        """After the first frames (their widgets are frozen too): collect garbage between frames."""
+        """After the first frames (their widgets are frozen too): collect garbage between frames, and
+        mark the start-up over (``started_up``: from now on a key press times only itself)."""
         if self.gc_collector is not None:
             self.gc_collector.start()
             self.set_interval(CHECK_INTERVAL_S, self.gc_collector.tick)
