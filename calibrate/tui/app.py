@@ -39,8 +39,6 @@ from calibrate.commission_events import (
     FaultRaised,
     Step,
     StepFinished,
-    StepProgress,
-    StepStarted,
     TrainingProgress,
     Verdict,
 )
@@ -342,10 +340,11 @@ class BenchApp(App):
         """Show a batch of (non-snapshot) events, oldest first; redraws each panel once."""
         now = self._clock()
         steps = self.steps
+        steps_changed = False
         points: list[TrainingProgress] = []
         for event in events:
-            if isinstance(event, (StepStarted, StepProgress, StepFinished)):
-                steps.apply(event, now)
+            if steps.apply(event, now):
+                steps_changed = True
                 if isinstance(event, StepFinished) and event.step == Step.COLLECT:
                     self._close_bench_view()
             elif isinstance(event, CollectionProgress):
@@ -362,6 +361,8 @@ class BenchApp(App):
             elif isinstance(event, Verdict):
                 self.acceptance.show(event.accepted, event.checks, event.report_path)
         self.training.apply(points)
+        if steps_changed:
+            steps.tick(now)
 
     def _close_bench_view(self) -> None:
         """The flow has closed the bench (collection over): the arm is parked, no more snapshots."""

@@ -93,8 +93,9 @@ class StepsPanel(Static):
     def row(self, step: Step) -> StepState:
         return self.rows[Step(step)]
 
-    def apply(self, event: object, now: float) -> None:
-        """Apply one step event (others are ignored); redraws."""
+    def apply(self, event: object, now: float) -> bool:
+        """Apply one step event to the rows; returns False for other events. Does not redraw: the
+        caller calls ``tick`` once per batch."""
         if isinstance(event, StepStarted):
             self.rows[Step(event.step)] = StepState(event.step, "running", started_at=now, eta_s=event.eta_s)
         elif isinstance(event, StepProgress):
@@ -114,8 +115,8 @@ class StepsPanel(Static):
                 if event.ok:
                     row.fraction = 1.0
         else:
-            return
-        self.tick(now)
+            return False
+        return True
 
     def reset(self) -> None:
         self.rows = {step: StepState(step) for step in STEPS}
@@ -136,14 +137,10 @@ class StepsPanel(Static):
     def on_resize(self) -> None:
         self._redraw()
 
-    def _bar_width(self) -> int:
+    def _redraw(self) -> None:
         width = self.content_region.width if self.is_mounted else 0
         lo, hi = BAR_WIDTH
-        return max(lo, min(hi, width - _FIXED_CELLS - _MIN_SUMMARY))
-
-    def _redraw(self) -> None:
-        bar_width = self._bar_width()
-        width = self.content_region.width if self.is_mounted else 0
+        bar_width = max(lo, min(hi, width - _FIXED_CELLS - _MIN_SUMMARY))
         summary_width = max(width - _FIXED_CELLS - bar_width, 0)
         lines = [self._line(row, bar_width, summary_width) for row in self.rows.values()]
         self.update(Text("\n", no_wrap=True, end="").join(lines), layout=False)
