@@ -86,8 +86,8 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
 def _read_yaml(path: Path) -> dict:
     try:
         text = Path(path).read_text()
-    except OSError as err:
-        raise InputError(f"cannot read thresholds file {path}: {err.strerror or err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"cannot read thresholds file {path}: {getattr(err, 'strerror', None) or err}") from None
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as err:

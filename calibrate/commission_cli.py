@@ -8,6 +8,7 @@ hardware fault; the data recorded so far stays in RUN_DIR and a re-run resumes),
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import threading
 import time
@@ -135,7 +136,7 @@ def run_commission(args) -> int:
         sim_speed=args.sim_speed,
         leak_hold_s=args.leak_hold_s,
     )
-    stop = threading.Event()
+    stop, done = threading.Event(), threading.Event()
     printer = (lambda e: None) if args.quiet else ProgressPrinter()
     outcome: dict = {}
 
@@ -144,16 +145,22 @@ def run_commission(args) -> int:
             outcome["result"] = run_commissioning(config, on_event=printer, stop_event=stop)
         except BaseException as err:  # handed to the main thread, which reports it
             outcome["error"] = err
+        finally:
+            done.set()
 
-    worker = threading.Thread(target=work, name="commission", daemon=True)
-    worker.start()
-    try:
-        while worker.is_alive():
-            worker.join(0.2)
-    except KeyboardInterrupt:
-        print("bubble: stopping the arm and closing the run ...", file=sys.stderr)
+    def on_sigint(signum, frame) -> None:
+        # Ctrl-C only asks the flow to stop: it halts the arm, retracts and closes the files itself.
+        print("bubble: still stopping (arm retracting, files closing) ..." if stop.is_set()
+              else "bubble: stopping the arm and closing the run ...", file=sys.stderr)
         stop.set()
-        worker.join()
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        threading.Thread(target=work, name="commission", daemon=True).start()
+        while not done.wait(0.2):
+            pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
     if "error" in outcome:
         raise outcome["error"]
     result = outcome["result"]

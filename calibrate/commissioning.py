@@ -63,9 +63,10 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
-from calibrate.contact_patch import contact_mask
-from collect.errors import HardwareFault, InputError
+from collect.errors import HardwareFault, InputError, StopRequested
 from collect.session_format import DEPTH_UNIT_M
+from trainer.contact import contact_mask, reference_depth
+from trainer.metrics import METRIC_KEYS
 
 if TYPE_CHECKING:
     from collect.bench import BenchConfig
@@ -95,8 +96,6 @@ SNAPSHOT_HZ = 4.0
 EXAMPLE_FRAMES = 4
 #: Steps that need the bench.
 BENCH_STEPS = (Step.CONNECT, Step.LEAK_TEST, Step.CAMERA_HEALTH, Step.REFERENCE, Step.COLLECT)
-#: A jump of more sequence numbers than this between two frames is a camera restart (s. _collection_stats).
-RESTART_GAP = 45
 #: Wall time (s) the fine-tune step may take beyond its training budget: loading the calibration
 #: set, the live validations, the final validation and the ONNX export (about 20 s on the 2-core
 #: CPU of docs/benchmarks.md, 28-35 s on one half as fast). The trainer's deadline cuts training
@@ -169,10 +168,6 @@ class CommissionResult:
     stopped: bool = False  # stop_event ended the run (arm stopped + retracted, data kept)
     fault: str | None = None  # "kind: message" of the hardware fault that ended the run
     reason: str = ""  # one line: why rejected
-
-
-class _Stopped(Exception):
-    """The operator asked to stop."""
 
 
 def _now() -> str:
@@ -288,7 +283,7 @@ class _Flow:
 
     def check_stop(self) -> None:
         if self.stop_event.is_set():
-            raise _Stopped()
+            raise StopRequested("commissioning: stopped by the operator")
         if self.bench is not None:
             self.bench.check()
 
@@ -348,6 +343,7 @@ class _Flow:
             bench_config = dataclasses.replace(self.config.bench, objects=tuple(self.config.objects))
         self._bench_cm = open_bench(bench_config)
         bench = self._bench_cm.__enter__()
+        bench.arm.stop_on(self.stop_event)  # a stop mid-motion halts the arm within one state sample
         bench.camera = _FrameTap(bench.camera, self._set_latest_frame)
         self.bench = bench
         self._snapshot_stop.clear()
@@ -473,16 +469,15 @@ class _Flow:
         }
 
     def step_collect(self) -> dict:
-        from collect.collection import run_collection
-        from collect.pose_planner import PlanSettings, plan_collection
+        from collect.collection import open_collection_writer, plan_bench_collection, run_collection
+        from collect.pose_planner import PlanSettings
 
         b = self.bench
-        plan = plan_collection(
-            b.objects, b.limits, PlanSettings(poses_per_object=self.config.poses_per_object, seed=self.config.seed)
-        )
+        settings = PlanSettings(poses_per_object=self.config.poses_per_object, seed=self.config.seed)
+        plan = plan_bench_collection(b, settings)
         path = self.run_dir / SESSION_FILE
         # An interrupted earlier attempt is continued: run_collection skips its completed poses.
-        writer = self._writer(path, plan.objects, resume=path.exists())
+        writer = open_collection_writer(path, b, plan, resume=path.exists())
         self.emit(StepStarted(Step.COLLECT, plan.estimated_duration_s() / self._speed()))
         planned = len(plan.poses)
         order = {o.name: i for i, o in enumerate(plan.objects)}
@@ -498,7 +493,7 @@ class _Flow:
         finally:
             writer.close()
         if run.stopped:
-            raise _Stopped()
+            raise StopRequested("commissioning: stopped by the operator")
         stats = _collection_stats(path, planned)
         th = self.thresholds
         checks = [
@@ -546,7 +541,7 @@ class _Flow:
         )
         result = train_model(config, on_progress, self.stop_event)
         if result.stopped:
-            raise _Stopped()
+            raise StopRequested("commissioning: stopped by the operator")
         cut = ""
         if result.ended_at_deadline:
             cut = (f" (cut short to fit the run's {self.config.total_minutes:g}-min budget)" if run_bound
@@ -687,7 +682,8 @@ class _Flow:
             "stopped": stopped,
             "thresholds": {"version": self.thresholds.version, "source": self.thresholds.source},
             "checks": checks,
-            **{k: v for k, v in validate.get("metrics", {}).items()},
+            **dict.fromkeys(METRIC_KEYS),  # null when the run ended before validation
+            **validate.get("metrics", {}),
             "per_object": validate.get("per_object"),
             "contact": validate.get("contact"),
             "vs_true": validate.get("vs_true"),
@@ -838,7 +834,7 @@ class _Flow:
             self.emit(FaultRaised(fault.kind, str(fault)))
             self.close_bench(safe_stop=True)
             return self.finish(fault=f"{fault.kind}: {fault}")
-        except _Stopped:
+        except StopRequested:
             self.close_bench(safe_stop=True)
             return self.finish(stopped=True)
         except BaseException:
@@ -900,19 +896,15 @@ def _plain(obj):
 def _collection_stats(path: Path, planned: int) -> dict:
     """Poses and frames in the session file.
 
-    A pose counts as recorded when it has ``hold`` frames. Dropped frames are the gaps in the
-    camera sequence numbers; a jump of more than ``RESTART_GAP`` frames is a camera restart
-    between two attempts of a resumed run, not a loss.
+    A pose counts as recorded when it has ``hold`` frames; dropped frames are the gaps in the
+    camera sequence numbers (``Session.dropped_frames``).
     """
     from collect import session_format as sf
     from collect.session_reader import Session
 
     with Session.open(path) as s:
-        seq = np.asarray(s.seq, dtype=np.int64)
+        n, dropped = s.n_frames, s.dropped_frames()
         poses = np.unique(s.pose_id[(s.pose_id >= 0) & (s.phase == sf.PHASE_HOLD)])
-    n = int(seq.size)
-    gaps = np.diff(seq) - 1 if n > 1 else np.zeros(0, np.int64)
-    dropped = int(gaps[(gaps > 0) & (gaps <= RESTART_GAP)].sum())
     return {
         "frames": n,
         "frames_dropped": dropped,
@@ -960,24 +952,21 @@ def _nocontact_maps(estimator, reference_path: Path) -> dict:
     with np.errstate(invalid="ignore"):
         err_mean = np.where(count > 0, np.nansum(err, axis=0) / np.maximum(count, 1), np.nan)
         err_var = np.where(count > 0, np.nansum((err - err_mean) ** 2, axis=0) / np.maximum(count, 1), np.nan)
-    # median of the valid depths per pixel: sort with invalid (+inf) last, pick the middle valid one
-    ranked = np.sort(np.where(valid, depth, np.inf), axis=0)
-    middle = np.take_along_axis(ranked, np.maximum((count - 1) // 2, 0)[None], axis=0)[0]
-    ref = np.where(count > 0, middle, 0.0)
     return {
         "valid_count": count.astype(np.int32),
         "err_mean": err_mean.astype(np.float32),
         "err_var": err_var.astype(np.float32),
-        "reference_depth": ref.astype(np.float32),
+        "reference_depth": reference_depth(depth),  # the pose check's and the trainer's reference
         "reference_ir": ir.mean(axis=0).astype(np.float32),
     }
 
 
-def _pick_examples(frames, reference_depth: np.ndarray) -> np.ndarray:
+def _pick_examples(frames, reference: np.ndarray) -> np.ndarray:
     """Indices of up to ``EXAMPLE_FRAMES`` held-out frames of distinct poses, taking the objects in
-    turn: for each pose its most deformed frame (most pixels pushed in by > 1 mm), deepest poses first."""
-    ref_valid = reference_depth > 0
-    dent = np.array([int(((reference_depth - d > 1e-3) & (d > 0) & ref_valid).sum()) for d in frames.depth])
+    turn: for each pose its most deformed frame (most pixels pushed in by > 1 mm against the
+    no-contact ``reference`` (H,W) float32 m), deepest poses first."""
+    ref_valid = reference > 0
+    dent = np.array([int(((reference - d > 1e-3) & (d > 0) & ref_valid).sum()) for d in frames.depth])
     per_object = []
     for name in sorted(set(frames.object_name)):
         best = {}
@@ -1007,8 +996,12 @@ def _load_sensor_spec(config: CommissionConfig):
     return draw_sensor(config.seed)
 
 
-def _validate_config(config: CommissionConfig) -> None:
+def validate_config(config: CommissionConfig) -> None:
+    """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
+    ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry."""
+    from calibrate.acceptance import load_thresholds
     from hw_mocks.objects import load_object
+    from trainer.model_dir import load_weights, load_metadata
 
     run_dir = Path(config.run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -1017,8 +1010,10 @@ def _validate_config(config: CommissionConfig) -> None:
         raise InputError("no objects to press; give at least one")
     for name in config.objects:
         load_object(name)  # raises InputError for an unknown object or a bad mesh
-    if int(config.poses_per_object) < 1:
-        raise InputError(f"poses per object must be at least 1, got {config.poses_per_object}")
+    if int(config.poses_per_object) < 2:  # the validation holds out a share of each object's poses
+        raise InputError(f"poses per object must be at least 2 (one or more is held out), got {config.poses_per_object}")
+    if int(config.seed) < 0:
+        raise InputError(f"seed must be >= 0, got {config.seed}")
     if not (math.isfinite(config.finetune_minutes) and config.finetune_minutes > 0):
         raise InputError(f"fine-tune minutes must be positive, got {config.finetune_minutes}")
     if config.total_minutes is not None and not config.total_minutes > 0:  # inf: no budget
@@ -1027,6 +1022,12 @@ def _validate_config(config: CommissionConfig) -> None:
         raise InputError(f"leak-test hold must be positive, got {config.leak_hold_s} s")
     if config.base_model is not None and not Path(config.base_model).is_dir():
         raise InputError(f"base model directory {config.base_model} does not exist")
+    if config.base_model is not None:
+        load_metadata(config.base_model)
+        load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
+    load_thresholds(config.thresholds)
+    if config.registry_dir is not None and Path(config.registry_dir).exists() and not Path(config.registry_dir).is_dir():
+        raise InputError(f"sensor registry {config.registry_dir} is not a directory")
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")
@@ -1037,6 +1038,8 @@ def _validate_config(config: CommissionConfig) -> None:
 
         for fault in config.sim_faults:
             parse_sim_fault(fault)
+        if not 0.1 <= float(config.sim_speed) <= 100.0:  # the simulated bench's own bounds
+            raise InputError(f"simulation speed {config.sim_speed} must be within 0.1..100")
 
 
 def run_commissioning(
@@ -1050,7 +1053,7 @@ def run_commissioning(
     run directory belongs to another run). Hardware faults do not raise: they end the run
     rejected (``result.fault``).
     """
-    _validate_config(config)
+    validate_config(config)
     thresholds = acceptance.load_thresholds(config.thresholds)
     spec = _load_sensor_spec(config) if config.simulated else None
     if config.base_model is None:

@@ -2,57 +2,20 @@
 
 The first stage of the paper's pose pipeline (Sec. V): compare a depth map with the
 no-contact reference of the same sensor, keep the pixels pushed toward the camera by more than
-a threshold (the contact patch), lift them to 3-D with the pinhole intrinsics and downsample
-the cloud to a fixed number of points (1500 in the paper), deterministically.
+a threshold (the contact patch, ``trainer.contact``), lift them to 3-D with the pinhole intrinsics
+and downsample the cloud to a fixed number of points (1500 in the paper), deterministically.
 
 Depth maps are ``(H,W) float32 m`` camera z-depth, 0 (or non-finite) = invalid.
 """
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
-from collect.errors import InputError
+from trainer.contact import CONTACT_THRESHOLD_M, contact_mask
 
 #: Points kept per cloud (the paper's 1500).
 N_POINTS = 1500
-
-#: Depth decrease from the reference (m) that marks a pixel as in contact.
-CONTACT_THRESHOLD_M = 1.5e-3
-
-
-def _valid(depth: np.ndarray) -> np.ndarray:
-    return np.isfinite(depth) & (depth > 0.0)
-
-
-def reference_depth(frames: np.ndarray) -> np.ndarray:
-    """No-contact reference: per-pixel median of the valid depths of ``frames (K,H,W) m``.
-
-    Returns ``(H,W) float32 m``, 0 where no frame was valid.
-    """
-    frames = np.asarray(frames, dtype=np.float32)
-    if frames.ndim != 3 or len(frames) == 0:
-        raise InputError(f"no-contact reference needs (K,H,W) depth frames, got shape {frames.shape}")
-    masked = np.where(_valid(frames), frames, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels (never valid) -> NaN
-        ref = np.nanmedian(masked, axis=0)
-    ref = np.nan_to_num(ref, nan=0.0)
-    return ref.astype(np.float32)
-
-
-def contact_mask(depth: np.ndarray, reference: np.ndarray,
-                 threshold_m: float = CONTACT_THRESHOLD_M) -> np.ndarray:
-    """``(H,W) bool`` (or ``(N,H,W)`` for ``(N,H,W)`` depth maps against one ``(H,W)``
-    reference): valid in both and closer to the camera than the reference by > threshold."""
-    depth = np.asarray(depth, dtype=np.float32)
-    reference = np.asarray(reference, dtype=np.float32)
-    if depth.shape[-2:] != reference.shape:
-        raise InputError(f"depth {depth.shape} and reference {reference.shape} differ in shape")
-    with np.errstate(invalid="ignore"):
-        return _valid(depth) & _valid(reference) & (reference - depth > threshold_m)
 
 
 def lift(depth: np.ndarray, mask: np.ndarray, intrinsics: dict) -> np.ndarray:

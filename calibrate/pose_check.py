@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calibrate.contact_patch import CONTACT_THRESHOLD_M, N_POINTS, contact_points, reference_depth
+from calibrate.contact_patch import N_POINTS, contact_points
 from calibrate.pose_estimation import (
     MIN_POINTS,
     Cylinder,
@@ -44,6 +44,7 @@ from calibrate.pose_estimation import (
     shape_from_object,
 )
 from collect.errors import InputError
+from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
 
 #: Depth sources, in report order. ``true`` exists in simulated sessions only.
 SOURCES = ("predicted", "measured", "true")

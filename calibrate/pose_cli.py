@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -26,9 +28,14 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     from calibrate.pose_check import run_pose_check
     from collect.errors import InputError
+    from collect.output_files import check_json_output
 
-    if not args.threshold_mm > 0 or args.points < 1:
-        raise InputError("--threshold-mm must be > 0 and --points >= 1")
+    if not args.threshold_mm > 0 or args.points < 1 or args.seed < 0:
+        raise InputError("--threshold-mm must be > 0, --points >= 1 and --seed >= 0")
+    if args.json:
+        check_json_output(args.json)
+    if args.plots and os.path.exists(args.plots) and not os.path.isdir(args.plots):
+        raise InputError(f"--plots {args.plots} is a file, not a directory")
     result = run_pose_check(args.model, args.data, args.object, threshold_m=1e-3 * args.threshold_mm,
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
     print(result.summary())

@@ -90,6 +90,8 @@ class Cylinder:
         return np.stack([e1, np.cross(a, e1), a], axis=1)
 
     def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact field of the capped cylinder: ``points (N,3) m`` (object frame) -> ``(phi (N,) m,
+        grad (N,3) unit)``, negative inside (``Shape.signed_distance``)."""
         basis = self.basis
         p = (np.asarray(points, dtype=np.float64) - np.asarray(self.center)) @ basis
         r = np.hypot(p[:, 0], p[:, 1])
@@ -185,6 +187,9 @@ class GridSDF:
                    center=tuple(float(c) for c in mesh.bounds.mean(axis=0)))
 
     def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Trilinear interpolation of the grid: ``points (N,3) m`` (object frame) -> ``(phi (N,) m,
+        grad (N,3))``, negative inside (``Shape.signed_distance``); a point off the grid takes the
+        value at the nearest grid point plus its distance to the grid box."""
         p = np.asarray(points, dtype=np.float64)
         hi_idx = np.asarray(self.values.shape) - 1
         g = (p - self.origin) / self.spacing

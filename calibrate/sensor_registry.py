@@ -149,9 +149,14 @@ class SensorRegistry:
 
     def _read_profile(self, sdir: Path) -> dict:
         try:
-            return json.loads((sdir / PROFILE).read_text())
-        except (OSError, json.JSONDecodeError) as err:
+            profile = json.loads((sdir / PROFILE).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise InputError(f"sensor registry entry {sdir} is unreadable: {err}") from None
+        history = profile.get("history") if isinstance(profile, dict) else None
+        if not (isinstance(history, list) and all(isinstance(h, dict) and isinstance(h.get("accepted"), bool)
+                                                  and isinstance(h.get("time"), str) for h in history)):
+            raise InputError(f"sensor registry entry {sdir} is corrupt: {PROFILE} needs a 'history' of commissionings")
+        return profile
 
     def get(self, serial: str) -> SensorProfile:
         sdir = self._sensor_dir(serial)

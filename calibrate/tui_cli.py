@@ -39,27 +39,14 @@ def register(subparsers) -> None:
 
 
 def run_tui(args) -> int:
-    if args.poses_per_object < 1:
-        raise InputError("--poses-per-object must be at least 1")
-    if args.finetune_minutes <= 0:
-        raise InputError("--finetune-minutes must be positive")
-    if not args.total_minutes > 0:
-        raise InputError("--total-minutes must be positive")
-    if args.sim_speed <= 0:
-        raise InputError("--sim-speed must be positive")
+    from calibrate.commissioning import CommissionConfig, validate_config
+
+    if not args.sim:
+        raise InputError("the terminal UI drives the simulated bench only: add --sim (on real hardware, "
+                         "commission with bubble commission --bench BENCH.yaml)")
     if args.sensor is not None and not args.sensor.is_file():
         raise InputError(f"sensor spec {args.sensor} does not exist")
-    if (args.sim_fault or args.sensor is not None) and not args.sim:
-        raise InputError("--sensor and --sim-fault need --sim (they describe the simulated bench)")
     objects = tuple(name.strip() for name in args.objects.split(",") if name.strip())
-    if not objects:
-        raise InputError("--objects is empty")
-    if not (sys.stdin.isatty() and sys.stdout.isatty()):
-        raise InputError("bubble tui needs an interactive terminal (use `bubble commission` in scripts)")
-
-    from calibrate.commissioning import CommissionConfig
-    from calibrate.tui.app import BenchApp
-
     run_dir = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
     config = CommissionConfig(
         run_dir=run_dir,
@@ -76,5 +63,11 @@ def run_tui(args) -> int:
         sim_faults=tuple(args.sim_fault),
         sim_speed=args.sim_speed,
     )
+    validate_config(config)  # every setting `bubble commission` checks, before the UI starts
+    if not (sys.stdin.isatty() and sys.stdout.isatty()):
+        raise InputError("bubble tui needs an interactive terminal (use `bubble commission` in scripts)")
+
+    from calibrate.tui.app import BenchApp
+
     BenchApp(config, tune_gc=True, warm_up_tabs=True).run()
     return 0

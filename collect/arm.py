@@ -22,6 +22,10 @@ force jumped past the limit within one sample (by more than half the limit: a co
 sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running motion raises
 it. ``retract`` is allowed after a force fault (the force check is suspended while moving away)
 but not after a protective stop, which only the operator can clear on the teach pendant.
+
+The operator's stop (``stop_on(event)``: the stop key, Ctrl-C, a watchdog) is watched at every
+sample as well: once the event is set the running motion sends ``stopL`` within one sample and
+raises ``StopRequested``, and no motion but ``retract`` starts while it stays set.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from collect.errors import HardwareFault, InputError
+from collect.errors import HardwareFault, InputError, StopRequested
 from collect.safety import SafetyLimits, tool_z_axis
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
@@ -81,6 +85,11 @@ def move_duration_s(distance_m: float, speed: float, accel: float) -> float:
     return distance_m / speed + speed / accel
 
 
+def retract_speed(settings: MotionSettings) -> float:
+    """Speed (m/s) of ``Arm.retract`` when none is given (the safe stop): twice the approach speed."""
+    return 2.0 * settings.approach_speed
+
+
 def _rotation_gap_rad(a, b) -> float:
     return float((Rotation.from_rotvec(a[3:6]).inv() * Rotation.from_rotvec(b[3:6])).magnitude())
 
@@ -96,7 +105,8 @@ class Arm:
                  clock: Callable[[], float] = time.monotonic, state_hz: float = 125.0):
         if not 1.0 <= state_hz <= 500.0:
             raise InputError(f"arm: state rate {state_hz} Hz is outside 1..500 Hz")
-        limits.check_motion(settings.travel_speed, settings.accel)
+        for speed in (settings.travel_speed, settings.approach_speed, settings.press_speed, retract_speed(settings)):
+            limits.check_motion(speed, settings.accel)
         limits.check_force(settings.contact_force_n)
         self._ctl = control
         self._rcv = receive
@@ -112,6 +122,7 @@ class Arm:
         self._force_check = True
         self._retract_pose: np.ndarray | None = None
         self._stop_evt = threading.Event()
+        self._stop_request: threading.Event | None = None
         self._thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -139,6 +150,13 @@ class Arm:
         return ArmState(self.clock(), pose, wrench)
 
     def _monitor(self) -> None:
+        try:
+            self._watch()
+        except Exception as err:  # a dead monitor must not leave a motion unsupervised
+            self._set_fault(HardwareFault("arm-monitor", f"arm: state monitor failed ({type(err).__name__}: {err})"))
+            self.stop()
+
+    def _watch(self) -> None:
         next_t = time.monotonic()
         prev_force = 0.0
         while not self._stop_evt.is_set():
@@ -202,9 +220,15 @@ class Arm:
         self.stop()
 
     def check(self) -> None:
-        """Raise the recorded fault, if any."""
+        """Raise the recorded fault, if any, then ``StopRequested`` if the operator's stop is set."""
         if self._fault is not None:
             raise self._fault
+        if self._stop_request is not None and self._stop_request.is_set():
+            raise StopRequested("arm: stopped by the operator")
+
+    def stop_on(self, request: threading.Event | None) -> None:
+        """Stop every motion but ``retract`` once ``request`` is set (the operator's stop), from now on; None: never."""
+        self._stop_request = request
 
     def state(self) -> ArmState:
         """Latest sample ``(t, tcp_pose, tcp_wrench)`` (read directly when the monitor is not running)."""
@@ -253,9 +277,12 @@ class Arm:
         t_end_real = time.monotonic() + REAL_TIME_SLACK * budget
         while True:
             sample = self._next_sample()
-            if not ignore_faults and self._fault is not None:
-                self.stop()
-                raise self._fault
+            if not ignore_faults:
+                try:
+                    self.check()
+                except (HardwareFault, StopRequested):
+                    self.stop()
+                    raise
             if guard is not None and guard(sample):
                 self.stop()
                 return self._settle(), True
@@ -377,7 +404,7 @@ class Arm:
             target[:3] -= tool_z_axis(now.tcp_pose) * self.settings.retract_m
         self._force_check = False
         try:
-            sample, _ = self._run_move(target, speed or self.settings.approach_speed * 2, self.settings.accel,
+            sample, _ = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,
                                        ignore_faults=True)
         finally:
             self._force_check = True

@@ -107,8 +107,8 @@ class BenchConfig(ABC):
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())
-        except OSError as err:
-            raise InputError(f"cannot read bench config {path}: {err.strerror}") from None
+        except (OSError, UnicodeDecodeError) as err:
+            raise InputError(f"cannot read bench config {path}: {getattr(err, 'strerror', None) or err}") from None
         except yaml.YAMLError as err:
             raise InputError(f"bench config {path} is not valid YAML: {str(err).splitlines()[0]}") from None
         return cls.from_dict(data, source=f"bench config {path}")
@@ -267,7 +267,7 @@ class Bench:
             self.arm.stop()
             self.arm.retract()
             return True
-        except HardwareFault as err:
+        except (HardwareFault, InputError) as err:  # InputError: the retract itself broke a safety limit
             log.error("bench: arm stopped but not retracted: %s", err)
             return False
 

@@ -55,7 +55,8 @@ class CameraFrame:
 
 
 def depth_to_session_units(depth: np.ndarray, unit_m: float) -> np.ndarray:
-    """Convert a uint16 depth image in ``unit_m`` to uint16 ``DEPTH_UNIT_M``; out of range -> 0."""
+    """Convert a ``(H,W) uint16`` depth image in ``unit_m`` (m per count) to ``(H,W) uint16`` in
+    ``DEPTH_UNIT_M``; out of range -> 0 (invalid)."""
     if unit_m == DEPTH_UNIT_M:
         return np.ascontiguousarray(depth, dtype=np.uint16)
     scaled = np.rint(depth.astype(np.float64) * (unit_m / DEPTH_UNIT_M))

@@ -76,19 +76,17 @@ def bench_config(args: argparse.Namespace):
 
 def run_collect(args: argparse.Namespace) -> int:
     from collect.bench import open_bench
-    from collect.collection import run_collection, session_metadata
-    from collect.pose_planner import PlanSettings, plan_collection
-    from collect.session_writer import SessionWriter, check_output_path
+    from collect.collection import open_collection_writer, plan_bench_collection, run_collection
+    from collect.pose_planner import PlanSettings
+    from collect.session_writer import check_output_path
 
     check_output_path(args.out, args.resume)
+    settings = PlanSettings(poses_per_object=args.poses_per_object, seed=args.seed)
     config = bench_config(args)
-    settings = PlanSettings(poses_per_object=args.poses_per_object, seed=args.seed,
-                            max_press_depth_m=config.motion.max_press_depth_m)
     display = _ProgressDisplay(enabled=not args.quiet)
     with open_bench(config) as bench:
-        plan = plan_collection(bench.objects, bench.limits, settings)
-        with SessionWriter(args.out, **session_metadata(bench, plan.objects), resume=args.resume) as writer:
-            writer.set_collection_plan(plan.describe())
+        plan = plan_bench_collection(bench, settings)
+        with open_collection_writer(args.out, bench, plan, resume=args.resume) as writer:
             with display:
                 result = run_collection(bench, plan, writer, display.update, threading.Event())
             frames = writer.n_frames

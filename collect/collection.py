@@ -20,7 +20,8 @@ Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInter
 other error, the loop calls ``bench.safe_stop()`` (stop the arm, retract when possible), stops the
 recorder thread (every frame taken so far is queued to the writer) and re-raises. The caller owns
 the writer and closes it (``with SessionWriter(...)``), which keeps every frame. A set
-``stop_event`` ends the run the same way but returns normally with ``result.stopped = True``.
+``stop_event`` ends the run the same way but returns normally with ``result.stopped = True``; the
+arm watches it (``Arm.stop_on``), so a stop in the middle of a motion halts the arm at once.
 """
 
 from __future__ import annotations
@@ -31,13 +32,13 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from collect import session_format as sf
-from collect.errors import HardwareFault
-from collect.pose_planner import CollectionPlan
+from collect.errors import HardwareFault, InputError, StopRequested
+from collect.pose_planner import CollectionPlan, PlanSettings, plan_collection
 from collect.safety import tool_z_axis
 from collect.session_writer import SessionWriter
 
@@ -90,6 +91,19 @@ def session_metadata(bench, objects) -> dict:
     }
 
 
+def plan_bench_collection(bench, settings: PlanSettings) -> CollectionPlan:
+    """The pose plan over ``bench``'s objects, within its safety limits and its arm's press-depth cap."""
+    settings = replace(settings, max_press_depth_m=bench.arm.settings.max_press_depth_m)
+    return plan_collection(bench.objects, bench.limits, settings)
+
+
+def open_collection_writer(path, bench, plan: CollectionPlan, resume: bool) -> SessionWriter:
+    """The ``SessionWriter`` of a collection: ``bench``'s metadata and ``plan``'s settings (root attr
+    ``collection_plan``; a resumed file must hold the same plan, else ``InputError``)."""
+    return SessionWriter(path, **session_metadata(bench, plan.objects), resume=resume,
+                         collection_plan=plan.describe())
+
+
 @dataclass
 class CollectionResult:
     """What a run did. ``frames``: frames queued to the writer by this run; ``dropped``: frames
@@ -113,10 +127,6 @@ class _Stamp:
     pose_id: int = -1
     phase: int = sf.PHASE_FREE
     pose_index: int = -1
-
-
-class _StopRequested(Exception):
-    """Internal: the stop event was set."""
 
 
 class _Recorder(threading.Thread):
@@ -253,13 +263,14 @@ def run_collection(
     recorder = _Recorder(bench, plan, writer, progress_callback, result)
     stop_event = stop_event or threading.Event()
     arm, s = bench.arm, plan.settings
+    arm.stop_on(stop_event)  # a stop mid-motion halts the arm within one state sample
     t_start = arm.state().t
 
     def enter(stamp: _Stamp) -> None:
         if recorder.error is not None:
             raise recorder.error
         if stop_event.is_set():
-            raise _StopRequested()
+            raise StopRequested("collection: stopped by the operator")
         recorder.set_stamp(stamp, bench.clock())
 
     recorder.start()
@@ -300,7 +311,7 @@ def run_collection(
             enter(_Stamp())
             arm.move_to(stop.travel_pose, s.travel_speed, s.accel)
         enter(_Stamp())
-    except _StopRequested:
+    except StopRequested:
         result.stopped = True
         _safe_stop(bench, recorder)
     except BaseException as err:
@@ -332,5 +343,5 @@ def _safe_stop(bench, recorder: _Recorder) -> None:
     recorder.set_stamp(_Stamp(stamp.object_index, stamp.pose_id, sf.PHASE_RETRACT, stamp.pose_index), bench.clock())
     try:
         bench.safe_stop()
-    except (HardwareFault, OSError, RuntimeError) as err:
+    except (HardwareFault, InputError, OSError, RuntimeError) as err:
         log.error("safe stop incomplete: %s", err)

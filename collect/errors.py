@@ -2,6 +2,8 @@
 
 * ``InputError``: bad input from the user (missing/corrupt file, bad YAML, unknown object, ...).
   The command line prints its message as one line and exits with ``EXIT_BAD_INPUT`` (2).
+* ``StopRequested``: the operator stopped the run (stop key, Ctrl-C): the arm stops at once and
+  retracts, the recording is kept; not a fault.
 * ``HardwareFault``: a device misbehaved (camera silent, serial garbage/unplug, protective stop,
   force limit). The run stops the arm, retracts, keeps what was recorded and exits with
   ``EXIT_FAULT`` (3); ``bubble commission`` turns it into a rejected run (exit 1).
@@ -28,3 +30,7 @@ class HardwareFault(Exception):
     def __init__(self, kind: str, message: str):
         super().__init__(message)
         self.kind = kind
+
+
+class StopRequested(Exception):
+    """The operator's stop (``Arm.stop_on`` event, or a run's stop event between steps)."""

@@ -12,10 +12,13 @@ Protocol (full description in docs/hardware.md). Every board line is ASCII,
 Host commands are plain ASCII lines ending in ``\\n``: ``ID?``, ``VER?``, ``LED 0|1``, ``STREAM 0|1``.
 
 ``PressureBoard`` reads in a background thread. Garbage bytes, partial or over-long lines and
-bad checksums are counted (``stats``) and skipped, never fatal; a burst of them is logged once
-with a recovery line. ``check()`` raises ``HardwareFault('serial-unplug')`` once the port
-vanished (read error), and ``HardwareFault('serial-timeout')`` when no valid reading came for
-``stale_timeout_s`` on the bench clock.
+bad checksums are counted (``stats``) and skipped, and logged once per burst with a recovery
+line: a glitch (the partial line read on opening, a few corrupt lines) is survived.
+``check()`` raises ``HardwareFault('serial-garbage')`` once ``MAX_CORRUPT_RUN`` corrupt lines came
+in a row (a tenth of a second of the stream: noise on the cable, a wrong baud rate),
+``HardwareFault('serial-unplug')`` once the port vanished (read error), and
+``HardwareFault('serial-timeout')`` when no valid reading came for ``stale_timeout_s`` on the
+bench clock.
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ BAUDRATE = 115200
 MAX_LINE_BYTES = 96
 SEQ_MODULO = 65536
 STALE_TIMEOUT_S = 1.0
+#: Corrupt lines in a row that make a ``serial-garbage`` fault (0.1 s of the 100 Hz stream).
+MAX_CORRUPT_RUN = 10
 
 
 def checksum(body: bytes) -> str:
@@ -181,6 +186,10 @@ class PressureBoard:
         if self._bad_run == 0:
             log.warning("pressure board: corrupt data on %s, skipping", self.port)
         self._bad_run += 1
+        if self._bad_run == MAX_CORRUPT_RUN:
+            self._set_fault(HardwareFault(
+                "serial-garbage", f"pressure board: {MAX_CORRUPT_RUN} corrupt lines in a row on {self.port} "
+                                  f"(noise on the cable or a wrong baud rate)"))
 
     def _good(self) -> None:
         self._last_valid = self._clock()
@@ -196,7 +205,8 @@ class PressureBoard:
 
     # ------------------------------------------------------------------ API
     def check(self) -> None:
-        """Raise the fault of the board: unplugged, or no valid reading for ``stale_timeout_s``."""
+        """Raise the fault of the board: a run of corrupt lines, unplugged, or no valid reading for
+        ``stale_timeout_s``."""
         if self._fault is None and self._thread is not None and self._clock() - self._last_valid > self.stale_timeout_s:
             self._set_fault(HardwareFault(
                 "serial-timeout", f"pressure board: no valid reading for {self.stale_timeout_s:.1f} s on {self.port}"))

@@ -24,7 +24,6 @@ def session_summary(path) -> dict:
     with Session.open(path) as s:
         n = s.n_frames
         duration = float(s.t_device[-1] - s.t_device[0]) if n > 1 else 0.0
-        gaps = np.diff(s.seq)
         objects = {}
         for obj in s.objects:
             mine = s.object_index == obj.index
@@ -44,7 +43,7 @@ def session_summary(path) -> dict:
             "height": s.height,
             "duration_s": duration,
             "fps": (n - 1) / duration if duration > 0 else 0.0,
-            "dropped": int(np.sum(np.maximum(gaps - 1, 0))),
+            "dropped": s.dropped_frames(),
             "non_increasing_t": int(np.count_nonzero(np.diff(s.t_device) <= 0)),
             "objects": objects,
             "unassigned_frames": int(np.count_nonzero(s.object_index < 0)),

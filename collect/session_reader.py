@@ -45,24 +45,14 @@ _PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
 
 
 def open_h5(path) -> h5py.File:
-    """Open ``path`` read-only; falls back to a SWMR reader for a file whose writer died.
-
-    Raises InputError for a missing, unreadable, non-HDF5 or truncated file.
-    """
+    """Open ``path`` read-only. Raises InputError for a missing, unreadable, non-HDF5 or truncated file."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file")
     try:
         return h5py.File(path, "r")
-    except OSError as plain_err:
-        # Only a file whose writer died (HDF5 status flags still set) goes to the SWMR reader, which
-        # skips checks such as the truncation test that must reject other broken files.
-        if "already open for write" not in str(plain_err):
-            raise InputError(f"{path}: not a readable HDF5 session ({_short(plain_err)})") from None
-        try:
-            return h5py.File(path, "r", swmr=True)
-        except OSError as err:
-            raise InputError(f"{path}: not a readable HDF5 session ({_short(err)})") from None
+    except OSError as err:
+        raise InputError(f"{path}: not a readable HDF5 session ({_short(err)})") from None
 
 
 def _short(err: Exception) -> str:
@@ -239,6 +229,12 @@ class Session:
         first = pressed[0] if len(pressed) else self.n_frames
         free = np.flatnonzero(mine & (self.phase == sf.PHASE_FREE))
         return free[free < first].astype(np.int64)
+
+    def dropped_frames(self) -> int:
+        """Frames missing from the camera's sequence numbers. A resumed segment continues the
+        numbering (``SessionWriter``), so every gap is a loss."""
+        gaps = np.diff(self.seq.astype(np.int64)) - 1
+        return int(gaps[gaps > 0].sum())
 
     def phase_name(self, idx) -> np.ndarray | str:
         """Phase names of frames ``idx`` (str for an int index)."""

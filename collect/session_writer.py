@@ -6,11 +6,11 @@ arrays into a bounded queue. The writer thread drains the queue in batches, appe
 (one chunk per frame), compressed, growable datasets, and flushes at least every
 ``flush_interval_s`` (default 0.5 s).
 
-Crash safety: the file is written with ``libver="latest"`` in SWMR (single-writer/multiple-reader)
-mode, in which HDF5 orders its metadata writes so that the file on disk is consistent after every
-flush. A process killed with SIGKILL leaves a file holding every frame up to the last flush; it
-opens with ``h5py.File(path, "r", swmr=True)`` (``collect.session_reader`` does that for you) and
-``resume=True`` continues it.
+Crash safety: the file is complete on disk after every flush (chunks go straight to the file,
+each flush writes the metadata that indexes them), so a process killed with SIGKILL leaves a file
+that plain ``h5py.File(path, "r")`` opens, holding every frame up to the last flush; ``resume=True``
+continues it. The file format is HDF5 1.8's (``LIBVER``): no SWMR mode, whose status flags would
+make plain h5py refuse a killed recording (docs/session_format.md "Crash safety").
 
 Resumed sessions: the clocks stay increasing across segments. When a resumed segment's clock
 restarted (the simulated bench starts at 0; a rebooted host or camera), its bench-clock times
@@ -54,6 +54,11 @@ ROW_CHUNK = 512
 
 #: Queue capacity in items (frames + stream samples); ~10 s of frames at 45 fps with streams.
 QUEUE_ITEMS = 2048
+
+#: HDF5 file-format bounds of a new or resumed file: the 1.8 format, which every current HDF5 reader
+#: opens, keeps no "open for writing" status flags that a killed writer would leave set, and
+#: stores attributes over 64 kB (sensor spec, pose plan) densely.
+LIBVER = ("v108", "v108")
 
 _STR = h5py.string_dtype("utf-8")
 
@@ -118,13 +123,17 @@ class SessionWriter:
             ``primitive`` (dict or JSON str), ``vertices`` (V,3) m, ``faces`` (F,3) int.
         resume: append to an existing session instead of creating one. Objects already in the file
             keep their index; new ones are appended (``object_indices`` maps the given list).
+        collection_plan: the pose-plan settings (``CollectionPlan.describe()``), stored as the root
+            attr ``collection_plan`` (JSON); a resumed file must hold the same plan, so that pose
+            ids keep their meaning.
         flush_interval_s: longest time between flushes while data is arriving, s (<= 1).
         compression: h5py filter keywords of the image datasets of a new file (default
             ``IMAGE_COMPRESSION``); a resumed file keeps its own.
 
     Raises:
         InputError: the file exists (without ``resume``), cannot be created, or (with ``resume``) is
-            missing, not a session, of another format version, sensor, or image size.
+            missing, not a session, of another format version, sensor, image size or plan; a
+            refused resume leaves the file as it was.
     """
 
     def __init__(
@@ -138,6 +147,7 @@ class SessionWriter:
         simulated: bool,
         objects: list[dict],
         resume: bool = False,
+        collection_plan: dict | None = None,
         flush_interval_s: float = 0.5,
         compression: dict | None = None,
     ):
@@ -150,10 +160,13 @@ class SessionWriter:
         self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_ITEMS)
         self._error: BaseException | None = None
         self._closed = False
+        plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
         if resume:
-            self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated)
+            self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated, plan_text)
         else:
             self._file = _create(self.path)
+        if plan_text is not None:
+            self._file.attrs[sf.ATTR_COLLECTION_PLAN] = plan_text
         try:
             if not resume:
                 _write_root_attrs(self._file, sensor_serial, sensor_spec, intrinsics, camera_in_tcp, self.simulated)
@@ -179,7 +192,6 @@ class SessionWriter:
             segments = json.loads(self._file.attrs.get(sf.ATTR_RESUMED_AT_FRAMES, "[]"))
             self._file.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps(segments + [self.n_frames_at_open])
         self._file.flush()
-        self._file.swmr_mode = True
         self._frames = {name: self._file[name] for name in _FRAME_DATASETS}
         if self.simulated:
             self._frames[sf.SIM_TRUE_DEPTH] = self._file[sf.SIM_TRUE_DEPTH]
@@ -275,19 +287,6 @@ class SessionWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-    def set_collection_plan(self, plan: dict) -> None:
-        """Store the pose-plan settings (root attr ``collection_plan``, JSON). On a resumed session
-        the plan must equal the stored one (else InputError), so that pose ids keep their meaning."""
-        text = json.dumps(plan, sort_keys=True)
-        stored = self._file.attrs.get(sf.ATTR_COLLECTION_PLAN, "")
-        stored = stored.decode() if isinstance(stored, bytes) else str(stored)
-        if stored and stored != text:
-            raise InputError(
-                f"cannot resume {self.path}: it was recorded with another plan (objects, poses per object, seed "
-                f"or settings differ): {stored}"
-            )
-        self._file.attrs[sf.ATTR_COLLECTION_PLAN] = text
 
     @property
     def n_frames(self) -> int:
@@ -469,7 +468,7 @@ def check_output_path(path, resume: bool) -> None:
 def _create(path: str) -> h5py.File:
     check_output_path(path, resume=False)
     try:
-        return h5py.File(path, "w-", libver="latest")
+        return h5py.File(path, "w-", libver=LIBVER)
     except OSError as err:
         raise InputError(f"cannot create {path}: {err.strerror or err}") from None
 
@@ -577,39 +576,51 @@ def _plain_tree(value):
     return _plain(value)
 
 
-def _open_for_resume(path: str, serial: str, height: int, width: int, simulated: bool) -> h5py.File:
-    """Open an existing session for appending, repairing the status flags a crash leaves behind."""
-    from collect.session_reader import check_session_attrs, open_h5
+def _open_for_resume(path: str, serial: str, height: int, width: int, simulated: bool,
+                     plan_text: str | None) -> h5py.File:
+    """Open an existing session for appending, after checking (read-only) that it can be resumed
+    with this sensor, image size and plan; one whose writer died is rewritten first
+    (``_recover_crashed``)."""
+    from collect.session_reader import Session, check_session_attrs, open_h5
 
     check_output_path(path, resume=True)
     probe = open_h5(path)
     try:
         check_session_attrs(probe)
+        Session(probe)  # every dataset a session needs, with consistent shapes
+        _check_resumable(probe, path, serial, height, width, simulated, plan_text)
         crashed = not probe.attrs.get(sf.ATTR_CLOSED, "")
     finally:
         probe.close()
     if crashed:
         _recover_crashed(path)
     try:
-        f = h5py.File(path, "a", libver="latest")
+        f = h5py.File(path, "a", libver=LIBVER)
     except OSError as err:
         raise InputError(f"cannot open {path} for appending: {err}") from None
     try:
-        if str(f.attrs[sf.ATTR_SENSOR_SERIAL]) != str(serial):
-            raise InputError(
-                f"cannot resume {path}: it was recorded with sensor {f.attrs[sf.ATTR_SENSOR_SERIAL]}, "
-                f"not {serial}"
-            )
-        if f[sf.FRAMES_IR].shape[1:] != (height, width):
-            raise InputError(f"cannot resume {path}: image size {f[sf.FRAMES_IR].shape[1:]} != {(height, width)}")
-        if bool(f.attrs[sf.ATTR_SIMULATED]) != simulated:
-            raise InputError(f"cannot resume {path}: simulated={bool(f.attrs[sf.ATTR_SIMULATED])} there")
         _truncate_to_common_length(f)
         _truncate_streams(f)
     except BaseException:
         f.close()
         raise
     return f
+
+
+def _check_resumable(f: h5py.File, path: str, serial: str, height: int, width: int, simulated: bool,
+                     plan_text: str | None) -> None:
+    """Raise InputError unless the session ``f`` was recorded with this sensor, size and plan."""
+    if str(f.attrs[sf.ATTR_SENSOR_SERIAL]) != str(serial):
+        raise InputError(f"cannot resume {path}: it was recorded with sensor {f.attrs[sf.ATTR_SENSOR_SERIAL]}, not {serial}")
+    if f[sf.FRAMES_IR].shape[1:] != (height, width):
+        raise InputError(f"cannot resume {path}: image size {f[sf.FRAMES_IR].shape[1:]} != {(height, width)}")
+    if bool(f.attrs[sf.ATTR_SIMULATED]) != simulated:
+        raise InputError(f"cannot resume {path}: simulated={bool(f.attrs[sf.ATTR_SIMULATED])} there")
+    stored = f.attrs.get(sf.ATTR_COLLECTION_PLAN, "")
+    stored = stored.decode() if isinstance(stored, bytes) else str(stored)
+    if plan_text is not None and stored and stored != plan_text:
+        raise InputError(f"cannot resume {path}: it was recorded with another plan (objects, poses per object, "
+                         f"seed or settings differ)")
 
 
 def _last_value(f: h5py.File, *names: str) -> float:
@@ -652,16 +663,18 @@ def _truncate_streams(f: h5py.File) -> None:
 
 
 def _recover_crashed(path: str) -> None:
-    """Rewrite a crashed (never closed) session into a cleanly closed copy, atomically.
+    """Rewrite a crashed (never closed) session into a fresh copy, atomically.
 
-    HDF5 leaves status flags in the superblock of a file whose writer died; such a file opens only
-    for SWMR reading. Its content is copied through a SWMR reader into ``path.recover.tmp``, which
-    then replaces the original (``os.replace``), so the original is never half-modified.
+    The copy leaves out what the dead writer stored after its last flush. The content goes into
+    ``path.recover.tmp``, which then replaces the original (``os.replace``), so the original is
+    never half-modified.
     """
+    from collect.session_reader import open_h5
+
     tmp = path + ".recover.tmp"
-    src = h5py.File(path, "r", swmr=True)
+    src = open_h5(path)
     try:
-        with h5py.File(tmp, "w", libver="latest") as dst:
+        with h5py.File(tmp, "w", libver=LIBVER) as dst:
             for key, value in src.attrs.items():
                 dst.attrs[key] = value
             for key in src:

@@ -38,6 +38,8 @@ def _new_sensor(args: argparse.Namespace) -> int:
 
     spec = draw_sensor(args.seed, args.defect)
     out = Path(args.out)
+    if out.exists():  # a spec describes the sensor a recording was made with: never replace one silently
+        raise InputError(f"{out} already exists; choose another --out or delete it first")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         spec.to_yaml(out)

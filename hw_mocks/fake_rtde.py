@@ -166,6 +166,8 @@ class SimURController:
 
     # control side
     def move_linear(self, pose, speed: float, accel: float) -> bool:
+        """Start a trapezoidal linear move to ``pose`` (6,) m + rotvec at ``speed`` m/s, ``accel``
+        m/s^2 from where the TCP is now; False (nothing moves) during a protective stop."""
         with self._lock:
             t, current, _ = self._update()
             if self._protective:

@@ -234,6 +234,7 @@ _RANGES = {
     "flying_pixel_jump_m": (1e-5, 0.05),
     "leak_hpa_per_s": (0.0, 100.0),
     "dead_pixel_ir": (0, 65535),
+    "dot_seed": (0, 2**32 - 1),
     "dead_pixel_depth_m": (0.0, 0.6),
 }
 
@@ -261,7 +262,7 @@ def _coerce(name: str, value, source: str):
                 raise ValueError
             return int(value)
         return float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{source}: field '{name}' has a bad value {value!r}") from None
 
 

@@ -10,8 +10,13 @@ ones; the benchmark measures those), every hardware and data check keeps its pac
 import dataclasses
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +25,7 @@ from calibrate import commissioning
 from calibrate.cli import main
 from calibrate.commission_events import (
     STEPS,
+    ArmSafeStopped,
     BenchSnapshot,
     CollectionProgress,
     FaultRaised,
@@ -36,6 +42,7 @@ from trainer.metrics import METRIC_KEYS
 
 #: Model to fine-tune from: None = the packaged base model (trainer/base_model).
 BASE_MODEL = None
+ROOT = Path(__file__).resolve().parents[1]
 
 LENIENT_MODEL_CHECKS = """version: 1
 checks:
@@ -208,14 +215,18 @@ def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
 
 def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
     stop = threading.Event()
+    events: list = []
 
     def on_event(event):
+        events.append(event)
         if isinstance(event, CollectionProgress) and event.phase == "press":
             stop.set()
 
-    config = tiny_config(tmp_path, poses_per_object=1)
+    config = tiny_config(tmp_path)
     result = run_commissioning(config, on_event, stop)
     assert result.stopped and not result.accepted
+    (safe_stop,) = [e for e in events if isinstance(e, ArmSafeStopped)]
+    assert safe_stop.retracted and safe_stop.force_after_n < 0.5  # clear of the object (the halt itself: test_collect_run)
     state = json.loads((config.run_dir / "state.json").read_text())
     assert "reference" in state["steps"] and "collect" not in state["steps"]
     with Session.open(config.run_dir / "session.h5") as s:
@@ -241,6 +252,7 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
     assert verdict_line.startswith("REJECTED: ") and f"{failing} " in verdict_line
     doc = json.loads((tmp_path / "run" / "acceptance.json").read_text())
     assert not doc["accepted"] and failing in [c["name"] for c in doc["checks"] if not c["passed"]]
+    assert doc["a1"] is None and doc["abs_rel"] is None  # the metric keys are there, without a validation
     assert not (tmp_path / "run" / "session.h5").exists()  # a failed hardware check stops before collecting
     assert SensorRegistry(tmp_path / "registry").get(draw_sensor(11, defect).serial).status == "rejected"
 
@@ -267,3 +279,25 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
     err = capsys.readouterr().err
     assert err.startswith("bubble: error: ") and err.count("\n") == 1 and fragment in err
     assert not (tmp_path / "registry").exists()
+
+
+def test_ctrl_c_during_commissioning_stops_the_arm_and_exits_130(tmp_path):
+    # a terminal's Ctrl-C (SIGINT in its default disposition, as in test_collect_run) while the arm presses
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", "commission", "--sim", "--objects", "box",
+                             "--poses-per-object", "2", "--leak-hold-s", "1", "--sim-speed", "2", "--quiet",
+                             "--registry", str(tmp_path / "registry"), "--out", str(run)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    session = run / "session.h5"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None and not (session.exists() and session.stat().st_size > 2e6):
+        time.sleep(0.2)
+    assert proc.poll() is None
+    os.kill(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1].startswith("STOPPED: data kept in")
+    assert json.loads((run / "acceptance.json").read_text())["stopped"] is True
+    with Session.open(session) as s:
+        assert s.closed_cleanly and s.n_frames > 0

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from collect.errors import HardwareFault
-from collect.pressure_board import PressureBoard, checksum, decode_line, encode_line
+from collect.pressure_board import MAX_CORRUPT_RUN, PressureBoard, checksum, decode_line, encode_line
 
 
 @pytest.fixture
@@ -51,7 +51,7 @@ def test_line_encoding_round_trip_and_checksum():
     assert decode_line(b"\xff\xfe*00") is None
 
 
-def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_board):
+def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_board, caplog):
     board, master = pty_board
     rng = np.random.default_rng(3)
     sent = 0
@@ -77,6 +77,24 @@ def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_boar
     assert board.stats["bad_checksum"] + board.stats["malformed"] >= 20
     assert board.stats["overlong"] >= 1
     assert [r.seq for r in good] == sorted(r.seq for r in good)
+    assert "corrupt data" in caplog.text and "recovered" in caplog.text
+
+
+def test_a_run_of_corrupt_lines_is_a_serial_garbage_fault(pty_board):
+    board, master = pty_board
+    os.write(master, encode_line("P,1,1060.00"))
+    assert _wait(lambda: board.latest() is not None)
+    for _ in range(MAX_CORRUPT_RUN - 1):
+        os.write(master, b"P,999,1000.00*00\r\n")
+    os.write(master, encode_line("P,2,1060.00"))
+    assert _wait(lambda: board.latest().seq == 2)
+    board.check()  # nine in a row: a glitch
+    for _ in range(MAX_CORRUPT_RUN):
+        os.write(master, b"P,999,1000.00*00\r\n")
+    assert _wait(lambda: board.stats["bad_checksum"] == 2 * MAX_CORRUPT_RUN - 1)
+    with pytest.raises(HardwareFault) as err:
+        board.check()
+    assert err.value.kind == "serial-garbage"
 
 
 def test_command_replies_errors_and_timeouts(pty_board):

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
-from collect.arm import Arm
+from collect.arm import Arm, MotionSettings
 from collect.errors import InputError
 from collect.safety import SafetyLimits, SafetyViolation, tilt_deg
 from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
@@ -102,4 +104,43 @@ def test_arm_rejects_unsafe_requests_before_sending_any_motion():
         arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
         assert control.moves == 1
     finally:
+        arm.close()
+
+
+def test_every_configured_speed_is_checked_when_the_arm_is_built():
+    # the safe stop's retract (twice the approach speed) must not be the first move to break the speed limit
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    for settings in (MotionSettings(approach_speed=0.06), MotionSettings(press_speed=0.2)):
+        with pytest.raises(SafetyViolation, match="speed"):
+            Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=settings)
+
+
+class _FailingReceive(FakeRTDEReceive):
+    """Reads the robot state until ``fail`` is set, then raises as a broken RTDE link might."""
+
+    def __init__(self, controller):
+        super().__init__(controller)
+        self.fail = False
+
+    def getActualTCPForce(self):
+        if self.fail:
+            raise RuntimeError("RTDE receive failed")
+        return super().getActualTCPForce()
+
+
+def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
+    start = [0.4, 0.0, 0.2, *DOWN]
+    controller = SimURController(_Still(), start)
+    receive = _FailingReceive(controller)
+    arm = Arm(FakeRTDEControl(controller), receive, LIMITS, state_hz=200)
+    try:
+        arm.start()
+        assert controller.move_linear([0.4, 0.0, 0.3, *DOWN], 0.05, 0.5)  # a long move, sent around the driver
+        receive.fail = True
+        time.sleep(0.3)
+        assert arm.fault is not None and arm.fault.kind == "arm-monitor"
+        # stopped at once: at rest a few mm up, where the move would have gone on for 2 s
+        assert np.linalg.norm(controller.tcp_speed()[:3]) == 0.0 and controller.tcp_pose()[2] < 0.21
+    finally:
+        receive.fail = False
         arm.close()

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 import calibrate.cli as cli
 from test_pose_check import H, W, DecodingEstimator, write_cylinder_session
@@ -37,6 +38,7 @@ def _untrained_model(model_dir):
     from trainer.networks import build_network
     from trainer.preprocessing import InputGeometry, IRNormalization
 
+    torch.manual_seed(0)
     net = build_network("resnet", 0.25, 0.05, 0.15)
     meta = ModelMetadata(arch="resnet", width=0.25, min_depth=0.05, max_depth=0.15,
                          geometry=InputGeometry(H, W, 128, 160), normalization=IRNormalization(8.0, 1.0))
@@ -50,6 +52,9 @@ def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert cli.main(["pose", "--model", str(model), "--data", str(session), "--object", "cup"]) == 2
     # an untrained network sees no contact: no usable frame
     assert cli.main(["pose", "--model", str(model), "--data", str(session)]) == 2
+    recorded = session.read_bytes()
+    assert cli.main(["pose", "--model", str(model), "--data", str(session), "--json", str(session)]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 3 and all(line.startswith("bubble: error: ") for line in err)
+    assert len(err) == 4 and all(line.startswith("bubble: error: ") for line in err)
     assert "no object 'cup'" in err[1] and "no usable hold frame" in err[2]
+    assert "not a JSON result; refusing to overwrite" in err[3] and session.read_bytes() == recorded

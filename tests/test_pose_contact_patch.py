@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from calibrate.contact_patch import contact_mask, contact_points, downsample, lift, reference_depth
+from calibrate.contact_patch import contact_points, downsample, lift
+from trainer.contact import contact_mask, reference_depth
 from collect.errors import InputError
 
 INTR = {"fx": 120.0, "fy": 118.0, "cx": 111.5, "cy": 85.5, "width": 224, "height": 172}

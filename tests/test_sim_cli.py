@@ -46,3 +46,6 @@ def test_bad_input_exits_2(tmp_path, capsys):
         capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "mug", "--press-mm", "80", "--out", png], "press-mm"
     )
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "-3", "--out", str(tmp_path / "n.yaml")], "seed")
+    spec_text = spec_path.read_text()
+    _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "2", "--out", str(spec_path)], "already exists")
+    assert spec_path.read_text() == spec_text  # the spec a recording was made with is never replaced

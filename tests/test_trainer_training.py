@@ -190,9 +190,15 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         ("train", "--data", tmp_path / "missing.h5", "--out", tmp_path / "x", "--epochs", "1"),
         ("train", "--data", session, "--out", tmp_path / "x", "--holdout-object", "teapot", "--epochs", "1"),
         ("train", "--data", session, other_size, "--out", tmp_path / "x", "--epochs", "1"),
+        ("train", "--data", session, "--out", model, "--epochs", "1"),  # holds a model: --resume or another --out
+        ("train", "--data", session, "--out", tmp_path / "y", "--epochs", "1", "--json", session),
+        ("evaluate", "--model", model, "--data", session, "--json", session),  # a recording is no JSON result
+        ("evaluate", "--model", model, "--data", session, "--json", tmp_path / "no_dir" / "e.json"),
     ]
+    recorded, weights = session.read_bytes(), (model / WEIGHTS_FILE).read_bytes()
     for argv in cases:
         capsys.readouterr()
         assert bubble(*argv) == 2, argv
         err = capsys.readouterr().err.splitlines()  # not stripped: a blank line before the error counts
         assert len(err) == 1 and err[0].startswith("bubble: error:"), (argv, err)
+    assert session.read_bytes() == recorded and (model / WEIGHTS_FILE).read_bytes() == weights

@@ -184,11 +184,13 @@ def test_step_lines_are_fixed_width_columns():
 @pytest.mark.parametrize(
     "args, fragment",
     [
-        (["--sim", "--poses-per-object", "0"], "--poses-per-object must be at least 1"),
-        (["--sim", "--total-minutes", "-1"], "--total-minutes must be positive"),
+        (["--sim", "--poses-per-object", "1"], "poses per object must be at least 2"),
+        (["--sim", "--total-minutes", "-1"], "total minutes must be positive"),
         (["--sim", "--sensor", "missing.yaml"], "sensor spec missing.yaml does not exist"),
-        (["--sim-fault", "camera-stall@3"], "need --sim"),
-        (["--sim", "--objects", " , "], "--objects is empty"),
+        (["--sim-fault", "camera-stall@3"], "drives the simulated bench only: add --sim"),
+        (["--sim", "--objects", " , "], "no objects to press"),
+        (["--sim", "--sim-speed", "0"], "simulation speed 0.0 must be within 0.1..100"),
+        (["--sim", "--registry", "reg.yaml"], "sensor registry reg.yaml is not a directory"),
         (["--sim"], "needs an interactive terminal"),  # pytest's stdin is not a terminal
     ],
 )
@@ -196,6 +198,7 @@ def test_tui_command_rejects_bad_input_in_one_line(tmp_path, monkeypatch, capsys
     from calibrate.cli import main
 
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "reg.yaml").write_text("a file where the registry should be\n")
     assert main(["tui", *args]) == 2
     err = capsys.readouterr().err
     assert fragment in err and err.count("\n") == 1

@@ -91,8 +91,18 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    from collect.errors import InputError
+    from collect.output_files import check_json_output
+    from trainer.model_dir import WEIGHTS_FILE
     from trainer.training import TrainConfig, train_model
 
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file, not a model directory")
+    if not args.resume and (out / WEIGHTS_FILE).exists():
+        raise InputError(f"{out} already holds a model; use --resume to continue its training or choose another --out")
+    if args.json:
+        check_json_output(args.json)
     config = TrainConfig(
         data=args.data,
         out=args.out,
@@ -158,8 +168,11 @@ def run_train(args: argparse.Namespace) -> int:
 def run_evaluate(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from collect.output_files import check_json_output
     from trainer.evaluation import evaluate_model
 
+    if args.json:
+        check_json_output(args.json)
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
     console = Console()
     rows = {**result["per_object"], "all (vs ToF)": result}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from calibrate.contact_patch import contact_mask, reference_depth
+from trainer.contact import contact_mask, reference_depth
 from collect.errors import InputError
 from collect.session_reader import Session
 from trainer.preprocessing import InputGeometry, IRNormalization

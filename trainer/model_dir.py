@@ -15,6 +15,7 @@ the architecture in the metadata with ``InputError``.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -67,7 +68,7 @@ class ModelMetadata:
         if data.get("format_version") != METADATA_VERSION:
             raise InputError(f"unsupported model metadata version {data.get('format_version')!r}")
         try:
-            return cls(
+            meta = cls(
                 arch=str(data["arch"]),
                 width=float(data["width"]),
                 min_depth=float(data["min_depth"]),
@@ -80,6 +81,14 @@ class ModelMetadata:
             )
         except (KeyError, TypeError, ValueError) as err:
             raise InputError(f"model metadata is incomplete or malformed: {err!r}") from None
+        g, n = meta.geometry, meta.normalization
+        if not (0 < meta.min_depth < meta.max_depth and math.isfinite(meta.max_depth)):
+            raise InputError(f"model metadata: bad depth range {meta.min_depth}..{meta.max_depth} m")
+        if min(g.native_height, g.native_width, g.input_height, g.input_width) < 1:
+            raise InputError(f"model metadata: bad geometry {g.to_dict()}")
+        if not (math.isfinite(n.mean) and math.isfinite(n.std) and n.std > 0):
+            raise InputError(f"model metadata: bad IR normalization mean {n.mean}, std {n.std}")
+        return meta
 
 
 def resolve_model_dir(name: str | Path) -> Path:

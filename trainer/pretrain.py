@@ -24,7 +24,6 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_BAD_INPUT, InputError
 from trainer.augmentation import PRETRAIN_NOISE_STD
 from trainer.doc_sections import update_section
@@ -57,17 +56,20 @@ def session_path(work: Path, seed: int) -> Path:
     return work / f"sensor_{seed:05d}.h5"
 
 
-def collect_one(work: Path, seed: int, objects: str, poses: int, sim_speed: float) -> Path:
-    """Draw sensor ``seed`` and record its calibration session (skipped when already recorded)."""
+def collect_one(work: Path, seed: int, objects: str | None, poses: int, sim_speed: float) -> Path:
+    """Draw sensor ``seed`` and record its calibration session (skipped when already recorded);
+    ``objects``: comma-separated, None for ``bubble collect``'s default."""
     out = session_path(work, seed)
     if out.exists():
         return out
     spec = work / f"sensor_{seed:05d}.yaml"
-    _bubble("sim", "new-sensor", "--seed", str(seed), "--out", str(spec))
+    if not spec.exists():
+        _bubble("sim", "new-sensor", "--seed", str(seed), "--out", str(spec))
     partial = out.with_suffix(".partial.h5")
     partial.unlink(missing_ok=True)
-    _bubble("collect", "--sim", "--sensor", str(spec), "--objects", objects, "--poses-per-object", str(poses),
-            "--seed", str(seed), "--sim-speed", str(sim_speed), "--quiet", "--out", str(partial))
+    _bubble("collect", "--sim", "--sensor", str(spec), *(["--objects", objects] if objects else []),
+            "--poses-per-object", str(poses), "--seed", str(seed), "--sim-speed", str(sim_speed), "--quiet",
+            "--out", str(partial))
     partial.replace(out)
     return out
 
@@ -181,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("collect", help="record one simulated session per sensor")
     c.add_argument("--sensors", type=int, default=16)
     c.add_argument("--first-seed", type=int, default=1000)
-    c.add_argument("--objects", default=DEFAULT_OBJECTS_ARG)
+    c.add_argument("--objects", help="comma-separated objects (default: bubble collect's, every object of the plate)")
     c.add_argument("--poses-per-object", type=int, default=8)
     c.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed factor (<= 100; lower on a busy machine)")
     c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel")

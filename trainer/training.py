@@ -173,10 +173,14 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
 def _check_config(config: TrainConfig) -> None:
     if config.epochs is not None and config.minutes is not None:
         raise InputError("give either epochs or minutes, not both")
-    if config.epochs is not None and not config.epochs > 0:
-        raise InputError(f"epochs must be positive, got {config.epochs}")
-    if config.minutes is not None and not config.minutes > 0:
-        raise InputError(f"minutes must be positive, got {config.minutes}")
+    if config.epochs is not None and not (math.isfinite(config.epochs) and config.epochs > 0):
+        raise InputError(f"epochs must be a positive number, got {config.epochs}")
+    if config.minutes is not None and not (math.isfinite(config.minutes) and config.minutes > 0):
+        raise InputError(f"minutes must be a positive number, got {config.minutes}")
+    if not (math.isfinite(config.lr) and config.lr > 0):
+        raise InputError(f"learning rate must be a positive number, got {config.lr}")
+    if config.threads is not None and config.threads < 1:
+        raise InputError(f"threads must be at least 1, got {config.threads}")
     if config.deadline_s is not None and not (math.isfinite(config.deadline_s) and config.deadline_s > 0):
         raise InputError(f"the wall-time deadline must be a positive number of seconds, got {config.deadline_s}")
     if not (math.isfinite(config.contact_weight) and config.contact_weight >= 0):

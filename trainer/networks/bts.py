@@ -76,6 +76,7 @@ class BTSDepth(nn.Module):
         self.head.init_bias(self.to_logits)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (N,1,H,W) float32`` normalized IR (H, W multiples of 32) -> depth ``(N,1,H,W) float32 m``."""
         f = self.encoder(x)
         y = self.conv16(torch.cat([upsample2(self.up16(f[4])), f[3]], dim=1))
         y = self.fuse16(torch.cat([y] + [F.elu(c(y)) for c in self.context], dim=1))

@@ -97,6 +97,7 @@ class PackNetDepth(nn.Module):
         self.head.init_bias(self.to_logits)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (N,1,H,W) float32`` normalized IR (H, W multiples of 32) -> depth ``(N,1,H,W) float32 m``."""
         y = self.pre(x)
         skips = [y]
         for pack, enc in zip(self.pack, self.enc):

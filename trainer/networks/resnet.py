@@ -31,6 +31,7 @@ class ResNetDepth(nn.Module):
         self.head.init_bias(self.to_logits)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (N,1,H,W) float32`` normalized IR (H, W multiples of 32) -> depth ``(N,1,H,W) float32 m``."""
         feats = self.encoder(x)
         y = feats[4]
         for step, i in enumerate(range(4, -1, -1)):

@@ -1,0 +1,28 @@
+"""Checks of the files a command is about to write, made before any work: a command never
+overwrites a recording, a model or any other file that is not an earlier result of its own kind."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from collect.errors import InputError
+
+
+def check_json_output(path) -> None:
+    """Raise InputError unless ``path`` (a ``--json`` result) can be written: its directory exists
+    and is writable, and the path is new or holds an earlier JSON result (which is replaced)."""
+    path = Path(path)
+    parent = path.parent.resolve()
+    if not parent.is_dir():
+        raise InputError(f"cannot write {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write {path}: directory {parent} is not writable")
+    if path.is_dir():
+        raise InputError(f"cannot write {path}: it is a directory")
+    if path.exists():
+        try:
+            json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError):
+            raise InputError(f"{path} exists and is not a JSON result; refusing to overwrite it") from None
