@@ -499,6 +499,7 @@ def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool, com
     f.create_dataset(sf.FRAMES_IR, dtype=np.uint16, **image, **compression)
     depth = f.create_dataset(sf.FRAMES_DEPTH, dtype=np.uint16, **image, **compression)
     depth.attrs[sf.ATTR_UNIT_M] = sf.DEPTH_UNIT_M
+    depth.attrs[sf.ATTR_UNIT] = f"{sf.DEPTH_UNIT_M:g} m"  # the same, as text like every other dataset's unit
     depth.attrs[sf.ATTR_INVALID] = 0
     for name, dtype, unit in (
         (sf.FRAMES_T_DEVICE, np.float64, "s"),

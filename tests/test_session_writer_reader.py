@@ -54,6 +54,7 @@ def test_round_trip_format_and_selection(synthetic_session):
         assert f[sf.FRAMES_IR].chunks == (1, 172, 224) and f[sf.FRAMES_IR].compression == "gzip"
         assert f[sf.FRAMES_IR].shuffle and f[sf.SIM_TRUE_DEPTH].compression == "gzip"
         assert f[sf.SIM_TRUE_DEPTH].dtype == np.float32
+        assert f[sf.FRAMES_DEPTH].attrs[sf.ATTR_UNIT_M] == 1e-5 and f[sf.FRAMES_DEPTH].attrs[sf.ATTR_UNIT] == "1e-05 m"
     with Session.open(synthetic_session) as s:
         assert (s.n_frames, s.height, s.width) == (2 * (4 + 4 * 2 * 3), 172, 224)
         assert s.object_names == ["mug", "box"] and s.simulated and s.closed_cleanly
