@@ -111,3 +111,27 @@ def synthetic_session(tmp_path) -> Path:
 def make_synthetic_session_fixture():
     """The ``make_synthetic_session(path, **options)`` factory, for tests that need other shapes."""
     return make_synthetic_session
+
+
+def ctrl_c_once_recording(argv: list[str], recording: Path, timeout_s: float = 120.0):
+    """Run ``bubble ARGV`` in a child, press Ctrl-C once ``recording`` holds 2 MB on disk (a few dozen
+    frames; the writer holds HDF5's file lock, so the size is what can be watched); returns
+    ``(returncode, stderr)``. SIGINT is restored to its default disposition in the child, as in a
+    terminal, also when pytest was started by a shell without job control (which ignores it)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", *argv], cwd=Path(__file__).resolve().parents[1],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None and not (
+            recording.exists() and recording.stat().st_size > 2e6):
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()[1]
+    os.kill(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    return proc.returncode, err

@@ -2,13 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
 import threading
-import time
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -20,8 +14,7 @@ from collect.bench import BenchConfig, open_bench
 from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ctrl_c_once_recording
 
 
 def _collect(tmp_path, *extra, name="s.h5"):
@@ -180,20 +173,9 @@ def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
 
 def test_ctrl_c_exits_130_and_closes_the_file(tmp_path):
     out = tmp_path / "interrupted.h5"
-    # a terminal's Ctrl-C: SIGINT in its default disposition, also when the test run itself was
-    # started in the background by a shell without job control (which ignores SIGINT for it)
-    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", "collect", "--sim", "--objects", "box",
-                             "--poses-per-object", "2", "--quiet", "--out", str(out)],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.monotonic() + 60
-    # the recording holds HDF5's file lock: wait until its chunks (a few per frame) reach 2 MB on disk
-    while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 2e6):
-        time.sleep(0.3)
-    assert proc.poll() is None
-    os.kill(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=30)
-    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "bubble: interrupted"
+    code, err = ctrl_c_once_recording(["collect", "--sim", "--objects", "box", "--poses-per-object", "2", "--quiet",
+                                       "--out", str(out)], out, timeout_s=60)
+    assert code == 130 and err.strip().splitlines()[-1] == "bubble: interrupted"
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 0
 

@@ -10,13 +10,8 @@ ones; the benchmark measures those), every hardware and data check keeps its pac
 import dataclasses
 import json
 import math
-import os
-import signal
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,11 +33,11 @@ from calibrate.commission_events import (
 from calibrate.commissioning import CommissionConfig, run_commissioning
 from calibrate.sensor_registry import SensorRegistry
 from collect.session_reader import Session
+from conftest import ctrl_c_once_recording
 from trainer.metrics import METRIC_KEYS
 
 #: Model to fine-tune from: None = the packaged base model (trainer/base_model).
 BASE_MODEL = None
-ROOT = Path(__file__).resolve().parents[1]
 
 LENIENT_MODEL_CHECKS = """version: 1
 checks:
@@ -282,22 +277,13 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
 
 
 def test_ctrl_c_during_commissioning_stops_the_arm_and_exits_130(tmp_path):
-    # a terminal's Ctrl-C (SIGINT in its default disposition, as in test_collect_run) while the arm presses
     run = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", "commission", "--sim", "--objects", "box",
-                             "--poses-per-object", "2", "--leak-hold-s", "1", "--sim-speed", "2", "--quiet",
-                             "--registry", str(tmp_path / "registry"), "--out", str(run)],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    session = run / "session.h5"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None and not (session.exists() and session.stat().st_size > 2e6):
-        time.sleep(0.2)
-    assert proc.poll() is None
-    os.kill(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
+    code, err = ctrl_c_once_recording(["commission", "--sim", "--objects", "box", "--poses-per-object", "2",
+                                       "--leak-hold-s", "1", "--sim-speed", "2", "--quiet",
+                                       "--registry", str(tmp_path / "registry"), "--out", str(run)],
+                                      run / "session.h5")
+    assert code == 130, err
     assert err.strip().splitlines()[-1].startswith("STOPPED: data kept in")
     assert json.loads((run / "acceptance.json").read_text())["stopped"] is True
-    with Session.open(session) as s:
+    with Session.open(run / "session.h5") as s:
         assert s.closed_cleanly and s.n_frames > 0
