@@ -45,6 +45,7 @@ from calibrate.pose_estimation import (
 )
 from collect.errors import InputError
 from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
+from trainer.metrics import METRIC_KEYS, depth_metrics
 
 #: Depth sources, in report order. ``true`` exists in simulated sessions only.
 SOURCES = ("predicted", "measured", "true")
@@ -103,11 +104,17 @@ class PoseCheckResult:
     e_theta: ErrorStats
     hz: float  # pose estimates (contact patch + fit) per second, one core
     vs_true: dict[str, dict[str, ErrorStats]]  # simulated only: source -> {"e_x_mm", "e_theta"}
+    #: the paper's depth metrics (``trainer.metrics.depth_metrics``, its default depth range) of the
+    #: predicted depth against the measured ToF depth over the object's hold frames
+    depth_metrics: dict[str, float]
     frames: list[FramePoses]
     settings: dict
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The ``--json`` document: every field, with the depth metric keys at top level."""
+        data = asdict(self)
+        data.update(data.pop("depth_metrics"))
+        return data
 
     def write_json(self, path: str | Path) -> None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -182,7 +189,12 @@ def pooled_result(results: list[PoseCheckResult]) -> PoseCheckResult:
     """One result over the frames of several runs of the same object (e.g. several sensors): the
     errors over all their frames, counts summed, ``hz`` the runs' mean, sessions joined by ``;``."""
     frames = [f for r in results for f in r.frames]
+    images = [r.depth_metrics["n_images"] for r in results]
+    metrics = {k: float(np.average([r.depth_metrics[k] for r in results], weights=images)) if sum(images) else
+               float("nan") for k in METRIC_KEYS}  # depth_metrics averages over images: weight each run by its own
     return PoseCheckResult(
+        depth_metrics={**metrics, "n_images": int(sum(images)),
+                       "n_pixels": int(sum(r.depth_metrics["n_pixels"] for r in results))},
         session="; ".join(r.session for r in results), object_name=results[0].object_name,
         shape=results[0].shape, n_hold_frames=sum(r.n_hold_frames for r in results), n_used=len(frames),
         skipped={k: sum(r.skipped[k] for r in results) for k in results[0].skipped},
@@ -246,6 +258,7 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         sources = [s for s in SOURCES if s != "true" or session.simulated]
         depth = {"predicted": _predict(estimator, session, hold_idx),
                  "measured": session.depth_m(hold_idx)}
+        metrics = depth_metrics(np.where(np.isfinite(depth["predicted"]), depth["predicted"], 0.0), depth["measured"])
         ref_pred = _predict(estimator, session, ref_idx)
         references = {"predicted": reference_depth(np.where(np.isfinite(ref_pred), ref_pred, 0.0)),
                       "measured": reference_depth(session.depth_m(ref_idx))}
@@ -317,6 +330,7 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         shape="cylinder" if isinstance(shape, Cylinder) else "mesh_sdf",
         n_hold_frames=int(len(hold_idx)), n_used=len(frames), skipped=skipped,
         hz=n_fits / fit_seconds if fit_seconds > 0 else 0.0,
+        depth_metrics=metrics,
         frames=frames,
         **_frame_stats(frames),
         settings={"threshold_m": threshold_m, "n_points": n_points, "prior_error_mm": prior_error_mm,

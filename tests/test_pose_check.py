@@ -146,6 +146,9 @@ def test_pooled_result_takes_the_errors_over_every_run_frame(tmp_path):
     assert pooled.vs_true["true"]["e_x_mm"].median == pytest.approx(
         np.median([f.vs_true["true"]["e_x_mm"] for r in runs for f in r.frames]))
     assert pooled.session == f"{runs[0].session}; {runs[1].session}"
+    assert pooled.depth_metrics["n_images"] == 18  # the depth metrics: per image, so the mean of the two runs
+    assert pooled.depth_metrics["rmse"] == pytest.approx((runs[0].depth_metrics["rmse"] + runs[1].depth_metrics["rmse"]) / 2)
+    assert runs[0].depth_metrics["rmse"] < runs[1].depth_metrics["rmse"]  # the noisier decoder
 
 
 def test_pose_check_counts_skipped_frames_and_fails_with_no_usable_frame(tmp_path):

@@ -7,6 +7,7 @@ import torch
 
 import calibrate.cli as cli
 from test_pose_check import H, W, DecodingEstimator, write_cylinder_session
+from trainer.metrics import METRIC_KEYS
 
 
 @pytest.fixture(autouse=True)
@@ -29,6 +30,8 @@ def test_pose_command_writes_json_and_plots(tmp_path, monkeypatch, capsys):
     for key in ("e_x_mm", "e_theta"):
         assert set(doc[key]) == {"median", "mean", "variance"}
     assert doc["hz"] > 0 and set(doc["vs_true"]) == {"predicted", "measured", "true"}
+    # the depth metric keys at top level, as every --json (predicted vs ToF depth over the hold frames)
+    assert set(METRIC_KEYS) <= set(doc) and doc["n_images"] == 4 and doc["a1"] > 0.99
     assert (tmp_path / "plots" / "pose_errors.png").is_file()
     assert "predicted vs measured depth: e_x median" in capsys.readouterr().out
 
