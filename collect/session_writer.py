@@ -132,8 +132,9 @@ class SessionWriter:
 
     Raises:
         InputError: the file exists (without ``resume``), cannot be created, or (with ``resume``) is
-            missing, not a session, of another format version, sensor, image size or plan; a
-            refused resume leaves the file as it was.
+            missing, not a session, of another format version, sensor, image size or plan (these
+            are checked read-only: such a refused resume leaves the file as it was), or holds an
+            object of the same name with another mesh.
     """
 
     def __init__(
