@@ -107,12 +107,11 @@ def open_collection_writer(path, bench, plan: CollectionPlan, resume: bool) -> S
 @dataclass
 class CollectionResult:
     """What a run did. ``frames``: frames queued to the writer by this run; ``dropped``: frames
-    missing from the camera's sequence numbers; ``non_monotonic``: frames whose device timestamp
-    did not increase; ``duration_s``: bench-clock time of the run."""
+    missing from the camera's sequence numbers (a timestamp that does not increase is a
+    ``camera-clock`` fault of the camera driver); ``duration_s``: bench-clock time of the run."""
 
     frames: int = 0
     dropped: int = 0
-    non_monotonic: int = 0
     poses_done: list[int] = field(default_factory=list)
     poses_without_contact: list[int] = field(default_factory=list)
     duration_s: float = 0.0
@@ -147,7 +146,6 @@ class _Recorder(threading.Thread):
         self.error: BaseException | None = None
         self.halt = threading.Event()
         self._last_seq: int | None = None
-        self._last_t_device = -np.inf
         self._last_report = 0.0
         self._reported_stamp: _Stamp | None = None
 
@@ -204,9 +202,7 @@ class _Recorder(threading.Thread):
         stamp = self._stamp_at(frame.t_host)
         if self._last_seq is not None and frame.seq != self._last_seq + 1:
             self.result.dropped += max(0, frame.seq - self._last_seq - 1)
-        if frame.t_device <= self._last_t_device:
-            self.result.non_monotonic += 1
-        self._last_seq, self._last_t_device = frame.seq, frame.t_device
+        self._last_seq = frame.seq
         object_index = self.writer.object_indices[stamp.object_index] if stamp.object_index >= 0 else -1
         self.writer.append_frame(
             frame.ir, frame.depth, frame.t_device, frame.t_host, frame.seq, object_index, stamp.pose_id,

@@ -2,8 +2,8 @@
 
 They implement the ur_rtde methods that ``collect.arm.Arm`` calls, with the same names,
 argument orders and defaults as ``rtde_control.RTDEControlInterface`` /
-``rtde_receive.RTDEReceiveInterface`` (``tests/test_drivers_arm.py`` checks this against the
-installed ur_rtde). Only the constructors differ: they take the simulated controller
+``rtde_receive.RTDEReceiveInterface`` (``tests/test_drivers_rtde_signatures.py`` checks this
+against the installed ur_rtde). Only the constructors differ: they take the simulated controller
 (``SimURController``) instead of a robot IP.
 
 The simulated controller moves the TCP along analytic trapezoidal profiles on the simulated
