@@ -225,7 +225,9 @@ def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
     state = json.loads((config.run_dir / "state.json").read_text())
     assert "reference" in state["steps"] and "collect" not in state["steps"]
     with Session.open(config.run_dir / "session.h5") as s:
-        assert s.n_frames > 0 and "press" in set(s.phase_name(np.arange(s.n_frames)))
+        # the frames up to the stop and the safe stop's retract; the press itself halts within a state
+        # sample, often before a camera frame is stamped with it
+        assert s.n_frames > 0 and {"approach", "retract"} <= set(s.phase_name(np.arange(s.n_frames)))
     assert json.loads((config.run_dir / "acceptance.json").read_text())["stopped"] is True
     assert SensorRegistry(config.registry_dir).profiles() == []
 
