@@ -996,10 +996,10 @@ def _load_sensor_spec(config: CommissionConfig):
     return draw_sensor(config.seed)
 
 
-def validate_config(config: CommissionConfig) -> None:
+def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
-    ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry."""
-    from calibrate.acceptance import load_thresholds
+    ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
+    Returns the loaded thresholds."""
     from hw_mocks.objects import load_object
     from trainer.model_dir import load_weights, load_metadata
 
@@ -1025,9 +1025,9 @@ def validate_config(config: CommissionConfig) -> None:
     if config.base_model is not None:
         load_metadata(config.base_model)
         load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
-    load_thresholds(config.thresholds)
-    if config.registry_dir is not None and Path(config.registry_dir).exists() and not Path(config.registry_dir).is_dir():
-        raise InputError(f"sensor registry {config.registry_dir} is not a directory")
+    registry = Path(config.registry_dir) if config.registry_dir is not None else None
+    if registry is not None and registry.exists() and not registry.is_dir():
+        raise InputError(f"sensor registry {registry} is not a directory")
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")
@@ -1040,6 +1040,7 @@ def validate_config(config: CommissionConfig) -> None:
             parse_sim_fault(fault)
         if not 0.1 <= float(config.sim_speed) <= 100.0:  # the simulated bench's own bounds
             raise InputError(f"simulation speed {config.sim_speed} must be within 0.1..100")
+    return acceptance.load_thresholds(config.thresholds)
 
 
 def run_commissioning(
@@ -1053,8 +1054,7 @@ def run_commissioning(
     run directory belongs to another run). Hardware faults do not raise: they end the run
     rejected (``result.fault``).
     """
-    validate_config(config)
-    thresholds = acceptance.load_thresholds(config.thresholds)
+    thresholds = validate_config(config)
     spec = _load_sensor_spec(config) if config.simulated else None
     if config.base_model is None:
         from trainer.model_dir import BASE_MODEL_DIR

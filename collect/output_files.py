@@ -21,8 +21,17 @@ def check_json_output(path) -> None:
         raise InputError(f"cannot write {path}: directory {parent} is not writable")
     if path.is_dir():
         raise InputError(f"cannot write {path}: it is a directory")
-    if path.exists():
-        try:
-            json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, ValueError):
-            raise InputError(f"{path} exists and is not a JSON result; refusing to overwrite it") from None
+    if path.exists() and not _holds_json(path):
+        raise InputError(f"{path} exists and is not a JSON result; refusing to overwrite it")
+
+
+def _holds_json(path: Path) -> bool:
+    """Whether ``path`` holds a JSON document (a recording is rejected by its first bytes, unread)."""
+    try:
+        with path.open("rb") as f:
+            if f.read(64).lstrip()[:1] not in (b"{", b"["):
+                return False
+        json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return True

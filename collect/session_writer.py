@@ -583,17 +583,12 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
     """Open an existing session for appending, after checking (read-only) that it can be resumed
     with this sensor, image size and plan; one whose writer died is rewritten first
     (``_recover_crashed``)."""
-    from collect.session_reader import Session, check_session_attrs, open_h5
+    from collect.session_reader import Session
 
     check_output_path(path, resume=True)
-    probe = open_h5(path)
-    try:
-        check_session_attrs(probe)
-        Session(probe)  # every dataset a session needs, with consistent shapes
-        _check_resumable(probe, path, serial, height, width, simulated, plan_text)
-        crashed = not probe.attrs.get(sf.ATTR_CLOSED, "")
-    finally:
-        probe.close()
+    with Session.open(path) as session:  # every attribute and dataset a session needs
+        _check_resumable(session, serial, height, width, simulated, plan_text)
+        crashed = not session.closed_cleanly
     if crashed:
         _recover_crashed(path)
     try:
@@ -609,18 +604,17 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
     return f
 
 
-def _check_resumable(f: h5py.File, path: str, serial: str, height: int, width: int, simulated: bool,
-                     plan_text: str | None) -> None:
-    """Raise InputError unless the session ``f`` was recorded with this sensor, size and plan."""
-    if str(f.attrs[sf.ATTR_SENSOR_SERIAL]) != str(serial):
-        raise InputError(f"cannot resume {path}: it was recorded with sensor {f.attrs[sf.ATTR_SENSOR_SERIAL]}, not {serial}")
-    if f[sf.FRAMES_IR].shape[1:] != (height, width):
-        raise InputError(f"cannot resume {path}: image size {f[sf.FRAMES_IR].shape[1:]} != {(height, width)}")
-    if bool(f.attrs[sf.ATTR_SIMULATED]) != simulated:
-        raise InputError(f"cannot resume {path}: simulated={bool(f.attrs[sf.ATTR_SIMULATED])} there")
-    stored = f.attrs.get(sf.ATTR_COLLECTION_PLAN, "")
-    stored = stored.decode() if isinstance(stored, bytes) else str(stored)
-    if plan_text is not None and stored and stored != plan_text:
+def _check_resumable(session, serial: str, height: int, width: int, simulated: bool, plan_text: str | None) -> None:
+    """Raise InputError unless ``session`` (a ``Session``) was recorded with this sensor, size and plan."""
+    path = session.path
+    if str(session.sensor_serial) != str(serial):
+        raise InputError(f"cannot resume {path}: it was recorded with sensor {session.sensor_serial}, not {serial}")
+    if (session.height, session.width) != (height, width):
+        raise InputError(f"cannot resume {path}: image size {(session.height, session.width)} != {(height, width)}")
+    if session.simulated != simulated:
+        raise InputError(f"cannot resume {path}: simulated={session.simulated} there")
+    stored = session.collection_plan()
+    if plan_text is not None and stored is not None and json.dumps(stored, sort_keys=True) != plan_text:
         raise InputError(f"cannot resume {path}: it was recorded with another plan (objects, poses per object, "
                          f"seed or settings differ)")
 
