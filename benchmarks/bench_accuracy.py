@@ -32,7 +32,6 @@ leave-one-out protocol).
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import time
@@ -48,7 +47,8 @@ from calibrate.commissioning import CommissionConfig  # noqa: E402
 from collect.errors import EXIT_FAULT, InputError  # noqa: E402
 from collect.session_reader import Session  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS  # noqa: E402
-from trainer.cli import PAPER_COLUMNS, write_json  # noqa: E402
+from collect.json_files import write_json  # noqa: E402
+from trainer.cli import PAPER_COLUMNS  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
 from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402

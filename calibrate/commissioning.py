@@ -41,7 +41,7 @@ import math
 import os
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -64,6 +64,7 @@ from calibrate.commission_events import (
     Verdict,
 )
 from collect.errors import HardwareFault, InputError, StopRequested
+from collect.json_files import plain_json, write_json
 from collect.session_format import DEPTH_UNIT_M
 from trainer.contact import contact_mask, reference_depth
 from trainer.metrics import METRIC_KEYS
@@ -174,22 +175,6 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serializable: {type(obj).__name__}")
-
-
-def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
-    os.replace(tmp, path)
-
-
 class RunState:
     """``RUN_DIR/state.json``: the settings of the run and the results of its completed steps."""
 
@@ -222,7 +207,7 @@ class RunState:
         return cls(path, data)
 
     def save(self) -> None:
-        _write_json(self.path, self.data)
+        write_json(self.path, self.data)
 
     def done(self, step: Step) -> bool:
         return step.value in self.data["steps"]
@@ -556,7 +541,7 @@ class _Flow:
             "steps": result.steps,
             "epochs": result.epochs,
             "curve": curve,
-            "history": _plain(result.history),
+            "history": plain_json(result.history),
         }
 
     def step_validate(self) -> dict:
@@ -690,7 +675,7 @@ class _Flow:
             "steps": {s.value: self.state.get(s).get("summary") for s in STEPS if self.state.done(s)},
             "finished": _now(),
         }
-        _write_json(self.run_dir / ACCEPTANCE_FILE, doc)
+        write_json(self.run_dir / ACCEPTANCE_FILE, doc)
         report_path = self._write_report(doc)
         serial = self.state.data.get("serial")
         if not stopped and serial:
@@ -702,7 +687,7 @@ class _Flow:
                 intrinsics=connect.get("intrinsics", {}),
                 camera_in_tcp=connect.get("camera_in_tcp"),
                 simulated=bool(self.config.simulated),
-                acceptance=json.loads(json.dumps(doc, default=_json_default)),
+                acceptance=plain_json(doc),
                 reason=reason,
                 model_dir=self.run_dir / MODEL_DIR if accepted else None,
                 reference=_registry_reference(self.run_dir / VALIDATION_FILE) if accepted else None,
@@ -884,13 +869,6 @@ def _set_aside(path: Path) -> None:
     while (aside := path.with_name(f"{path.stem}.aborted-{n}{path.suffix}")).exists():
         n += 1
     os.replace(path, aside)
-
-
-def _plain(obj):
-    """``obj`` as plain JSON data (dataclasses and numpy values converted)."""
-    if hasattr(obj, "__dataclass_fields__"):
-        obj = asdict(obj)
-    return json.loads(json.dumps(obj, default=_json_default))
 
 
 def _collection_stats(path: Path, planned: int) -> dict:

@@ -23,7 +23,6 @@ one usable frame raises ``InputError``.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -44,6 +43,8 @@ from calibrate.pose_estimation import (
     shape_from_object,
 )
 from collect.errors import InputError
+from collect.json_files import write_json
+from collect.transforms import pose_to_matrix
 from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
 from trainer.metrics import METRIC_KEYS, depth_metrics
 
@@ -118,7 +119,7 @@ class PoseCheckResult:
 
     def write_json(self, path: str | Path) -> None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        write_json(path, self.to_dict())
 
     def e_x_median_by_pose(self) -> dict[int, float]:
         """Median ``e_x`` (mm, predicted vs measured) over the used frames of each contact pose."""
@@ -144,22 +145,13 @@ class PoseCheckResult:
         return "\n".join(lines)
 
 
-def ur_pose_matrix(pose) -> np.ndarray:
-    """UR pose ``(6,) [x,y,z m, rotation vector rad]`` -> homogeneous transform ``(4,4)``."""
-    p = np.asarray(pose, dtype=np.float64).reshape(6)
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(p[3:]).as_matrix()
-    out[:3, 3] = p[:3]
-    return out
-
-
 def bench_pose(tcp_pose, camera_in_tcp, fixture_pose) -> Pose:
     """True object pose in the camera frame: ``inv(T_base_tcp T_tcp_cam) T_base_object``.
 
     All three arguments are UR poses ``(6,)``: TCP in base, camera in TCP, object in base.
     """
-    base_cam = ur_pose_matrix(tcp_pose) @ ur_pose_matrix(camera_in_tcp)
-    return Pose.from_matrix(np.linalg.inv(base_cam) @ ur_pose_matrix(fixture_pose))
+    base_cam = pose_to_matrix(tcp_pose) @ pose_to_matrix(camera_in_tcp)
+    return Pose.from_matrix(np.linalg.inv(base_cam) @ pose_to_matrix(fixture_pose))
 
 
 def perturbed_prior(pose: Pose, rng: np.random.Generator, error_mm: float, error_deg: float) -> Pose:

@@ -22,7 +22,6 @@ import json
 import os
 import re
 import shutil
-import tempfile
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from collect.errors import InputError
+from collect.json_files import write_json
 
 ENV_VAR = "BUBBLE_REGISTRY"
 PROFILE = "profile.json"
@@ -63,13 +63,6 @@ class SensorProfile:
     @property
     def model_dir(self) -> Path | None:
         return self.path / "model" if (self.path / "model").is_dir() else None
-
-
-def _write_json_atomic(path: Path, obj: dict) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(obj, f, indent=2)
-    os.replace(tmp, path)
 
 
 class SensorRegistry:
@@ -143,8 +136,8 @@ class SensorRegistry:
             profile["accepted_at"] = entry["time"]
             profile["accepted_metrics"] = metrics
         profile["history"] = list(prior.get("history", [])) + [entry]
-        _write_json_atomic(sdir / "acceptance.json", acceptance)
-        _write_json_atomic(sdir / PROFILE, profile)
+        write_json(sdir / "acceptance.json", acceptance)
+        write_json(sdir / PROFILE, profile)
         return SensorProfile(serial, sdir, profile)
 
     def _read_profile(self, sdir: Path) -> dict:

@@ -36,10 +36,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.safety import SafetyLimits, tool_z_axis
+from collect.transforms import rotation_between_rad
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
 STOP_DECEL_M_S2 = 4.0
@@ -61,16 +61,23 @@ class ArmState:
     tcp_pose: np.ndarray
     tcp_wrench: np.ndarray
 
+    def pressing_force_n(self, axis=None) -> float:
+        """Contact force (N) opposing motion along the unit ``axis`` (3,) in the base frame
+        (default: the pressing axis, TCP +z)."""
+        axis = tool_z_axis(self.tcp_pose) if axis is None else axis
+        return float(-np.dot(self.tcp_wrench[:3], axis))
+
 
 @dataclass(frozen=True)
 class MotionSettings:
-    """Speeds (m/s), acceleration (m/s^2) and distances (m) of the pressing motions."""
+    """Speeds (m/s), acceleration (m/s^2), force (N) and distances (m) of the pressing motions: the
+    arm's defaults and the speeds of every collection motion (a bench's ``motion`` settings)."""
 
-    travel_speed: float = 0.1
-    approach_speed: float = 0.02
-    press_speed: float = 0.01
-    accel: float = 0.5
-    contact_force_n: float = 0.5
+    travel_speed: float = 0.25
+    approach_speed: float = 0.05  # guarded approach, until the contact force
+    press_speed: float = 0.02
+    accel: float = 1.0
+    contact_force_n: float = 0.4  # force that ends the guarded approach
     max_contact_travel_m: float = 0.05
     max_press_depth_m: float = 0.015
     retract_m: float = 0.03
@@ -86,12 +93,16 @@ def move_duration_s(distance_m: float, speed: float, accel: float) -> float:
 
 
 def retract_speed(settings: MotionSettings) -> float:
-    """Speed (m/s) of ``Arm.retract`` when none is given (the safe stop): twice the approach speed."""
+    """Speed (m/s) of ``Arm.retract`` (after each press and in the safe stop): twice the approach speed."""
     return 2.0 * settings.approach_speed
 
 
-def _rotation_gap_rad(a, b) -> float:
-    return float((Rotation.from_rotvec(a[3:6]).inv() * Rotation.from_rotvec(b[3:6])).magnitude())
+def check_motion_settings(settings: MotionSettings, limits: SafetyLimits) -> None:
+    """Every speed of ``settings`` (the retract's included), its acceleration and its contact force
+    against ``limits``; ``SafetyViolation`` otherwise."""
+    for speed in (settings.travel_speed, settings.approach_speed, settings.press_speed, retract_speed(settings)):
+        limits.check_motion(speed, settings.accel)
+    limits.check_force(settings.contact_force_n)
 
 
 class Arm:
@@ -105,9 +116,7 @@ class Arm:
                  clock: Callable[[], float] = time.monotonic, state_hz: float = 125.0):
         if not 1.0 <= state_hz <= 500.0:
             raise InputError(f"arm: state rate {state_hz} Hz is outside 1..500 Hz")
-        for speed in (settings.travel_speed, settings.approach_speed, settings.press_speed, retract_speed(settings)):
-            limits.check_motion(speed, settings.accel)
-        limits.check_force(settings.contact_force_n)
+        check_motion_settings(settings, limits)
         self._ctl = control
         self._rcv = receive
         self.limits = limits
@@ -287,7 +296,7 @@ class Arm:
                 self.stop()
                 return self._settle(), True
             if (np.linalg.norm(sample.tcp_pose[:3] - target[:3]) < ARRIVAL_TOL_M
-                    and _rotation_gap_rad(sample.tcp_pose, target) < ARRIVAL_TOL_RAD
+                    and rotation_between_rad(sample.tcp_pose, target) < ARRIVAL_TOL_RAD
                     and np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S):
                 return sample, False
             if self.clock() > t_end or time.monotonic() > t_end_real:
@@ -306,10 +315,6 @@ class Arm:
         """Linear move of the TCP to ``pose`` (6,); returns the sample on arrival."""
         sample, _ = self._run_move(pose, speed or self.settings.travel_speed, accel or self.settings.accel)
         return sample
-
-    def _press_force(self, sample: ArmState, axis: np.ndarray) -> float:
-        """Contact force (N) opposing motion along the unit ``axis`` (3,)."""
-        return float(-np.dot(sample.tcp_wrench[:3], axis))
 
     def move_until_contact(self, direction=None, speed: float | None = None, force_threshold_n: float | None = None,
                            max_travel_m: float | None = None) -> ArmState | None:
@@ -337,7 +342,7 @@ class Arm:
             self._ctl.zeroFtSensor()
         self._retract_pose = start.tcp_pose.copy()
         sample, touched = self._run_move(target, speed, s.accel,
-                                         guard=lambda smp: self._press_force(smp, axis) >= threshold)
+                                         guard=lambda smp: smp.pressing_force_n(axis) >= threshold)
         return sample if touched else None
 
     def press(self, depth_m: float | None = None, force_n: float | None = None, speed: float | None = None) -> ArmState:
@@ -369,7 +374,7 @@ class Arm:
             if depth <= 0:
                 return start
             target[:3] += axis * depth
-            guard = lambda smp: self._press_force(smp, axis) >= force_n  # noqa: E731
+            guard = lambda smp: smp.pressing_force_n(axis) >= force_n  # noqa: E731
         sample, _ = self._run_move(target, speed or s.press_speed, s.accel, guard=guard)
         return sample
 
@@ -397,7 +402,7 @@ class Arm:
         now = self.state()
         if self._retract_pose is not None:
             target = self._retract_pose
-        elif self._press_force(now, tool_z_axis(now.tcp_pose)) <= self.settings.contact_force_n:
+        elif now.pressing_force_n() <= self.settings.contact_force_n:
             return now
         else:
             target = now.tcp_pose.copy()

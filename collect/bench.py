@@ -120,7 +120,7 @@ class BenchConfig(ABC):
 
 def _placed_objects(names, plate_pose=None) -> list:
     from hw_mocks.objects import fixture_plate, load_object
-    from hw_mocks.transforms import matrix_to_pose, pose_to_matrix
+    from collect.transforms import matrix_to_pose, pose_to_matrix
 
     placed = fixture_plate([load_object(n) for n in names])
     if plate_pose is None:

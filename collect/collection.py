@@ -32,14 +32,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from collect import session_format as sf
+from collect.arm import retract_speed
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.pose_planner import CollectionPlan, PlanSettings, plan_collection
-from collect.safety import tool_z_axis
 from collect.session_writer import SessionWriter
 
 log = logging.getLogger(__name__)
@@ -92,9 +92,8 @@ def session_metadata(bench, objects) -> dict:
 
 
 def plan_bench_collection(bench, settings: PlanSettings) -> CollectionPlan:
-    """The pose plan over ``bench``'s objects, within its safety limits and its arm's press-depth cap."""
-    settings = replace(settings, max_press_depth_m=bench.arm.settings.max_press_depth_m)
-    return plan_collection(bench.objects, bench.limits, settings)
+    """The pose plan over ``bench``'s objects, within its safety limits, at its arm's motion settings."""
+    return plan_collection(bench.objects, bench.limits, settings, bench.arm.settings)
 
 
 def open_collection_writer(path, bench, plan: CollectionPlan, resume: bool) -> SessionWriter:
@@ -258,7 +257,7 @@ def run_collection(
     result = CollectionResult()
     recorder = _Recorder(bench, plan, writer, progress_callback, result)
     stop_event = stop_event or threading.Event()
-    arm, s = bench.arm, plan.settings
+    arm, s, m = bench.arm, plan.settings, plan.motion
     arm.stop_on(stop_event)  # a stop mid-motion halts the arm within one state sample
     t_start = arm.state().t
 
@@ -278,22 +277,22 @@ def run_collection(
             if not poses and has_reference:
                 continue
             enter(_Stamp())
-            arm.move_to(stop.travel_pose, s.travel_speed, s.accel)
-            arm.move_to(stop.reference_pose, s.travel_speed, s.accel)
+            arm.move_to(stop.travel_pose, m.travel_speed, m.accel)
+            arm.move_to(stop.reference_pose, m.travel_speed, m.accel)
             if not has_reference:
                 enter(_Stamp(oi, -1, sf.PHASE_FREE))
                 arm.hold(s.reference_s)
             for pose in poses:
                 k = pose.pose_id - oi * s.poses_per_object
                 enter(_Stamp(oi, pose.pose_id, sf.PHASE_APPROACH, k))
-                arm.move_to(pose.above_pose, s.travel_speed, s.accel)
+                arm.move_to(pose.above_pose, m.travel_speed, m.accel)
                 contact = arm.move_until_contact(
-                    speed=s.approach_speed, force_threshold_n=s.contact_force_n, max_travel_m=pose.approach_travel_m
+                    speed=m.approach_speed, force_threshold_n=m.contact_force_n, max_travel_m=pose.approach_travel_m
                 )
                 if contact is not None:
                     enter(_Stamp(oi, pose.pose_id, sf.PHASE_PRESS, k))
                     arm.press(force_n=press_target_n(contact, pose.press_force_n, s.max_press_force_n),
-                              speed=s.press_speed)
+                              speed=m.press_speed)
                     enter(_Stamp(oi, pose.pose_id, sf.PHASE_HOLD, k))
                     arm.hold(s.hold_s)
                 else:
@@ -301,11 +300,11 @@ def run_collection(
                                 1e3 * pose.approach_travel_m)
                     result.poses_without_contact.append(pose.pose_id)
                 enter(_Stamp(oi, pose.pose_id, sf.PHASE_RETRACT, k))
-                arm.retract(s.retract_speed)
+                arm.retract(retract_speed(m))
                 if contact is not None:
                     result.poses_done.append(pose.pose_id)
             enter(_Stamp())
-            arm.move_to(stop.travel_pose, s.travel_speed, s.accel)
+            arm.move_to(stop.travel_pose, m.travel_speed, m.accel)
         enter(_Stamp())
     except StopRequested:
         result.stopped = True
@@ -329,8 +328,7 @@ def run_collection(
 def press_target_n(contact, added_n: float, cap_n: float) -> float:
     """Force (N) a press aims for: the force along the pressing axis at first contact (``contact``,
     an ``ArmState``) plus ``added_n``, at most ``cap_n``."""
-    at_contact = float(-np.dot(contact.tcp_wrench[:3], tool_z_axis(contact.tcp_pose)))
-    return min(max(at_contact, 0.0) + added_n, cap_n)
+    return min(max(contact.pressing_force_n(), 0.0) + added_n, cap_n)
 
 
 def _safe_stop(bench, recorder: _Recorder) -> None:

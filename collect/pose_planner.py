@@ -8,7 +8,7 @@ For each object, ``plan_collection`` draws K contact poses (seeded, reproducible
   direction, and a random yaw of the sensor about the vertical in [-90, 90) deg (the bubble's
   footprint is symmetric under a half turn); an object's poses run in order of yaw, so that the
   arm turns the sensor by at most half a turn per object (reorienting is slow: see
-  ``ROTATION_M_PER_RAD``);
+  ``collect.transforms.ROTATION_M_PER_RAD``);
 * a press force drawn in ``press_force_n``, added to the force at first contact (the press stops
   at that force, at ``max_press_force_n``, or at the arm's maximum press depth): safe on any
   shape, flat or pointed, and always a real press even when the guarded approach overshoots.
@@ -33,22 +33,22 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from collect.arm import move_duration_s
+from collect.arm import MotionSettings, check_motion_settings, move_duration_s, retract_speed
 from collect.errors import InputError
 from collect.safety import SafetyLimits
+from collect.transforms import linear_path_m
 
 #: TCP orientation pressing straight down (TCP +z along base -z), yaw 0.
 DOWN = Rotation.from_rotvec([np.pi, 0.0, 0.0])
-#: Path length (m) a linear move spends per radian of tool reorientation, for the time estimate
-#: (the UR controller scales rotation into the tool speed; its twin uses the same 0.1 m/rad).
-ROTATION_M_PER_RAD = 0.1
 
 
 @dataclass(frozen=True)
 class PlanSettings:
-    """Knobs of the collection plan. Distances m, speeds m/s, accelerations m/s^2, times s, forces N.
+    """Knobs of the collection plan. Distances m, times s, forces N (the speeds are the bench's
+    ``MotionSettings``).
 
-    The defaults fit 4 objects x 8 poses into under 60 s of arm time (see ``estimated_duration_s``).
+    With the default motion settings, the defaults fit 4 objects x 8 poses into under 60 s of arm
+    time (see ``estimated_duration_s``).
     """
 
     poses_per_object: int = 8
@@ -56,17 +56,10 @@ class PlanSettings:
     max_tilt_deg: float = 15.0
     press_force_n: tuple[float, float] = (2.0, 6.0)  # force added by the press beyond first contact
     max_press_force_n: float = 15.0  # cap of the total contact force of a press
-    contact_force_n: float = 0.4  # force that ends the guarded approach
     clearance_m: float = 0.006  # above-pose height over the object's top
     approach_margin_m: float = 0.008  # extra guarded travel past the planned contact point
-    max_press_depth_m: float = 0.015  # deepest press past first contact (the arm's press cap)
     reference_clearance_m: float = 0.02
     travel_clearance_m: float = 0.03  # travel height over the tallest object between objects
-    travel_speed: float = 0.25
-    approach_speed: float = 0.05
-    press_speed: float = 0.02
-    retract_speed: float = 0.1
-    accel: float = 1.0
     hold_s: float = 0.25
     reference_s: float = 0.4
 
@@ -109,12 +102,14 @@ class ObjectStop:
 
 @dataclass(frozen=True)
 class CollectionPlan:
-    """Everything ``run_collection`` needs: objects (in session order), stops, poses, settings."""
+    """Everything ``run_collection`` needs: objects (in session order), stops, poses, the plan's
+    settings and the motion settings it runs at."""
 
     objects: list  # placed bench objects (name, mesh, fixture_pose, primitive, mesh_sha256, ...)
     stops: list[ObjectStop]
     poses: list[ContactPose]
     settings: PlanSettings = field(default_factory=PlanSettings)
+    motion: MotionSettings = field(default_factory=MotionSettings)
 
     def poses_of(self, object_index: int) -> list[ContactPose]:
         return [p for p in self.poses if p.object_index == object_index]
@@ -127,6 +122,7 @@ class CollectionPlan:
             "objects": [o.name for o in self.objects],
             "mesh_sha256": [o.mesh_sha256 for o in self.objects],
             "settings": settings,
+            "motion": asdict(self.motion),
         }
 
     def estimated_duration_s(self) -> float:
@@ -134,33 +130,30 @@ class CollectionPlan:
 
         Approaches and presses are counted to their planned ends (contact at the planned point,
         press depth ``press_force_n / 1.5 N/mm``, a conservative membrane stiffness)."""
-        s = self.settings
+        s, m = self.settings, self.motion
         total = 0.0
         position = None
         for stop in self.stops:
             if position is not None:
-                total += _move_s(position, stop.travel_pose, s.travel_speed, s.accel)
-            total += _move_s(stop.travel_pose, stop.reference_pose, s.travel_speed, s.accel) + s.reference_s
+                total += _move_s(position, stop.travel_pose, m.travel_speed, m.accel)
+            total += _move_s(stop.travel_pose, stop.reference_pose, m.travel_speed, m.accel) + s.reference_s
             position = stop.reference_pose
             for pose in self.poses_of(stop.object_index):
-                total += _move_s(position, pose.above_pose, s.travel_speed, s.accel)
+                total += _move_s(position, pose.above_pose, m.travel_speed, m.accel)
                 reach = pose.approach_travel_m - s.approach_margin_m
-                press = min(pose.press_force_n / 1500.0, s.max_press_depth_m)
-                total += move_duration_s(reach, s.approach_speed, s.accel)
-                total += move_duration_s(press, s.press_speed, s.accel) + s.hold_s
-                total += move_duration_s(reach + press, s.retract_speed, s.accel)
+                press = min(pose.press_force_n / 1500.0, m.max_press_depth_m)
+                total += move_duration_s(reach, m.approach_speed, m.accel)
+                total += move_duration_s(press, m.press_speed, m.accel) + s.hold_s
+                total += move_duration_s(reach + press, retract_speed(m), m.accel)
                 position = pose.above_pose
-            total += _move_s(position, stop.travel_pose, s.travel_speed, s.accel)
+            total += _move_s(position, stop.travel_pose, m.travel_speed, m.accel)
             position = stop.travel_pose
         return total
 
 
 def _move_s(a: np.ndarray, b: np.ndarray, speed: float, accel: float) -> float:
     """Duration (s) of a linear move between poses ``a`` and ``b`` (6,), reorientation included."""
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    turn = (Rotation.from_rotvec(a[3:]).inv() * Rotation.from_rotvec(b[3:])).magnitude()
-    path = max(float(np.linalg.norm(b[:3] - a[:3])), float(turn) * ROTATION_M_PER_RAD)
-    return move_duration_s(path, speed, accel)
+    return move_duration_s(linear_path_m(a, b), speed, accel)
 
 
 def pressing_rotation(tilt_deg: float, tilt_direction_rad: float, yaw_rad: float) -> Rotation:
@@ -171,8 +164,10 @@ def pressing_rotation(tilt_deg: float, tilt_direction_rad: float, yaw_rad: float
     return tilt * Rotation.from_rotvec([0.0, 0.0, yaw_rad]) * DOWN
 
 
-def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings = PlanSettings()) -> CollectionPlan:
-    """Plan reference stops and ``settings.poses_per_object`` contact poses for each placed object.
+def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings = PlanSettings(),
+                    motion: MotionSettings = MotionSettings()) -> CollectionPlan:
+    """Plan reference stops and ``settings.poses_per_object`` contact poses for each placed object,
+    run at the speeds of ``motion`` and pressing at most ``motion.max_press_depth_m``.
 
     ``objects``: bench objects already mounted on the fixture plate (``hw_mocks.objects.fixture_plate``),
     with ``name``, ``top_surface_points(n, rng)``, ``top_point()``, ``bounds_base()``.
@@ -185,10 +180,8 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
     if duplicates:
         raise InputError(f"object names must be unique, got {', '.join(duplicates)} twice")
     s = settings
-    limits.check_force(s.contact_force_n)
+    check_motion_settings(motion, limits)
     limits.check_force(s.max_press_force_n)
-    for speed in (s.travel_speed, s.approach_speed, s.press_speed, s.retract_speed):
-        limits.check_motion(speed, s.accel)
     if s.max_tilt_deg > limits.max_tilt_deg:
         raise InputError(f"plan tilt {s.max_tilt_deg} deg exceeds the arm's limit {limits.max_tilt_deg} deg")
     travel_z = max(float(o.bounds_base()[1, 2]) for o in objects) + s.travel_clearance_m
@@ -218,7 +211,7 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
             # targets the arm is sent to: the guarded approach's end and the deepest press
             approach_end, deepest = above.copy(), above.copy()
             approach_end[:3] += axis * approach
-            deepest[:3] += axis * (back + s.max_press_depth_m)
+            deepest[:3] += axis * (back + motion.max_press_depth_m)
             for pose in (above, approach_end, deepest):
                 _check_reachable(limits, obj.name, pose)
             poses.append(
@@ -235,7 +228,7 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
                     approach_travel_m=float(approach),
                 )
             )
-    return CollectionPlan(list(objects), stops, poses, s)
+    return CollectionPlan(list(objects), stops, poses, s, motion)
 
 
 def _check_reachable(limits: SafetyLimits, name: str, pose: np.ndarray) -> None:

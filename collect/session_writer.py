@@ -41,6 +41,7 @@ import numpy as np
 
 from collect import session_format as sf
 from collect.errors import HardwareFault, InputError
+from collect.json_files import plain_json
 
 #: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
 #: every HDF5 reader decodes (h5py, h5dump, MATLAB, HDFView; LZF is h5py-only). The writer
@@ -480,19 +481,10 @@ def _write_root_attrs(f, serial, spec, intrinsics, camera_in_tcp, simulated) -> 
     f.attrs[sf.ATTR_SOFTWARE_VERSION] = software_version()
     f.attrs[sf.ATTR_SENSOR_SERIAL] = str(serial)
     f.attrs[sf.ATTR_SENSOR_SPEC] = json.dumps(spec)
-    f.attrs[sf.ATTR_INTRINSICS] = json.dumps({k: _plain(v) for k, v in intrinsics.items()})
+    f.attrs[sf.ATTR_INTRINSICS] = json.dumps(plain_json(intrinsics))
     f.attrs[sf.ATTR_CAMERA_IN_TCP] = json.dumps([float(v) for v in np.asarray(camera_in_tcp).reshape(6)])
     f.attrs[sf.ATTR_CREATED] = _now()
     f.attrs[sf.ATTR_SIMULATED] = bool(simulated)
-
-
-def _plain(value):
-    """numpy scalars/arrays -> JSON-serializable Python values."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool, compression: dict) -> None:
@@ -555,7 +547,7 @@ def _merge_objects(f: h5py.File, objects: list[dict]) -> list[int]:
             indices.append(i)
             continue
         primitive = obj.get("primitive") or {}
-        primitive = primitive if isinstance(primitive, str) else json.dumps(_plain_tree(primitive))
+        primitive = primitive if isinstance(primitive, str) else json.dumps(plain_json(primitive))
         _append_rows(f[sf.OBJECTS_NAME], np.array([name], dtype=object))
         _append_rows(f[sf.OBJECTS_MESH_SHA256], np.array([obj["mesh_sha256"]], dtype=object))
         _append_rows(f[sf.OBJECTS_PRIMITIVE], np.array([primitive], dtype=object))
@@ -568,14 +560,6 @@ def _merge_objects(f: h5py.File, objects: list[dict]) -> list[int]:
         shas.append(obj["mesh_sha256"])
         indices.append(len(names) - 1)
     return indices
-
-
-def _plain_tree(value):
-    if isinstance(value, dict):
-        return {str(k): _plain_tree(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain_tree(v) for v in value]
-    return _plain(value)
 
 
 def _open_for_resume(path: str, serial: str, height: int, width: int, simulated: bool,
@@ -615,8 +599,17 @@ def _check_resumable(session, serial: str, height: int, width: int, simulated: b
         raise InputError(f"cannot resume {path}: simulated={session.simulated} there")
     stored = session.collection_plan()
     if plan_text is not None and stored is not None and json.dumps(stored, sort_keys=True) != plan_text:
+        changes = "; ".join(f"{key} {old} there, {new} now" for key, old, new in _differences(stored, json.loads(plan_text)))
         raise InputError(f"cannot resume {path}: it was recorded with another plan (objects, poses per object, "
-                         f"seed or settings differ)")
+                         f"seed or settings differ): {changes}")
+
+
+def _differences(old, new, key: str = "") -> list[tuple[str, object, object]]:
+    """``(dotted key, old value, new value)`` of every leaf where the JSON trees ``old`` and ``new`` differ."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [d for k in sorted(set(old) | set(new))
+                for d in _differences(old.get(k), new.get(k), f"{key}.{k}" if key else k)]
+    return [] if old == new else [(key, old, new)]
 
 
 def _last_value(f: h5py.File, *names: str) -> float:

@@ -24,7 +24,7 @@ from hw_mocks.objects import BenchObject
 from hw_mocks.obstacle import REACH_OUT_M, object_depth
 from hw_mocks.sensor_spec import ATMOSPHERE_PA, SensorSpec
 from hw_mocks.tof_render import TofRenderer
-from hw_mocks.transforms import invert, pose_to_matrix
+from collect.transforms import invert, pose_to_matrix
 
 #: Physics grid spacing in image pixels.
 PHYSICS_STEP = 2

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hw_mocks.sensor_spec import SensorSpec
-from hw_mocks.transforms import invert, pose_to_matrix
+from collect.transforms import invert, pose_to_matrix
 
 
 @dataclass(frozen=True)

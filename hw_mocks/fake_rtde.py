@@ -25,11 +25,11 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from collect.transforms import linear_path_m
+
 #: UR safety modes (``getSafetyMode``).
 SAFETY_MODE_NORMAL = 1
 SAFETY_MODE_PROTECTIVE_STOP = 3
-#: Path length (m) that one radian of pure reorientation counts as.
-ROTATION_PATH_M_PER_RAD = 0.1
 
 
 class _Profile:
@@ -84,8 +84,7 @@ class _LinearMove:
         self.start, self.end = start, end
         rots = Rotation.from_rotvec(np.stack([start[3:6], end[3:6]]))
         self._slerp = Slerp([0.0, 1.0], rots)
-        self.length = max(float(np.linalg.norm(end[:3] - start[:3])),
-                          float((rots[0].inv() * rots[1]).magnitude()) * ROTATION_PATH_M_PER_RAD)
+        self.length = linear_path_m(start, end)
         self.t0, self.s_from = t0, s_from
         s_to = self.length if s_to is None else s_to
         self.profile = _Profile(max(s_to - s_from, 0.0), v0, speed, accel)

@@ -27,7 +27,7 @@ import trimesh
 
 from collect.errors import InputError
 from hw_mocks.heightmap import Heightmap
-from hw_mocks.transforms import pose_to_matrix
+from collect.transforms import pose_to_matrix
 
 BUILTIN_OBJECTS = ("mug", "wine_glass", "box", "fingers")
 MESH_SUFFIXES = (".stl", ".obj", ".ply")

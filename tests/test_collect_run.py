@@ -10,6 +10,7 @@ import pytest
 
 from calibrate.cli import main
 from collect import session_format as sf
+from collect.arm import MotionSettings
 from collect.bench import BenchConfig, open_bench
 from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.pose_planner import PlanSettings
@@ -79,7 +80,7 @@ def test_collect_refuses_bad_output_and_other_plan(box_session, tmp_path, capsys
     assert "recorded with sensor" in _error_line(capsys)
     assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "3", "--seed", "3", "--quiet",
                  "--resume", "--out", str(box_session)]) == 2
-    assert "another plan" in _error_line(capsys)
+    assert "another plan" in (line := _error_line(capsys)) and "settings.poses_per_object 2 there, 3 now" in line
     assert box_session.read_bytes() == recorded  # a refused resume leaves the file as it was
     with Session.open(box_session) as s:
         assert s.closed_cleanly and len(s.select(pose_id=1)) > 0
@@ -110,6 +111,23 @@ def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):
         assert s.t_device[-1] - s.t_device[0] < 2.1
         # safe stop: the arm ended clear of the box (above its top, 40 mm)
         assert s.arm().tcp_pose[-1, 2] > 0.04
+
+
+def test_the_bench_motion_settings_set_the_speed_of_every_collection_motion(tmp_path):
+    out = tmp_path / "slow.h5"
+    slow = MotionSettings(travel_speed=0.1, approach_speed=0.03, press_speed=0.01)
+    with open_bench(BenchConfig.create("sim", objects=("box",), seed=1, motion=slow)) as bench:
+        plan = plan_bench_collection(bench, PlanSettings(poses_per_object=1, seed=1))
+        with open_collection_writer(out, bench, plan, resume=False) as writer:
+            run_collection(bench, plan, writer)
+    with Session.open(out) as s:
+        assert s.collection_plan()["motion"]["approach_speed"] == 0.03
+        arm = s.arm()
+    # TCP speed over 10 samples (80 ms; single samples carry the stream's timing jitter)
+    window = np.ones(10)
+    speed = (np.convolve(np.linalg.norm(np.diff(arm.tcp_pose[:, :3], axis=0), axis=1), window, "valid")
+             / np.convolve(np.diff(arm.t), window, "valid"))
+    assert 0.08 < speed.max() < 0.13  # the bench's 0.1 m/s, where the default travel speed is 0.25 m/s
 
 
 def test_stop_event_then_resume_completes_the_plan(tmp_path):

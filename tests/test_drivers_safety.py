@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from hw_mocks.sim_bench import SimClock
 DOWN = [np.pi, 0.0, 0.0]
 LIMITS = SafetyLimits(workspace_min=(0.2, -0.3, 0.05), workspace_max=(0.7, 0.3, 0.4), max_speed_m_s=0.1,
                       max_accel_m_s2=0.5, force_limit_n=20.0, max_tilt_deg=20.0)
+MOTION = MotionSettings(travel_speed=0.1, approach_speed=0.02, press_speed=0.01, accel=0.5)  # within LIMITS
 
 
 def test_limits_accept_a_good_move_and_reject_each_kind_of_violation():
@@ -83,7 +85,7 @@ def test_arm_rejects_unsafe_requests_before_sending_any_motion():
     start = [0.4, 0.0, 0.2, *DOWN]
     controller = SimURController(_Still(), start)
     control = _CountingControl(controller)
-    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, state_hz=200)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
     try:
         with pytest.raises(SafetyViolation):
             arm.move_to([0.4, 0.0, 0.0, *DOWN])  # below the box
@@ -110,7 +112,7 @@ def test_arm_rejects_unsafe_requests_before_sending_any_motion():
 def test_every_configured_speed_is_checked_when_the_arm_is_built():
     # the safe stop's retract (twice the approach speed) must not be the first move to break the speed limit
     controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
-    for settings in (MotionSettings(approach_speed=0.06), MotionSettings(press_speed=0.2)):
+    for settings in (replace(MOTION, approach_speed=0.06), replace(MOTION, press_speed=0.2)):
         with pytest.raises(SafetyViolation, match="speed"):
             Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=settings)
 
@@ -132,7 +134,7 @@ def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
     start = [0.4, 0.0, 0.2, *DOWN]
     controller = SimURController(_Still(), start)
     receive = _FailingReceive(controller)
-    arm = Arm(FakeRTDEControl(controller), receive, LIMITS, state_hz=200)
+    arm = Arm(FakeRTDEControl(controller), receive, LIMITS, settings=MOTION, state_hz=200)
     try:
         arm.start()
         assert controller.move_linear([0.4, 0.0, 0.3, *DOWN], 0.05, 0.5)  # a long move, sent around the driver

@@ -121,7 +121,6 @@ def test_fit_recovers_pose_from_perturbed_prior_with_noise():
 
 def test_side_patch_fixes_axis_line_and_leaves_symmetric_directions_at_prior():
     rng = np.random.default_rng(4)
-    true = _pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
     ang = rng.uniform(-0.5, 0.5, 800)
     obj = np.stack([0.04 * np.cos(ang), 0.04 * np.sin(ang), rng.uniform(0.04, 0.06, 800)], 1)
     prior = _pose([0.0, 0.0, 0.05], [0.001, 0.002, 0.003])  # spin about the axis, shift along it

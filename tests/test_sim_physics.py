@@ -12,7 +12,7 @@ from hw_mocks.objects import BenchObject, fixture_plate, load_object
 from hw_mocks.obstacle import object_depth
 from hw_mocks.preview import press_pose
 from hw_mocks.sensor_spec import draw_sensor
-from hw_mocks.transforms import invert, pose_to_matrix
+from collect.transforms import invert, pose_to_matrix
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from textual.widgets import TabPane
 
 from calibrate.commission_events import (
     BenchSnapshot,

@@ -16,6 +16,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from collect.errors import InputError
+from collect.json_files import write_json
 
 CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
@@ -39,9 +40,7 @@ def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     save_file(tensors, str(tmp))
     tmp.replace(model_dir / CHECKPOINT_WEIGHTS)
     state = {"param_groups": opt["param_groups"], "progress": progress}
-    tmp = model_dir / (CHECKPOINT_STATE + ".tmp")
-    tmp.write_text(json.dumps(state, indent=1))
-    tmp.replace(model_dir / CHECKPOINT_STATE)
+    write_json(model_dir / CHECKPOINT_STATE, state)
 
 
 def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer) -> dict:

@@ -7,9 +7,10 @@ nccl on GPU) runs the same command in every process.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
+
+from collect.json_files import write_json
 
 #: Columns of the paper's tables: (metric key, header).
 PAPER_COLUMNS = (("abs_rel", "Abs.Rel"), ("rmse", "RMSE [m]"), ("rmse_log", "RMSE_log"), ("silog", "SILog"), ("a1", "δ<1.05"))
@@ -56,21 +57,6 @@ def register(subparsers) -> None:
 
 def _objects(text: str | None) -> list[str] | None:
     return None if not text else [name.strip() for name in text.split(",") if name.strip()]
-
-
-def _json_safe(value):
-    """NaN/inf -> None, recursively (strict JSON)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
-
-
-def write_json(path: str | Path, data: dict) -> None:
-    Path(path).write_text(json.dumps(_json_safe(data), indent=2) + "\n")
 
 
 def metrics_table(title: str, rows: dict[str, dict]):

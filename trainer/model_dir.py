@@ -25,6 +25,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from collect.errors import InputError
+from collect.json_files import write_json
 from trainer.networks import build_network
 from trainer.preprocessing import InputGeometry, IRNormalization
 
@@ -108,10 +109,7 @@ def save_model(model_dir: str | Path, network: nn.Module, metadata: ModelMetadat
 
 def write_metadata(model_dir: str | Path, metadata: ModelMetadata) -> None:
     """(Re)write ``metadata.json`` atomically."""
-    path = Path(model_dir) / METADATA_FILE
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(metadata.to_dict(), indent=2, sort_keys=True) + "\n")
-    tmp.replace(path)
+    write_json(Path(model_dir) / METADATA_FILE, metadata.to_dict(), sort_keys=True)
 
 
 def load_metadata(model_dir: str | Path) -> ModelMetadata:

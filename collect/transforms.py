@@ -1,4 +1,4 @@
-"""Rigid transforms between UR-style poses and 4x4 matrices.
+"""UR-style poses: rigid transforms to and from 4x4 matrices, and the path length of a linear move.
 
 A pose is ``(6,) [x, y, z, rx, ry, rz]``: metres + rotation vector (rad), the parent frame's
 coordinates of the child frame's origin and orientation. A matrix ``T_parent_child (4,4)`` maps
@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+#: Path length (m) that one radian of pure tool reorientation counts as in a linear move (the UR
+#: controller scales rotation into the tool speed; the planner's time estimate and the arm's twin
+#: both use it).
+ROTATION_M_PER_RAD = 0.1
 
 
 def pose_to_matrix(pose) -> np.ndarray:
@@ -33,3 +38,17 @@ def invert(matrix) -> np.ndarray:
     out[:3, :3] = m[:3, :3].T
     out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
     return out
+
+
+def rotation_between_rad(a, b) -> float:
+    """Angle (rad) of the rotation from the orientation of pose ``a`` (6,) to that of ``b`` (6,)."""
+    ra = Rotation.from_rotvec(np.asarray(a, dtype=np.float64)[3:6])
+    rb = Rotation.from_rotvec(np.asarray(b, dtype=np.float64)[3:6])
+    return float((ra.inv() * rb).magnitude())
+
+
+def linear_path_m(a, b) -> float:
+    """Path length (m) of a linear move from pose ``a`` (6,) to ``b`` (6,): the translation, or the
+    reorientation at ``ROTATION_M_PER_RAD`` where that is longer."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return max(float(np.linalg.norm(b[:3] - a[:3])), rotation_between_rad(a, b) * ROTATION_M_PER_RAD)

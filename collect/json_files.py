@@ -1,0 +1,53 @@
+"""JSON results of every command: one conversion to plain JSON data and one atomic writer, so a
+result, a profile or a model's metadata is never left half-written and never holds ``NaN``."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def plain_json(value):
+    """``value`` as strict JSON data: dataclasses -> dicts, numpy arrays -> lists, numpy scalars ->
+    Python numbers, paths -> strings, tuples -> lists, dict keys -> strings, NaN / inf -> ``None``;
+    ``TypeError`` for anything else that JSON cannot hold."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    if isinstance(value, dict):
+        return {str(k): plain_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return plain_json(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, (str, bool, int, float)):
+        return value
+    raise TypeError(f"not JSON serializable: {type(value).__name__}")
+
+
+def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
+    """Write ``plain_json(value)`` to ``path`` (indent 2, trailing newline) atomically: a temporary
+    file in the same directory, flushed to disk, then renamed over ``path``."""
+    path = Path(path)
+    text = json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n"
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
