@@ -69,7 +69,7 @@ class CameraHealth:
         }
 
     def maps(self) -> dict[str, np.ndarray]:
-        """The per-pixel maps, for ``np.savez``."""
+        """The per-pixel maps, each ``(H,W)``, for ``np.savez``."""
         return {
             "dead_mask": self.dead_mask,
             "stuck_mask": self.stuck_mask,
@@ -85,7 +85,8 @@ def local_background(image: np.ndarray, window: int = BACKGROUND_WINDOW) -> np.n
 
 
 def assess_camera(ir: np.ndarray, depth: np.ndarray) -> CameraHealth:
-    """Camera health of ``N >= 4`` no-contact frames (see the module docstring)."""
+    """Camera health of ``N >= 4`` no-contact frames: ``ir (N,H,W) uint16`` amplitude and ``depth
+    (N,H,W) uint16`` ToF depth (0 = invalid); see the module docstring."""
     ir = np.asarray(ir)
     depth = np.asarray(depth)
     if ir.ndim != 3 or ir.shape != depth.shape:

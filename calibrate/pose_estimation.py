@@ -233,8 +233,8 @@ def shape_from_object(primitive: dict | None, vertices: np.ndarray | None = None
 
     ``primitive`` ``{"type": "cylinder", "radius": m, "height": m, "center": [x,y,z] m,
     "axis": [ax,ay,az]}`` (``center`` defaults to ``[0, 0, height/2]``, ``axis`` to ``[0, 0, 1]``:
-    upright, base at the origin) gives a ``Cylinder``; any other type with a mesh gives a
-    ``GridSDF`` of the mesh.
+    upright, base at the origin) gives a ``Cylinder``; any other type with a mesh (``vertices (V,3)
+    float m`` and ``faces (F,3) int``, object frame) gives a ``GridSDF`` of the mesh.
     """
     kind = (primitive or {}).get("type")
     if kind == "cylinder":

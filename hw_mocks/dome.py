@@ -38,7 +38,8 @@ class RayGrid:
         return cls(float(u0), float(v0), int(step), (int(rows), int(cols)), rays)
 
     def coords_of(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Grid coordinates (float32, for ``cv2.remap``) of full-image pixel coordinates ``u, v``."""
+        """Grid coordinates (float32, for ``cv2.remap``) of full-image pixel coordinates ``u, v`` (any
+        shape; the results have it too)."""
         return ((u - self.u0) / self.step).astype(np.float32), ((v - self.v0) / self.step).astype(np.float32)
 
 

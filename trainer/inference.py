@@ -88,7 +88,7 @@ class DepthEstimator:
         return self.predict_batch(ir[None])[0]
 
     def latency_ms(self, ir: np.ndarray | None = None, repeats: int = 30, warmup: int = 3) -> float:
-        """Median wall time (ms) of ``predict`` on one frame (``ir`` or a synthetic one), batch 1."""
+        """Median wall time (ms) of ``predict`` on one frame (``ir (H,W) uint16`` or a synthetic one), batch 1."""
         if ir is None:
             rng = np.random.default_rng(0)
             ir = rng.integers(200, 4000, size=self.native_size, dtype=np.uint16)

@@ -13,7 +13,7 @@ def scaled(channels: int, width: float, minimum: int = 4) -> int:
 
 
 class ConvELU(nn.Module):
-    """3x3 convolution (reflection padded) + ELU, the monodepth2 decoder unit; keeps H, W."""
+    """3x3 convolution (reflection padded) + ELU, the monodepth2 decoder unit: ``(N,Cin,H,W) -> (N,Cout,H,W)``."""
 
     def __init__(self, in_channels: int, out_channels: int):
         super().__init__()
@@ -25,7 +25,8 @@ class ConvELU(nn.Module):
 
 
 class BasicBlock(nn.Module):
-    """ResNet basic block: two 3x3 conv + BN with an identity (or 1x1 projection) shortcut."""
+    """ResNet basic block: two 3x3 conv + BN with an identity (or 1x1 projection) shortcut;
+    ``(N,Cin,H,W) -> (N,Cout,H/stride,W/stride)``."""
 
     def __init__(self, in_channels: int, out_channels: int, stride: int = 1):
         super().__init__()

@@ -21,7 +21,7 @@ PACKING_DEPTH = 4
 
 
 class Conv2D(nn.Module):
-    """Conv + GroupNorm + ELU (PackNet's Conv2D unit)."""
+    """Conv + GroupNorm + ELU (PackNet's Conv2D unit): ``(N,Cin,H,W) -> (N,Cout,H/stride,W/stride)``."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel: int = 3, stride: int = 1):
         super().__init__()
@@ -34,7 +34,7 @@ class Conv2D(nn.Module):
 
 
 class ResidualBlock(nn.Module):
-    """Two Conv2D units with a projected shortcut; ``stride`` 2 halves H and W."""
+    """Two Conv2D units with a projected shortcut: ``(N,Cin,H,W) -> (N,Cout,H/stride,W/stride)``."""
 
     def __init__(self, in_channels: int, out_channels: int, stride: int):
         super().__init__()
@@ -78,6 +78,8 @@ class Unpacking(nn.Module):
 
 
 class PackNetDepth(nn.Module):
+    """The module's network: IR ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``(min_depth, max_depth)``."""
+
     def __init__(self, width: float, min_depth: float, max_depth: float):
         super().__init__()
         c = [scaled(n, width, minimum=8) for n in (32, 64, 64, 128, 256, 512)]

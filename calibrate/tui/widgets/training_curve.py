@@ -17,8 +17,9 @@ _AXIS = 9
 
 
 def column_values(values: list[float], width: int) -> np.ndarray:
-    """One value per chart column: the points themselves while they fit, else means of
-    ``width`` equal buckets over the whole history (the curve is compressed, never cropped)."""
+    """One value per chart column, ``(min(len(values), width),) float64``: the points themselves
+    while they fit, else means of ``width`` equal buckets over the whole history (the curve is
+    compressed, never cropped)."""
     data = np.asarray(values, dtype=np.float64)
     if len(data) <= width:
         return data
