@@ -23,6 +23,11 @@ sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running
 it. ``retract`` is allowed after a force fault (the force check is suspended while moving away)
 but not after a protective stop, which only the operator can clear on the teach pendant.
 
+A run's first move starts wherever the arm was left, maybe low beside an object: ``travel_to``
+rises straight up to the travel height before moving across. A contact move zeroes the force
+sensor, so it first checks that the bubble is free: a force already above
+``MotionSettings.max_preload_n`` is ``HardwareFault('preload')`` (nothing zeroed, nothing moved).
+
 The operator's stop (``stop_on(event)``: the stop key, Ctrl-C, a watchdog) is watched at every
 sample as well: once the event is set the running motion sends ``stopL`` within one sample and
 raises ``StopRequested``, and no motion but ``retract`` starts while it stays set.
@@ -78,6 +83,10 @@ class MotionSettings:
     press_speed: float = 0.02
     accel: float = 1.0
     contact_force_n: float = 0.4  # force that ends the guarded approach
+    #: force (N) above which a contact move finds the bubble already touching something (read
+    #: against the previous zero, before zeroing): well above the contact force, so that the F/T
+    #: sensor's drift and payload error after a reorientation do not trip it
+    max_preload_n: float = 2.0
     max_contact_travel_m: float = 0.05
     max_press_depth_m: float = 0.015
     retract_m: float = 0.03
@@ -103,6 +112,7 @@ def check_motion_settings(settings: MotionSettings, limits: SafetyLimits) -> Non
     for speed in (settings.travel_speed, settings.approach_speed, settings.press_speed, retract_speed(settings)):
         limits.check_motion(speed, settings.accel)
     limits.check_force(settings.contact_force_n)
+    limits.check_force(settings.max_preload_n)
 
 
 class Arm:
@@ -316,13 +326,31 @@ class Arm:
         sample, _ = self._run_move(pose, speed or self.settings.travel_speed, accel or self.settings.accel)
         return sample
 
+    def travel_to(self, pose, speed: float | None = None, accel: float | None = None) -> ArmState:
+        """Move to ``pose`` (6,), a pose at a safe travel height above the objects, from wherever the
+        TCP is (the first move of a run, which may start low beside an object): straight up (base +z,
+        orientation kept) to the height of ``pose`` when the TCP is below it, then the linear move.
+        The path never runs below the lower of its two ends, where a straight line from a low pose
+        could sweep the bubble through an object. The target is validated before anything moves.
+        Returns the sample on arrival."""
+        speed, accel = speed or self.settings.travel_speed, accel or self.settings.accel
+        target = self.limits.check_move(pose, speed, accel)
+        rise = self.state().tcp_pose.copy()
+        if rise[2] < target[2] - ARRIVAL_TOL_M:
+            rise[2] = target[2]
+            self.move_to(rise, speed, accel)
+        return self.move_to(target, speed, accel)
+
     def move_until_contact(self, direction=None, speed: float | None = None, force_threshold_n: float | None = None,
                            max_travel_m: float | None = None) -> ArmState | None:
         """Guarded linear move along ``direction`` (3,) in the base frame (default: the pressing axis).
 
-        Zeroes the force sensor first (the membrane must be free), remembers the start pose as the
-        retract pose, and stops as soon as the contact force reaches ``force_threshold_n``.
-        Returns the sample at contact, or None when nothing was touched within ``max_travel_m``.
+        Zeroes the force sensor first, remembers the start pose as the retract pose, and stops as
+        soon as the contact force reaches ``force_threshold_n`` (N). The zero needs a free membrane:
+        when the force read now (relative to the previous zero; its magnitude, which bounds the
+        force along ``direction`` too) is above ``settings.max_preload_n``, the bubble touches
+        something, and ``HardwareFault('preload')`` is raised with nothing zeroed and nothing moved.
+        Returns the sample at contact, or None when nothing was touched within ``max_travel_m`` (m).
         """
         s = self.settings
         speed = speed or s.approach_speed
@@ -338,6 +366,13 @@ class Arm:
         target = start.tcp_pose.copy()
         target[:3] += axis * travel
         self.limits.check_move(target, speed, s.accel)
+        preload = float(np.linalg.norm(start.tcp_wrench[:3]))
+        if preload > s.max_preload_n:
+            raise HardwareFault(
+                "preload", f"arm: the sensor already feels {preload:.2f} N ({start.pressing_force_n(axis):.2f} N along "
+                           f"the approach) before a contact move, above the {s.max_preload_n:.2f} N a free bubble may "
+                           f"read (motion max_preload_n): the bubble touches something; force sensor not zeroed, "
+                           f"arm not moved")
         with self._ctl_lock:
             self._ctl.zeroFtSensor()
         self._retract_pose = start.tcp_pose.copy()

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from typing import ClassVar
 import numpy as np
 
 from collect.arm import Arm, MotionSettings
-from collect.camera import ToFCamera
+from collect.camera import STALL_TIMEOUT_S, ToFCamera
 from collect.errors import HardwareFault, InputError
 from collect.pressure_board import PressureBoard
 from collect.safety import SafetyLimits
@@ -34,15 +35,25 @@ log = logging.getLogger(__name__)
 
 #: The objects of the standard fixture plate (built-in simulated objects of the same names).
 DEFAULT_OBJECTS = ("mug", "wine_glass", "box", "fingers")
+#: RTDE rates (Hz) a UR controller serves: up to 500 Hz on e-Series (CB3: 125 Hz).
+RTDE_HZ_RANGE = (1.0, 500.0)
+#: Frame rates (fps) of the OAK ToF camera: its 33D sensor runs at up to 80 fps (depthai's RVC2
+#: driver limit), and below two frames per stall timeout the camera driver would see a stall.
+CAMERA_FPS_RANGE = (2.0 / STALL_TIMEOUT_S, 80.0)
+
+
+def _within(value, lo: float, hi: float) -> bool:
+    """Whether ``value`` is a real number (not a bool or a string) in ``[lo, hi]``."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and lo <= value <= hi
 
 
 @dataclass
 class BenchConfig(ABC):
     """Settings common to every bench; subclasses register under ``type`` with ``BenchConfig.register``.
 
-    objects: built-in object names or mesh paths, placed on the fixture plate in this order.
-    limits: safety limits (None: the type's default). motion: speeds of the pressing motions.
-    state_hz: arm state sampling rate (125-500 Hz).
+    objects: built-in object names or mesh paths, placed on the fixture plate in this order (one
+    string is one name: YAML ``objects: mug``). limits: safety limits (None: the type's default).
+    motion: speeds of the pressing motions. state_hz: arm state sampling rate (125-500 Hz).
     """
 
     _registry: ClassVar[dict[str, type["BenchConfig"]]] = {}
@@ -52,6 +63,15 @@ class BenchConfig(ABC):
     limits: SafetyLimits | None = None
     motion: MotionSettings = field(default_factory=MotionSettings)
     state_hz: float = 125.0
+
+    def __post_init__(self):
+        names = (str, os.PathLike)
+        if isinstance(self.objects, names):  # one name, not a sequence of letters
+            self.objects = (self.objects,)
+        if not isinstance(self.objects, (list, tuple)) or not all(isinstance(o, names) for o in self.objects):
+            raise InputError(f"bench '{self.type}': objects must be a list of object names or mesh paths, "
+                             f"got {self.objects!r}")
+        self.objects = tuple(os.fspath(o) for o in self.objects)
 
     @classmethod
     def register(cls, name: str) -> Callable[[type], type]:
@@ -146,10 +166,11 @@ def workspace_limits(objects, base: SafetyLimits = SafetyLimits()) -> SafetyLimi
 @BenchConfig.register("ur")
 @dataclass
 class URBenchConfig(BenchConfig):
-    """A real bench. robot_ip: UR controller; rtde_hz: RTDE frequency (500 on e-Series);
-    camera_id: depthai device id (None = first found); camera_fps; tof_profile;
-    serial_port: the pressure board's device (e.g. /dev/ttyACM0); plate_pose (6,): the fixture
-    plate origin in the base frame; home_pose (6,): safe TCP pose above the plate."""
+    """A real bench. robot_ip: UR controller; rtde_hz: RTDE frequency (Hz, ``RTDE_HZ_RANGE``; 500 on
+    e-Series); camera_id: depthai device id (None = first found); camera_fps (``CAMERA_FPS_RANGE``);
+    tof_profile; serial_port: the pressure board's device (e.g. /dev/ttyACM0); plate_pose (6,): the
+    fixture plate origin in the base frame; home_pose (6,): safe TCP pose above the plate.
+    The rates are checked when the config is built, before any device is opened."""
 
     robot_ip: str = ""
     rtde_hz: float = 500.0
@@ -159,6 +180,17 @@ class URBenchConfig(BenchConfig):
     serial_port: str = "/dev/ttyACM0"
     plate_pose: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     home_pose: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        lo, hi = RTDE_HZ_RANGE
+        if not _within(self.rtde_hz, lo, hi):
+            raise InputError(f"bench 'ur': rtde_hz {self.rtde_hz!r} is outside {lo:g}..{hi:g} Hz "
+                             f"(the RTDE rates of a UR controller)")
+        lo, hi = CAMERA_FPS_RANGE
+        if not _within(self.camera_fps, lo, hi):
+            raise InputError(f"bench 'ur': camera_fps {self.camera_fps!r} is outside {lo:g}..{hi:g} fps "
+                             f"(the OAK ToF camera's frame rates)")
 
     def open(self) -> "Bench":
         if not self.robot_ip:
@@ -187,12 +219,15 @@ class URBenchConfig(BenchConfig):
 @dataclass
 class SimBenchConfig(BenchConfig):
     """The simulated bench. sensor: a SensorSpec, a spec YAML path, or None (``draw_sensor(seed)``);
-    seed: scene/noise seed; faults: ``KIND@SECONDS`` strings or ``SimFault``s; speed: clock factor."""
+    seed: scene/noise seed; faults: ``KIND@SECONDS`` strings or ``SimFault``s; speed: clock factor;
+    start_pose (6,): where the simulated arm starts, inside the workspace box (m + rotvec; None: the
+    home pose above the plate)."""
 
     sensor: object = None
     seed: int = 0
     faults: tuple = ()
     speed: float = 1.0
+    start_pose: tuple[float, ...] | None = None
 
     def open(self) -> "Bench":
         from hw_mocks.fake_camera import SimToFCamera
@@ -210,7 +245,8 @@ class SimBenchConfig(BenchConfig):
         faults = [f if isinstance(f, SimFault) else parse_sim_fault(f) for f in self.faults]
         objects = _placed_objects(self.objects)
         limits = self.limits or workspace_limits(objects)
-        scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed)
+        start = None if self.start_pose is None else limits.check_pose(self.start_pose)
+        scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed, start_pose=start)
         scene.start()
         firmware = PressureFirmware(scene, seed=self.seed)
         firmware.start()

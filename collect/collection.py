@@ -3,11 +3,13 @@
 ``run_collection(bench, plan, writer, progress_callback, stop_event)`` drives the arm through a
 ``CollectionPlan`` while a recorder thread streams the bench into a ``SessionWriter``:
 
-* main thread (the caller's): for each object, travel above it, rest at its reference pose for
-  the no-contact frames (phase ``free``, pose id -1, the object's index), then for each contact
-  pose: ``approach`` (travel to the pose's above-pose, guarded move until contact), ``press`` (to
-  the pose's press force beyond the contact force), ``hold``, ``retract`` (back to the above-pose). Moves between objects are
-  phase ``free`` with object -1.
+* main thread (the caller's): for each object, travel above it (``Arm.travel_to``: a run, fresh or
+  resumed, starts wherever the arm was left, so it rises straight up to the travel height before
+  moving across), rest at its reference pose for the no-contact frames (phase ``free``, pose id
+  -1, the object's index), then for each contact pose: ``approach`` (travel to the pose's
+  above-pose, guarded move until contact), ``press`` (to the pose's press force beyond the contact
+  force), ``hold``, ``retract`` (back to the above-pose). Moves between objects are phase ``free``
+  with object -1.
 * recorder thread: takes every camera frame, stamps it with the object / pose / phase that was
   under way at the frame's capture time (``t_host`` on the bench clock; the main thread logs each
   phase start on that clock, so frames that wait in the camera queue keep their true phase) and
@@ -251,7 +253,8 @@ def run_collection(
     pressure_hpa)`` is called with keyword arguments from the recorder thread (the fields of
     ``calibrate.commission_events.CollectionProgress``); it must not block.
     Poses already completed in the file (``writer.completed_pose_ids``, after ``resume``) and
-    reference frames already recorded (``writer.referenced_objects``) are skipped.
+    reference frames already recorded (``writer.referenced_objects``) are skipped; with nothing
+    left, nothing moves and nothing is recorded.
     Raises what the bench raised (``HardwareFault``, ``KeyboardInterrupt``) after a safe stop.
     """
     result = CollectionResult()
@@ -268,16 +271,17 @@ def run_collection(
             raise StopRequested("collection: stopped by the operator")
         recorder.set_stamp(stamp, bench.clock())
 
+    stops = [(stop, [p for p in plan.poses_of(stop.object_index) if p.pose_id not in writer.completed_pose_ids],
+              writer.object_indices[stop.object_index] in writer.referenced_objects) for stop in plan.stops]
+    stops = [(stop, poses, has_reference) for stop, poses, has_reference in stops if poses or not has_reference]
+    if not stops:
+        return result
     recorder.start()
     try:
-        for stop in plan.stops:
+        for stop, poses, has_reference in stops:
             oi = stop.object_index
-            poses = [p for p in plan.poses_of(oi) if p.pose_id not in writer.completed_pose_ids]
-            has_reference = writer.object_indices[oi] in writer.referenced_objects
-            if not poses and has_reference:
-                continue
             enter(_Stamp())
-            arm.move_to(stop.travel_pose, m.travel_speed, m.accel)
+            arm.travel_to(stop.travel_pose, m.travel_speed, m.accel)  # a run's first move starts anywhere
             arm.move_to(stop.reference_pose, m.travel_speed, m.accel)
             if not has_reference:
                 enter(_Stamp(oi, -1, sf.PHASE_FREE))

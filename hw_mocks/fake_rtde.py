@@ -1,10 +1,10 @@
 """Twin of a UR e-Series arm behind ur_rtde: ``FakeRTDEControl`` and ``FakeRTDEReceive``.
 
-They implement the ur_rtde methods that ``collect.arm.Arm`` calls, with the same names,
+They implement exactly the ur_rtde methods that ``collect.arm.Arm`` calls, with the same names,
 argument orders and defaults as ``rtde_control.RTDEControlInterface`` /
-``rtde_receive.RTDEReceiveInterface`` (``tests/test_drivers_rtde_signatures.py`` checks this
-against the installed ur_rtde). Only the constructors differ: they take the simulated controller
-(``SimURController``) instead of a robot IP.
+``rtde_receive.RTDEReceiveInterface`` (``tests/test_drivers_rtde_signatures.py`` checks them
+against the driver's calls and the installed ur_rtde). Only the constructors differ: they take
+the simulated controller (``SimURController``) instead of a robot IP.
 
 The simulated controller moves the TCP along analytic trapezoidal profiles on the simulated
 clock (position linear, orientation slerped, speed and acceleration bounded as requested),
@@ -193,11 +193,6 @@ class SimURController:
         with self._lock:
             self._ft_offset = self._raw_wrench().copy()
 
-    def trigger_protective_stop(self) -> None:
-        with self._lock:
-            t, pose, _ = self._update()
-            self._freeze(t, pose)
-
     # receive side
     def tcp_pose(self) -> list[float]:
         return self._update()[1].tolist()
@@ -211,11 +206,6 @@ class SimURController:
     def protective_stopped(self) -> bool:
         self._update()
         return self._protective
-
-    def steady(self) -> bool:
-        t, *_ = self._update()
-        with self._lock:
-            return self._move.done(t)
 
 
 class FakeRTDEControl:
@@ -242,22 +232,8 @@ class FakeRTDEControl:
         self._c.zero_ft()
         return True
 
-    def triggerProtectiveStop(self) -> bool:
-        self._c.trigger_protective_stop()
-        return True
-
-    def isSteady(self) -> bool:
-        return self._c.steady()
-
-    def isConnected(self) -> bool:
-        return self._connected
-
     def disconnect(self) -> None:
         self._connected = False
-
-    def reconnect(self) -> bool:
-        self._connected = True
-        return True
 
 
 class FakeRTDEReceive:
@@ -276,14 +252,8 @@ class FakeRTDEReceive:
     def getActualTCPForce(self) -> list[float]:
         return self._c.tcp_force()
 
-    def getTimestamp(self) -> float:
-        return float(self._c.scene.now())
-
     def isProtectiveStopped(self) -> bool:
         return self._c.protective_stopped()
-
-    def isEmergencyStopped(self) -> bool:
-        return False
 
     def getSafetyMode(self) -> int:
         return SAFETY_MODE_PROTECTIVE_STOP if self._c.protective_stopped() else SAFETY_MODE_NORMAL
@@ -293,7 +263,3 @@ class FakeRTDEReceive:
 
     def disconnect(self) -> None:
         self._connected = False
-
-    def reconnect(self) -> bool:
-        self._connected = True
-        return True

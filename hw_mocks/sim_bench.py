@@ -119,7 +119,6 @@ class SimClock:
         self._last = 0.0
         self._lock = threading.Lock()
         self.limit = None
-        self.paused_s = 0.0
 
     def now(self) -> float:
         limit = self.limit() if self.limit is not None else None
@@ -161,24 +160,25 @@ def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
 
 class SimBench:
     """One simulated bench: ``spec`` (SensorSpec), ``objects`` (placed BenchObjects), ``seed``,
-    ``faults`` (SimFault list), ``speed`` (clock factor), ``home_pose`` (6,) initial TCP pose
-    (default: above the middle of the plate), ``protective_force_n`` (N) of the simulated robot.
+    ``faults`` (SimFault list), ``speed`` (clock factor), ``start_pose`` (6,) the TCP pose the arm
+    starts at (default: ``home_pose``, the safe pose above the middle of the plate; e.g. low beside
+    an object, where a previous run left it), ``protective_force_n`` (N) of the simulated robot.
+    Poses are m + rotation vector in the base frame.
     """
 
-    def __init__(self, spec, objects, *, seed: int = 0, faults=(), speed: float = 1.0, home_pose=None,
+    def __init__(self, spec, objects, *, seed: int = 0, faults=(), speed: float = 1.0, start_pose=None,
                  protective_force_n: float = 150.0):
         from hw_mocks.bubble_sim import BubbleSim
         from hw_mocks.fake_rtde import SimURController
 
         self.spec = spec
         self.objects = list(objects)
-        self.seed = int(seed)
         self.faults = list(faults)
         self.clock = SimClock(speed)
         self.sim = BubbleSim(spec, self.objects, seed)
-        self.home_pose = np.asarray(default_home_pose(self.objects) if home_pose is None else home_pose, dtype=float)
+        self.home_pose = default_home_pose(self.objects)
         self._lock = threading.Lock()
-        self.arm = SimURController(self, self.home_pose, protective_force_n)
+        self.arm = SimURController(self, self.home_pose if start_pose is None else start_pose, protective_force_n)
         self._solved: list[_Solved] = []  # the last two solutions, oldest first
         self.solves = 0
         self.physics_failed = False

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import h5py
@@ -133,6 +134,9 @@ def test_the_bench_motion_settings_set_the_speed_of_every_collection_motion(tmp_
 def test_stop_event_then_resume_completes_the_plan(tmp_path):
     out = tmp_path / "stopped.h5"
     config = BenchConfig.create("sim", objects=("box",), seed=1)
+    # the resumed run finds the arm where it was left: low beside the box (a straight line from there
+    # to the travel pose above the box would sweep the bubble through the box's edge)
+    low = (0.45, -0.1, 0.02, np.pi, 0.0, 0.0)
     settings = PlanSettings(poses_per_object=2, seed=1)
     stop = threading.Event()
     seen = []
@@ -150,9 +154,9 @@ def test_stop_event_then_resume_completes_the_plan(tmp_path):
     assert {"object_name", "pose_index", "phase", "frames", "force_n", "pressure_hpa"} <= set(seen[-1])
     assert any(f["force_n"] > 0.3 for f in seen)
     with Session.open(out) as s:
-        first = s.n_frames
+        first, first_arm = s.n_frames, len(s.arm().t)
         assert s.closed_cleanly and len(s.reference_frames("box")) > 0
-    with open_bench(config) as bench:
+    with open_bench(dataclasses.replace(config, start_pose=low)) as bench:
         plan = plan_bench_collection(bench, settings)
         with open_collection_writer(out, bench, plan, resume=True) as writer:
             # stopped in pose 0's retract: pose 0 was pressed, held and let go, so it counts as done
@@ -163,6 +167,20 @@ def test_stop_event_then_resume_completes_the_plan(tmp_path):
         assert s.n_frames > first
         assert len(s.select(pose_id=[0, 1], phase="retract")) > 0
         assert s.object_index[first:][s.phase[first:] == sf.PHASE_FREE].max() == -1  # no second reference
+        path = s.arm().tcp_pose[first_arm:]
+    # the resumed run's first move: straight up to the travel height, never below where it started
+    np.testing.assert_allclose(path[0], low, atol=1e-6)
+    rise = path[: np.argmax(path[:, 2] > plan.stops[0].travel_pose[2] - 1e-4) + 1]
+    assert len(rise) > 10 and np.abs(rise[:, :2] - low[:2]).max() < 1e-6 and rise[:, 2].min() >= low[2] - 1e-6
+    with Session.open(out) as s:
+        done = s.n_frames, len(s.arm().t)
+    with open_bench(config) as bench, open_collection_writer(out, bench, plan, resume=True) as writer:
+        start = bench.arm.state().tcp_pose
+        result = run_collection(bench, plan, writer)  # the plan is complete: nothing moves, nothing recorded
+        np.testing.assert_allclose(bench.arm.state().tcp_pose, start, atol=1e-9)
+    assert result.frames == 0 and result.poses_done == []
+    with Session.open(out) as s:
+        assert (s.n_frames, len(s.arm().t)) == done and s.closed_cleanly
 
 
 def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
@@ -208,6 +226,13 @@ def test_object_list_from_the_command_line():
     assert object_list(None, [], default="box") == ("box",)
     with pytest.raises(InputError, match="empty"):
         object_list(" , ", [])
+
+
+def test_bench_yaml_rates_are_checked_before_any_device_opens(tmp_path, capsys):
+    bench = tmp_path / "bench.yaml"
+    bench.write_text("type: ur\nrobot_ip: 127.0.0.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\nrtde_hz: 1000\n")
+    assert main(["collect", "--bench", str(bench), "--objects", "box", "--quiet", "--out", str(tmp_path / "r.h5")]) == 2
+    assert "rtde_hz 1000 is outside 1..500 Hz" in _error_line(capsys)
 
 
 def test_real_bench_without_a_robot_is_a_fault(tmp_path, capsys):

@@ -1,41 +1,25 @@
 """The simulated bench end to end: the three drivers against their twins, and every fault kind.
 
 Each test opens a real ``sim`` bench (BubbleSim scene, pty pressure firmware read by pyserial,
-ur_rtde-shaped arm twin, depthai-message camera twin) with one object, the box.
+ur_rtde-shaped arm twin, depthai-message camera twin) with one object, the box. The fault tests
+run the production collection loop (``collect.collection.run_collection`` and its recorder).
 """
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import pytest
 
+from collect.arm import ARRIVAL_TOL_RAD
 from collect.bench import BenchConfig, open_bench
+from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.errors import HardwareFault, InputError
+from collect.pose_planner import PlanSettings
+from collect.session_reader import Session
+from collect.transforms import rotation_between_rad
 from hw_mocks.sim_bench import FAULT_KINDS, SimFault, parse_sim_fault
-
-
-class _Recorder(threading.Thread):
-    """Consumes frames and checks the pressure board like the collection loop; a device fault
-    stops the arm through ``arm.abort``."""
-
-    def __init__(self, bench):
-        super().__init__(daemon=True)
-        self.bench = bench
-        self.frames = []
-        self.error: HardwareFault | None = None
-        self.halt = threading.Event()
-
-    def run(self):
-        try:
-            while not self.halt.is_set():
-                self.frames.append(self.bench.camera.get_frame())
-                self.bench.pressure.check()
-        except HardwareFault as err:
-            self.error = err
-            self.bench.arm.abort(err)
 
 
 def _press_cycle(bench, hold_s: float):
@@ -55,14 +39,15 @@ def _config(**kw):
 
 
 def test_sim_bench_streams_all_three_devices_through_the_real_driver_paths():
+    # device-level reads on purpose (driver paths, no recorder); the collection's recorder streaming
+    # all three during motion: tests/test_collect_run.py
     with open_bench(_config()) as bench:
         assert bench.simulated and bench.sim is not None
         assert bench.sensor_serial == bench.sim.spec.serial  # read from the board with ID?
         assert bench.intrinsics == bench.sim.spec.intrinsics()
         assert bench.pressure.firmware_version().startswith("bubble-pb")
         bench.pressure.set_led(True)
-        rec = _Recorder(bench)
-        rec.start()
+        frames = [bench.camera.get_frame() for _ in range(30)]
         bench.pressure.drain()
         bench.arm.drain_states()
         t0 = bench.clock()
@@ -72,14 +57,10 @@ def test_sim_bench_streams_all_three_devices_through_the_real_driver_paths():
         pressed_hpa = bench.pressure.wait_reading().hpa
         bench.arm.retract()
         t1 = bench.clock()
-        rec.halt.set()
-        rec.join()
-        assert rec.error is None
+        bench.check()  # no device fault on the way
         states, readings = bench.arm.drain_states(), bench.pressure.drain()
 
-    frames = rec.frames
     h, w = bench.intrinsics["height"], bench.intrinsics["width"]
-    assert len(frames) > 20
     seq = np.array([f.seq for f in frames])
     np.testing.assert_array_equal(np.diff(seq), 1)  # contiguous
     t_dev = np.array([f.t_device for f in frames])
@@ -100,6 +81,21 @@ def test_sim_bench_streams_all_three_devices_through_the_real_driver_paths():
     assert bench.pressure.stats["bad_checksum"] == bench.pressure.stats["malformed"] == 0
 
 
+def test_a_contact_move_while_pressed_is_a_preload_fault_and_the_safe_stop_retracts():
+    with open_bench(_config()) as bench:
+        above = _press_cycle(bench, hold_s=0.0)
+        pressed = bench.arm.state()
+        with pytest.raises(HardwareFault) as err:  # zeroing now would take the press for "no contact"
+            bench.arm.move_until_contact(speed=0.01, force_threshold_n=0.4, max_travel_m=0.012)
+        assert err.value.kind == "preload"
+        still = bench.arm.state()
+        np.testing.assert_allclose(still.tcp_pose, pressed.tcp_pose, atol=1e-4)  # not moved
+        assert still.pressing_force_n() > 3.0  # not zeroed: the press still reads
+        assert bench.safe_stop()
+        time.sleep(0.1)  # the last millimetre of the retract's braking ramp
+        np.testing.assert_allclose(bench.arm.state().tcp_pose, above, atol=5e-4)
+
+
 def test_parse_sim_fault():
     assert parse_sim_fault("camera-stall@12.5") == SimFault("camera-stall", 12.5)
     assert parse_sim_fault(" force-spike@3 ").at_s == 3.0
@@ -113,32 +109,47 @@ def test_parse_sim_fault():
 
 
 @pytest.mark.parametrize("kind", FAULT_KINDS)
-def test_fault_is_detected_and_the_arm_stops_and_retracts(kind):
+def test_fault_during_a_collection_stops_the_arm_retracts_and_keeps_the_data(kind, tmp_path, monkeypatch):
+    out = tmp_path / "fault.h5"
     with open_bench(_config()) as bench:
-        rec = _Recorder(bench)
-        rec.start()
-        above = _press_cycle(bench, hold_s=0.0)
-        fault = SimFault(kind, bench.clock() + 0.3)  # strikes during the hold
-        bench.sim.faults.append(fault)
-        with pytest.raises(HardwareFault) as err:
-            bench.arm.hold(3.0)
-        t_detect = bench.clock()
+        plan = plan_bench_collection(bench, PlanSettings(poses_per_object=1, seed=1, hold_s=3.0))
+
+        def progress(phase, **_):  # the recorder thread's report of the hold: the fault strikes during it
+            if phase == "hold" and not bench.sim.faults:
+                bench.sim.faults.append(SimFault(kind, bench.clock() + 0.3))
+
+        safe_stops = []  # (bench time, retracted) of each safe stop: when the run reacted to the fault
+        real_safe_stop = bench.safe_stop
+
+        def timed_safe_stop() -> bool:
+            t = bench.clock()
+            safe_stops.append((t, real_safe_stop()))
+            return safe_stops[-1][1]
+
+        monkeypatch.setattr(bench, "safe_stop", timed_safe_stop)
+        with pytest.raises(HardwareFault) as err, open_collection_writer(out, bench, plan, resume=False) as writer:
+            run_collection(bench, plan, writer, progress)
+        (fault,) = bench.sim.faults
+        (t_detect, retracted), = safe_stops
         assert err.value.kind == kind
         assert fault.at_s < t_detect < fault.at_s + 0.8  # bounded detection (camera: silent > 0.5 s)
-        retracted = bench.safe_stop()
-        rec.halt.set()
-        rec.join()
         time.sleep(0.1)  # the last millimetre of the retract's braking ramp
         state = bench.arm.state()
         assert np.linalg.norm(bench.sim.arm.tcp_speed()[:3]) == 0.0  # at rest
+        above = plan.poses[0].above_pose
         if kind == "protective-stop":
             assert not retracted  # a protective stop holds the arm until the operator clears it
             assert bench.sim.arm.protective_stopped()
             assert state.tcp_pose[2] < above[2] - 0.003  # still pressed in
             assert not bench.sim.arm.move_linear(state.tcp_pose + [0, 0, 0.01, 0, 0, 0], 0.05, 0.5)
         else:
-            assert retracted
-            np.testing.assert_allclose(state.tcp_pose, above, atol=5e-4)  # back at the approach pose
+            assert retracted  # back at the (tilted) approach pose, within the arm's arrival tolerances
+            np.testing.assert_allclose(state.tcp_pose[:3], above[:3], atol=5e-4)
+            assert rotation_between_rad(state.tcp_pose, above) < ARRIVAL_TOL_RAD
+    with Session.open(out) as s:  # the recording up to the fault is kept, the safe stop's motion with it
+        assert s.closed_cleanly and len(s.select(phase="hold")) > 0
+        assert s.t_host[-1] > fault.at_s - 0.1
+        np.testing.assert_allclose(s.arm().tcp_pose[-1], state.tcp_pose, atol=5e-4)
 
 
 def test_bench_config_yaml_round_trip_and_errors(tmp_path):
@@ -158,6 +169,12 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
         "unknown.yaml": "type: ur\nwarp_drive: true\n",
         "badlimits.yaml": "type: sim\nlimits: {force_limit_n: -3}\n",
         "badtype.yaml": "type: kuka\n",
+        "objects.yaml": "type: sim\nobjects: [mug, 3]\n",
+        "objectsmap.yaml": "type: sim\nobjects: {mug: 1}\n",
+        "rtde.yaml": "type: ur\nrtde_hz: 1000\n",  # checked when the config is built, not when the robot connects
+        "rtdetext.yaml": "type: ur\nrtde_hz: fast\n",
+        "fps.yaml": "type: ur\ncamera_fps: 0\n",
+        "fpshigh.yaml": "type: ur\ncamera_fps: 200\n",
     }
     for name, text in bad.items():
         path = tmp_path / name
@@ -165,6 +182,9 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
             path.write_text(text)
         with pytest.raises(InputError):
             BenchConfig.from_yaml(path)
+    one = tmp_path / "one.yaml"
+    one.write_text("type: ur\nobjects: teapot\n")  # one name, not the letters t, e, a, ...
+    assert BenchConfig.from_yaml(one).objects == ("teapot",)
     with pytest.raises(InputError):
         BenchConfig.create("ur").open()  # no robot_ip: refused before any connection attempt
 

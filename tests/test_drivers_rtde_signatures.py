@@ -1,4 +1,5 @@
-"""The arm twin must keep the installed ur_rtde's method names, argument orders and defaults.
+"""The arm twin must keep the installed ur_rtde's method names, argument orders and defaults, and
+implement exactly the methods the driver calls (no unused twin methods).
 
 Signatures come from the pybind11 docstrings of ``rtde_control.RTDEControlInterface`` and
 ``rtde_receive.RTDEReceiveInterface`` (no robot is contacted: the classes are only inspected).
@@ -15,6 +16,7 @@ import rtde_control
 import rtde_receive
 
 from collect.arm import Arm
+from collect.errors import HardwareFault
 from collect.safety import SafetyLimits
 from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
 from hw_mocks.sim_bench import SimClock
@@ -80,9 +82,7 @@ def test_signature_parser_reads_pybind_overloads():
 @pytest.mark.parametrize("twin, real", [(FakeRTDEControl, rtde_control.RTDEControlInterface),
                                         (FakeRTDEReceive, rtde_receive.RTDEReceiveInterface)])
 def test_twin_methods_match_installed_ur_rtde(twin, real):
-    methods = _public_methods(twin)
-    assert len(methods) >= 7
-    for name in methods:
+    for name in _public_methods(twin):
         assert hasattr(real, name), f"{twin.__name__}.{name} does not exist in {real.__name__}"
         overloads = real_signatures(real, name)
         assert overloads, f"no signature found in the docstring of {real.__name__}.{name}"
@@ -126,7 +126,8 @@ class _FlatFloor:
 
 def test_every_call_of_the_driver_binds_to_the_real_ur_rtde_signature():
     calls: list = []
-    controller = SimURController(_FlatFloor(), [0.4, 0.0, 0.11, np.pi, 0.0, 0.0])
+    # the simulated robot protective-stops above 6 N: the last press below runs into it
+    controller = SimURController(_FlatFloor(), [0.4, 0.0, 0.11, np.pi, 0.0, 0.0], protective_force_n=6.0)
     arm = Arm(_Recorder(FakeRTDEControl(controller), calls), _Recorder(FakeRTDEReceive(controller), calls),
               SafetyLimits(), state_hz=250)
     try:
@@ -136,12 +137,15 @@ def test_every_call_of_the_driver_binds_to_the_real_ur_rtde_signature():
         arm.hold(0.05)
         arm.retract()
         arm.stop()
+        arm.move_until_contact(speed=0.02, force_threshold_n=0.5)
+        with pytest.raises(HardwareFault, match="protective stop"):
+            arm.press(force_n=8.0)
     finally:
         arm.close()
     real = {FakeRTDEControl: rtde_control.RTDEControlInterface, FakeRTDEReceive: rtde_receive.RTDEReceiveInterface}
-    used = set()
+    used: dict = {twin_cls: set() for twin_cls in real}
     for twin_cls, name, args, kwargs in calls:
-        used.add(name)
+        used[twin_cls].add(name)
         overloads = real_signatures(real[twin_cls], name)
         bound = False
         for params in overloads:
@@ -155,4 +159,6 @@ def test_every_call_of_the_driver_binds_to_the_real_ur_rtde_signature():
             if name == "moveL":  # the pose overload: 6 floats, then speed, acceleration, asynchronous
                 assert len(args[0]) == 6 and all(isinstance(v, float) for v in args[0])
         assert bound, f"driver called {name}{args} which binds to no overload of {real[twin_cls].__name__}.{name}"
-    assert {"moveL", "stopL", "zeroFtSensor", "getActualTCPPose", "getActualTCPForce", "isProtectiveStopped"} <= used
+    for twin_cls, names in used.items():  # the twin implements what the driver calls, and nothing else
+        unused = set(_public_methods(twin_cls)) - names
+        assert not unused, f"{twin_cls.__name__} has methods the driver never calls: {sorted(unused)}"

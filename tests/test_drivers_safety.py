@@ -7,10 +7,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from collect.arm import Arm, MotionSettings
-from collect.errors import InputError
+from collect.errors import HardwareFault, InputError
 from collect.safety import SafetyLimits, SafetyViolation, tilt_deg
+from collect.transforms import rotation_between_rad
 from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
 from hw_mocks.sim_bench import SimClock
 
@@ -42,8 +44,6 @@ def test_limits_accept_a_good_move_and_reject_each_kind_of_violation():
 def test_tilt_is_measured_from_straight_down():
     assert tilt_deg([0, 0, 0, *DOWN]) == pytest.approx(0.0, abs=1e-9)
     assert tilt_deg([0, 0, 0, 0.0, 0.0, 0.0]) == pytest.approx(180.0)
-    from scipy.spatial.transform import Rotation
-
     tilted = (Rotation.from_rotvec(DOWN) * Rotation.from_euler("y", 12.0, degrees=True)).as_rotvec()
     assert tilt_deg([0, 0, 0, *tilted]) == pytest.approx(12.0)
 
@@ -56,10 +56,12 @@ def test_bad_limit_values_are_input_errors():
 
 
 class _Still:
-    """A scene with nothing to touch."""
+    """A scene whose raw wrench on the sensor is ``force`` (6,) N, N m wherever the TCP is (zero:
+    nothing to touch)."""
 
     def __init__(self):
         self.clock = SimClock()
+        self.force = np.zeros(6)
 
     def now(self):
         return self.clock.now()
@@ -68,17 +70,22 @@ class _Still:
         return False
 
     def wrench(self, pose, t):
-        return np.zeros(6)
+        return self.force.copy()
 
 
 class _CountingControl(FakeRTDEControl):
     def __init__(self, controller):
         super().__init__(controller)
         self.moves = 0
+        self.zeros = 0
 
     def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
         self.moves += 1
         return super().moveL(pose, speed, acceleration, asynchronous)
+
+    def zeroFtSensor(self):
+        self.zeros += 1
+        return super().zeroFtSensor()
 
 
 def test_arm_rejects_unsafe_requests_before_sending_any_motion():
@@ -105,6 +112,50 @@ def test_arm_rejects_unsafe_requests_before_sending_any_motion():
         np.testing.assert_allclose(arm.state().tcp_pose, start, atol=1e-9)
         arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
         assert control.moves == 1
+    finally:
+        arm.close()
+
+
+def test_a_contact_move_refuses_to_zero_a_sensor_that_already_feels_a_force():
+    # the bubble rests on something (a press not retracted, an object taller than planned): zeroing
+    # would hide that force and the approach would press on blind; nothing is zeroed nor sent
+    scene = _Still()
+    controller = SimURController(scene, [0.4, 0.0, 0.2, *DOWN])
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        for wrench in ([0.0, 0.0, 2.5], [2.2, 0.0, 0.0]):  # against the pressing axis (base -z), sideways
+            scene.force[:3] = wrench
+            with pytest.raises(HardwareFault, match="touches something") as err:
+                arm.move_until_contact(force_threshold_n=0.5)
+            assert err.value.kind == "preload"
+        assert control.zeros == control.moves == 0
+        scene.force[:3] = [0.0, 0.0, 1.5]  # below max_preload_n (2 N): drift the zero takes away
+        assert arm.move_until_contact(force_threshold_n=0.5, max_travel_m=0.005) is None
+        assert control.zeros == control.moves == 1
+    finally:
+        arm.close()
+
+
+def test_travel_to_rises_straight_up_before_moving_across():
+    tilted = (Rotation.from_rotvec(DOWN) * Rotation.from_euler("y", 10.0, degrees=True)).as_rotvec()
+    start = np.array([0.4, -0.03, 0.06, *tilted])  # low, tilted, e.g. beside an object
+    target = np.array([0.44, 0.0, 0.1, *DOWN])  # at the travel height
+    controller = SimURController(_Still(), start)
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        arrived = arm.travel_to(target)
+        path = np.array([s.tcp_pose for s in arm.drain_states()])
+        np.testing.assert_allclose(arrived.tcp_pose, target, atol=1e-3)
+        rise = path[: np.argmax(path[:, 2] > target[2] - 1e-4) + 1]  # until it reaches the travel height
+        assert np.abs(rise[:, :2] - start[:2]).max() < 1e-6  # straight up, orientation kept
+        assert np.all(np.diff(rise[:, 2]) >= 0) and max(rotation_between_rad(p, start) for p in rise) < 1e-6
+        assert control.moves == 2
+        lower = np.array([0.4, 0.0, 0.08, *DOWN])  # from above the target: one straight move down
+        arm.travel_to(lower)
+        assert control.moves == 3
     finally:
         arm.close()
 
