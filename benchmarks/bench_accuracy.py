@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import machine_info, machine_line  # noqa: E402
-from calibrate.commissioning import CommissionConfig  # noqa: E402
+from calibrate.commission_config import CommissionConfig  # noqa: E402
 from collect.errors import EXIT_FAULT, InputError  # noqa: E402
 from collect.session_reader import Session  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS  # noqa: E402

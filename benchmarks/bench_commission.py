@@ -30,8 +30,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from calibrate.commission_config import CommissionConfig  # noqa: E402
 from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
-from calibrate.commissioning import CommissionConfig, run_commissioning  # noqa: E402
+from calibrate.commissioning import run_commissioning  # noqa: E402
 from trainer.splits import TRAIN_FRACTION  # noqa: E402
 
 TARGET_TOTAL_S = 300.0

@@ -19,7 +19,7 @@ from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
 
 
 def register(subparsers) -> None:
-    from calibrate.commissioning import CommissionConfig
+    from calibrate.commission_config import CommissionConfig
 
     p = subparsers.add_parser(
         "commission",
@@ -107,7 +107,8 @@ class ProgressPrinter:
 
 
 def run_commission(args) -> int:
-    from calibrate.commissioning import CommissionConfig, run_commissioning
+    from calibrate.commission_config import CommissionConfig
+    from calibrate.commissioning import run_commissioning
 
     objects = tuple(name.strip() for name in args.objects.split(",") if name.strip())
     bench = None

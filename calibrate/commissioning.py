@@ -1,7 +1,8 @@
 """The commissioning flow: from a new sensor on the bench to an accepted (or rejected), registered profile.
 
 ``run_commissioning(config, on_event, stop_event) -> CommissionResult`` runs the steps of
-``calibrate.commission_events.Step`` in order:
+``calibrate.commission_events.Step`` in order, with the settings of a
+``calibrate.commission_config.CommissionConfig``:
 
 1. connect: open the bench, identify the sensor (serial from the pressure board, intrinsics
    from the camera, board firmware);
@@ -19,16 +20,18 @@
    still when the steps before it ran so long that the run would overrun ``total_minutes``
    (5 min by default; ``CommissionConfig.finetune_deadline_s``);
 7. validate on the held-out contact poses (3 of 10 per object), against the ToF and, on
-   simulated runs, against the true depth;
+   simulated runs, against the true depth (``trainer.evaluation``), plus the no-contact statistics
+   (``calibrate.run_statistics``);
 8. pose check on the mug's held-out poses (``calibrate.pose_check.run_pose_check``);
-9. verdict: acceptance checks (``calibrate.acceptance``), ``acceptance.json``, ``report.html``,
-   and the sensor registry (``calibrate.sensor_registry``).
+9. verdict: acceptance checks (``calibrate.acceptance``), ``acceptance.json``, ``report.html``
+   (``calibrate.run_report``), and the sensor registry (``calibrate.sensor_registry``).
 
 A failing hardware check (leak, camera health; ``gate: true`` in the thresholds) skips the
 remaining data steps: the sensor is rejected without training on it.
 
-Resume: ``RUN_DIR/state.json`` records every completed step and its results; running again with
-the same ``run_dir`` skips them (``StepFinished(resumed=True)``) and continues.
+Resume: ``RUN_DIR/state.json`` (``calibrate.run_directory.RunState``) records every completed
+step and its results; running again with the same ``run_dir`` skips them
+(``StepFinished(resumed=True)``) and continues.
 Faults: a ``HardwareFault`` safe-stops the arm (stop + retract), keeps every file, and ends the
 run rejected with the fault as the reason; the failed step is not recorded, so a re-run
 retries it. ``stop_event`` does the same but ends with ``result.stopped`` (no verdict).
@@ -38,17 +41,16 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import threading
 import time
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
 from calibrate import acceptance
+from calibrate.commission_config import CommissionConfig, validate_config
 from calibrate.commission_events import (
     STEPS,
     ArmSafeStopped,
@@ -63,101 +65,39 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
+from calibrate.run_directory import (
+    ACCEPTANCE_FILE,
+    CAMERA_FILE,
+    LEAK_FILE,
+    MODEL_DIR,
+    PLOTS_DIR,
+    POSE_FILE,
+    REFERENCE_FILE,
+    REPORT_FILE,
+    SESSION_FILE,
+    VALIDATION_FILE,
+    RunState,
+    run_settings,
+    set_aside,
+    utc_now,
+)
+from calibrate.run_report import write_run_report
+from calibrate.run_statistics import collection_stats, nocontact_maps, pick_examples, registry_reference
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.json_files import plain_json, write_json
 from collect.session_format import DEPTH_UNIT_M
-from trainer.contact import contact_mask, reference_depth
+from trainer.contact import contact_mask
 from trainer.metrics import METRIC_KEYS
 
-if TYPE_CHECKING:
-    from collect.bench import BenchConfig
-
-STATE_FILE = "state.json"
-STATE_VERSION = 1
-SESSION_FILE = "session.h5"
-REFERENCE_FILE = "reference.h5"
-MODEL_DIR = "model"
-ACCEPTANCE_FILE = "acceptance.json"
-REPORT_FILE = "report.html"
-LEAK_FILE = "leak_test.npz"
-CAMERA_FILE = "camera_health.npz"
-VALIDATION_FILE = "validation.npz"
-POSE_FILE = "pose_check.json"
-PLOTS_DIR = "plots"
-
-#: Leak test: settle, then hold (s of bench time).
+#: Leak test: the bubble settles this long (s of bench time) before the hold (``CommissionConfig.leak_hold_s``).
 LEAK_SETTLE_S = 1.0
-LEAK_HOLD_S = 10.0
 #: No-contact frames for the camera health check and for the reference.
 HEALTH_FRAMES = 16
 REFERENCE_FRAMES = 30
 #: Bench snapshots per second while the bench is connected.
 SNAPSHOT_HZ = 4.0
-#: Held-out frames shown in the report (one per object, the most deformed).
-EXAMPLE_FRAMES = 4
 #: Steps that need the bench.
 BENCH_STEPS = (Step.CONNECT, Step.LEAK_TEST, Step.CAMERA_HEALTH, Step.REFERENCE, Step.COLLECT)
-#: Wall time (s) the fine-tune step may take beyond its training budget: loading the calibration
-#: set, the live validations, the final validation and the ONNX export (about 20 s on the 2-core
-#: CPU of docs/benchmarks.md, 28-35 s on one half as fast). The trainer's deadline cuts training
-#: short where they take longer, so the step lasts at most ``finetune_minutes`` + this.
-FINETUNE_OVERHEAD_S = 30.0
-#: Wall time (s) kept for the steps after the fine-tune when it is shortened to fit the run's
-#: ``total_minutes``: validate, pose check and verdict took 18-27 s on the 2-core CPU of
-#: docs/benchmarks.md (bench_commission, session 14) and 29-37 s with that CPU 2.2x slower.
-AFTER_FINETUNE_S = 35.0
-#: The shortest fine-tune step the run budget can leave (s): one minute of training plus
-#: ``FINETUNE_OVERHEAD_S``. Steps before it that ran longer make the run overrun its budget
-#: rather than leave the sensor with a model fine-tuned for seconds.
-MIN_FINETUNE_STEP_S = 60.0 + FINETUNE_OVERHEAD_S
-#: Settings that must match when a run directory is resumed.
-RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed")
-
-
-@dataclass
-class CommissionConfig:
-    """What to commission and how (see the module docstring)."""
-
-    run_dir: Path
-    simulated: bool = True
-    sensor_spec: Path | None = None  # sim: SensorSpec YAML; None -> draw_sensor(seed)
-    bench: "BenchConfig | None" = None  # real bench settings when not simulated
-    thresholds: Path | None = None  # None -> packaged calibrate/acceptance_thresholds.yaml
-    registry_dir: Path | None = None  # None -> default registry location
-    base_model: Path | None = None  # None -> the packaged base model
-    finetune_minutes: float = 2.5
-    objects: tuple[str, ...] = ("mug", "wine_glass", "box", "fingers")
-    #: 10 presses per object: the 70/30 pose split holds out 3 of each object's poses, so the pose
-    #: check's median over the mug's held-out frames lies in the middle pose (one hard pose cannot
-    #: decide the verdict; with 8 it held out 2) and the fine-tune keeps 7 (see docs/pose.md).
-    poses_per_object: int = 10
-    seed: int = 0
-    sim_faults: tuple[str, ...] = ()  # "KIND@SECONDS"
-    sim_speed: float = 1.0  # simulated clock speed factor
-    leak_hold_s: float = LEAK_HOLD_S  # bench-clock seconds of the leak-test hold
-    #: Wall-time budget of one run of the flow (min; None or inf: none). Counted from the start of this
-    #: invocation (a resumed run gets it afresh); only the fine-tune step gives way to it.
-    total_minutes: float | None = 5.0
-
-    @property
-    def finetune_step_limit_s(self) -> float:
-        """Wall time (s) the fine-tune step may take: the training budget + ``FINETUNE_OVERHEAD_S``."""
-        return 60.0 * self.finetune_minutes + FINETUNE_OVERHEAD_S
-
-    def finetune_deadline_s(self, elapsed_s: float) -> tuple[float, bool]:
-        """Wall time (s) for a fine-tune step that starts ``elapsed_s`` s into the run, and whether
-        the run budget (not ``finetune_step_limit_s``) set it.
-
-        The step gets ``finetune_step_limit_s`` unless the run would then overrun
-        ``total_minutes`` with ``AFTER_FINETUNE_S`` left for the steps after it; it never gets
-        less than ``MIN_FINETUNE_STEP_S`` (or the step limit, if that is shorter).
-        """
-        limit = self.finetune_step_limit_s
-        if self.total_minutes is None:
-            return limit, False
-        fits = 60.0 * self.total_minutes - elapsed_s - AFTER_FINETUNE_S
-        deadline = min(limit, max(fits, MIN_FINETUNE_STEP_S))
-        return deadline, deadline < limit
 
 
 @dataclass
@@ -169,78 +109,6 @@ class CommissionResult:
     stopped: bool = False  # stop_event ended the run (arm stopped + retracted, data kept)
     fault: str | None = None  # "kind: message" of the hardware fault that ended the run
     reason: str = ""  # one line: why rejected
-
-
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
-
-
-class RunState:
-    """``RUN_DIR/state.json``: the settings of the run and the results of its completed steps."""
-
-    def __init__(self, path: Path, data: dict):
-        self.path = path
-        self.data = data
-
-    @classmethod
-    def open(cls, run_dir: Path, settings: dict) -> "RunState":
-        """Load the state of ``run_dir`` (or start one); raises ``InputError`` when the directory
-        holds a run with other settings."""
-        path = run_dir / STATE_FILE
-        if not path.exists():
-            state = cls(path, {"version": STATE_VERSION, "settings": settings, "created": _now(), "steps": {}})
-            state.save()
-            return state
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise InputError(f"{path} is unreadable ({err}); use a new --out directory") from None
-        if data.get("version") != STATE_VERSION:
-            raise InputError(f"{path} is from another version of bubble commission; use a new --out directory")
-        saved = data.get("settings", {})
-        for key in RESUME_KEYS:
-            if saved.get(key) != settings.get(key):
-                raise InputError(
-                    f"{run_dir} holds a run with {key}={saved.get(key)!r}, not {settings.get(key)!r}; "
-                    "use a new --out directory to commission with other settings"
-                )
-        return cls(path, data)
-
-    def save(self) -> None:
-        write_json(self.path, self.data)
-
-    def done(self, step: Step) -> bool:
-        return step.value in self.data["steps"]
-
-    def get(self, step: Step) -> dict:
-        return self.data["steps"].get(step.value, {})
-
-    def record(self, step: Step, result: dict) -> None:
-        self.data["steps"][step.value] = {**result, "finished": _now()}
-        self.save()
-
-    def checks(self) -> list[dict]:
-        """Every check of the completed steps, in step order."""
-        out = []
-        for step in STEPS:
-            out += self.get(step).get("checks", [])
-        return out
-
-
-def _settings(config: CommissionConfig, sensor_id: str) -> dict:
-    return {
-        "simulated": bool(config.simulated),
-        "sensor": sensor_id,
-        "objects": list(config.objects),
-        "poses_per_object": int(config.poses_per_object),
-        "seed": int(config.seed),
-        "finetune_minutes": float(config.finetune_minutes),
-        "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
-        "base_model": str(config.base_model) if config.base_model else "base",
-        "thresholds": str(config.thresholds) if config.thresholds else "packaged",
-        "sim_faults": list(config.sim_faults),
-        "sim_speed": float(config.sim_speed),
-    }
 
 
 class _Flow:
@@ -362,7 +230,7 @@ class _Flow:
 
         self.open_bench()
         b = self.bench
-        b.arm.move_to(b.home_pose)  # free air above the plate: nothing touches the bubble
+        b.arm.travel_to(b.home_pose)  # free air above the plate: nothing touches the bubble
         firmware = b.pressure.firmware_version()
         serial = b.sensor_serial
         prior = self.state.data.get("serial")
@@ -435,7 +303,7 @@ class _Flow:
         from collect import session_format as sf
 
         path = self.run_dir / REFERENCE_FILE
-        _set_aside(path)
+        set_aside(path)
         writer = self._writer(path, [])
         try:
             frames = self._grab(REFERENCE_FRAMES, Step.REFERENCE, "no-contact reference")
@@ -479,7 +347,7 @@ class _Flow:
             writer.close()
         if run.stopped:
             raise StopRequested("commissioning: stopped by the operator")
-        stats = _collection_stats(path, planned)
+        stats = collection_stats(path, planned)
         th = self.thresholds
         checks = [
             acceptance.evaluate(th, "poses_completed_fraction", stats["poses_completed_fraction"]),
@@ -546,9 +414,9 @@ class _Flow:
 
     def step_validate(self) -> dict:
         from trainer.dataset import load_frames
-        from trainer.evaluation import compare_with_truth, predict_frames
+        from trainer.evaluation import compare_with_truth, per_object_metrics, predict_frames
         from trainer.inference import DepthEstimator
-        from trainer.metrics import METRIC_KEYS, depth_metrics
+        from trainer.metrics import depth_metrics
         from trainer.splits import split_in_class
 
         estimator = DepthEstimator.load(self.run_dir / MODEL_DIR)
@@ -563,21 +431,18 @@ class _Flow:
         self.progress(Step.VALIDATE, 0.1, f"{len(held)} held-out frames")
         pred = predict_frames(estimator, held.ir)
         metrics = depth_metrics(pred, held.depth, **kw)
-        per_object = {
-            name: depth_metrics(pred[held.object_name == name], held.depth[held.object_name == name], **kw)
-            for name in sorted(set(held.object_name))
-        }
+        per_object = per_object_metrics(pred, held.depth, held.object_name, meta.min_depth, meta.max_depth)
         truth = None
         if held.true_depth is not None:
             truth = compare_with_truth(pred, held.depth, held.true_depth, meta.min_depth, meta.max_depth)
         self.progress(Step.VALIDATE, 0.6, "no-contact statistics")
-        arrays = _nocontact_maps(estimator, self.run_dir / REFERENCE_FILE)
+        arrays = nocontact_maps(estimator, self.run_dir / REFERENCE_FILE)
         # The contact patches: where the ToF sees the membrane pushed in from its rest shape. The
         # whole-image metrics hardly see a few-mm dent (delta < 1.05 is 4.5 mm at 90 mm), these do.
         ref = arrays["reference_depth"]
         contact = contact_mask(held.depth, ref)
         contact_metrics = depth_metrics(pred, held.depth, mask=contact, **kw)
-        pick = _pick_examples(held, ref)
+        pick = pick_examples(held, ref)
         arrays.update(
             example_ir=held.ir[pick],
             example_depth=held.depth[pick],
@@ -673,10 +538,10 @@ class _Flow:
             "contact": validate.get("contact"),
             "vs_true": validate.get("vs_true"),
             "steps": {s.value: self.state.get(s).get("summary") for s in STEPS if self.state.done(s)},
-            "finished": _now(),
+            "finished": utc_now(),
         }
         write_json(self.run_dir / ACCEPTANCE_FILE, doc)
-        report_path = self._write_report(doc)
+        report_path = write_run_report(self.run_dir, self.state, doc)
         serial = self.state.data.get("serial")
         if not stopped and serial:
             connect = self.state.get(Step.CONNECT)
@@ -690,7 +555,7 @@ class _Flow:
                 acceptance=plain_json(doc),
                 reason=reason,
                 model_dir=self.run_dir / MODEL_DIR if accepted else None,
-                reference=_registry_reference(self.run_dir / VALIDATION_FILE) if accepted else None,
+                reference=registry_reference(self.run_dir / VALIDATION_FILE) if accepted else None,
             )
         self.emit(Verdict(accepted, checks, str(report_path)))
         return CommissionResult(accepted, checks, self.run_dir, report_path, stopped=stopped, fault=fault, reason=reason)
@@ -698,74 +563,12 @@ class _Flow:
     def _all_done(self) -> bool:
         return all(self.state.done(s) for s in STEPS if s != Step.VERDICT)
 
-    def _write_report(self, doc: dict) -> Path:
-        from calibrate.report import ReportData, write_report
-
-        st = self.state
-        data = ReportData(
-            serial=str(doc["serial"] or "unknown"),
-            accepted=doc["accepted"],
-            checks=doc["checks"],
-            simulated=bool(self.config.simulated),
-            reason=doc["reason"],
-            fault=doc["fault"],
-            stopped=doc["stopped"],
-            run_info={
-                "run directory": str(self.run_dir.resolve()),
-                "finished": doc["finished"],
-                "thresholds": self.thresholds.source,
-                **{f"step {k}": v for k, v in doc["steps"].items()},
-                "settings": st.data.get("settings"),
-            },
-            heldout_metrics=st.get(Step.VALIDATE).get("metrics"),
-            contact_metrics=st.get(Step.VALIDATE).get("contact"),
-            pose=st.get(Step.POSE_CHECK).get("pose"),
-        )
-        why_missing = doc["reason"] or "the step did not run"
-        data.notes = {k: why_missing for k in ("leak", "camera", "nocontact", "examples", "training", "truth", "metrics")}
-        if st.done(Step.POSE_CHECK) and st.get(Step.POSE_CHECK).get("skipped"):
-            data.notes["pose"] = st.get(Step.POSE_CHECK)["summary"]
-        else:
-            data.notes["pose"] = why_missing
-        if (self.run_dir / LEAK_FILE).is_file() and st.done(Step.LEAK_TEST):
-            with np.load(self.run_dir / LEAK_FILE) as z:
-                data.leak_t, data.leak_hpa = z["t"], z["hpa"]
-            data.leak_rate_hpa_per_min = st.get(Step.LEAK_TEST)["leak"]["rate_hpa_per_min"]
-        if (self.run_dir / CAMERA_FILE).is_file() and st.done(Step.CAMERA_HEALTH):
-            with np.load(self.run_dir / CAMERA_FILE) as z:
-                data.camera_ir_mean, data.camera_dead_mask = z["ir_mean"], z["dead_mask"]
-                data.camera_stuck_mask, data.camera_dot_mask = z["stuck_mask"], z["dot_mask"]
-        data.training_curve = st.get(Step.FINETUNE).get("curve", [])
-        if (self.run_dir / VALIDATION_FILE).is_file() and st.done(Step.VALIDATE):
-            with np.load(self.run_dir / VALIDATION_FILE) as z:
-                data.nocontact_valid_count = z["valid_count"]
-                data.nocontact_err_mean, data.nocontact_err_var = z["err_mean"], z["err_var"]
-                data.example_ir, data.example_depth, data.example_pred = z["example_ir"], z["example_depth"], z["example_pred"]
-                data.example_true = z["example_true"] if "example_true" in z.files else None
-                data.example_labels = [f"{o} pose {p}" for o, p in zip(z["example_object"], z["example_pose"])]
-            vs_true = st.get(Step.VALIDATE).get("vs_true")
-            if vs_true:
-                drop = vs_true["model_on_tof_dropout"]
-                dropouts = None
-                if drop["n_pixels"]:
-                    dropouts = {
-                        "fraction": 1.0 - vs_true["tof_coverage"],
-                        "pixels": int(drop["n_pixels"]),
-                        "model_rmse_mm": float(drop["rmse"]) * 1000.0,
-                        "model_a1": drop["a1"],
-                    }
-                data.truth_comparison = {
-                    "model": vs_true["model_on_tof_valid"], "tof": vs_true["tof"], "model_all": vs_true["model"],
-                    "dropouts": dropouts,
-                }
-        return write_report(data, self.run_dir / REPORT_FILE)
-
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
         self.started = time.monotonic()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         sensor_id = self.sensor_spec.serial if self.sensor_spec is not None else "hardware"
-        self.state = RunState.open(self.run_dir, _settings(self.config, sensor_id))
+        self.state = RunState.open(self.run_dir, run_settings(self.config, sensor_id))
         handlers = {
             Step.CONNECT: self.step_connect,
             Step.LEAK_TEST: self.step_leak_test,
@@ -861,38 +664,6 @@ def _gate_failure(rec: dict) -> str | None:
     return None
 
 
-def _set_aside(path: Path) -> None:
-    """Keep the file of an interrupted earlier attempt as ``<name>.aborted-<n><suffix>``."""
-    if not path.exists():
-        return
-    n = 1
-    while (aside := path.with_name(f"{path.stem}.aborted-{n}{path.suffix}")).exists():
-        n += 1
-    os.replace(path, aside)
-
-
-def _collection_stats(path: Path, planned: int) -> dict:
-    """Poses and frames in the session file.
-
-    A pose counts as recorded when it has ``hold`` frames; dropped frames are the gaps in the
-    camera sequence numbers (``Session.dropped_frames``).
-    """
-    from collect import session_format as sf
-    from collect.session_reader import Session
-
-    with Session.open(path) as s:
-        n, dropped = s.n_frames, s.dropped_frames()
-        poses = np.unique(s.pose_id[(s.pose_id >= 0) & (s.phase == sf.PHASE_HOLD)])
-    return {
-        "frames": n,
-        "frames_dropped": dropped,
-        "frames_dropped_fraction": dropped / max(n + dropped, 1),
-        "poses_recorded": int(poses.size),
-        "poses_planned": planned,
-        "poses_completed_fraction": poses.size / max(planned, 1),
-    }
-
-
 class _FrameTap:
     """The bench camera, handing every frame it delivers to ``sink`` as well (for the live snapshots)."""
 
@@ -909,116 +680,12 @@ class _FrameTap:
         return getattr(self._camera, name)
 
 
-def _nocontact_maps(estimator, reference_path: Path) -> dict:
-    """Per-pixel statistics over the no-contact reference frames (the paper's Fig. 5).
-
-    ``valid_count (H,W) int32`` frames with valid ToF depth; ``err_mean``/``err_var`` ``(H,W) float32``
-    m / m^2 of predicted - measured depth over those frames (NaN where never valid);
-    ``reference_depth (H,W) float32 m`` median valid ToF depth (0 = never valid); ``reference_ir``.
-    """
-    from collect.session_reader import Session
-    from trainer.evaluation import predict_frames
-
-    with Session.open(reference_path) as s:
-        idx = np.arange(s.n_frames)
-        ir = s.ir(idx)
-        depth = s.depth_m(idx)
-    pred = predict_frames(estimator, ir)
-    valid = depth > 0
-    count = valid.sum(axis=0)
-    err = np.where(valid, pred - depth, np.nan)
-    with np.errstate(invalid="ignore"):
-        err_mean = np.where(count > 0, np.nansum(err, axis=0) / np.maximum(count, 1), np.nan)
-        err_var = np.where(count > 0, np.nansum((err - err_mean) ** 2, axis=0) / np.maximum(count, 1), np.nan)
-    return {
-        "valid_count": count.astype(np.int32),
-        "err_mean": err_mean.astype(np.float32),
-        "err_var": err_var.astype(np.float32),
-        "reference_depth": reference_depth(depth),  # the pose check's and the trainer's reference
-        "reference_ir": ir.mean(axis=0).astype(np.float32),
-    }
-
-
-def _pick_examples(frames, reference: np.ndarray) -> np.ndarray:
-    """Indices of up to ``EXAMPLE_FRAMES`` held-out frames of distinct poses, taking the objects in
-    turn: for each pose its most deformed frame (most pixels pushed in by > 1 mm against the
-    no-contact ``reference`` (H,W) float32 m), deepest poses first."""
-    ref_valid = reference > 0
-    dent = np.array([int(((reference - d > 1e-3) & (d > 0) & ref_valid).sum()) for d in frames.depth])
-    per_object = []
-    for name in sorted(set(frames.object_name)):
-        best = {}
-        for i in np.flatnonzero(frames.object_name == name):
-            pose = int(frames.pose_id[i])
-            if pose not in best or dent[i] > dent[best[pose]]:
-                best[pose] = int(i)
-        per_object.append(sorted(best.values(), key=lambda i: -dent[i]))
-    picks = []
-    for rank in range(max((len(p) for p in per_object), default=0)):
-        picks += [p[rank] for p in per_object if rank < len(p)]
-    return np.array(picks[:EXAMPLE_FRAMES], dtype=np.int64)
-
-
-def _registry_reference(validation_path: Path) -> dict | None:
-    if not validation_path.is_file():
-        return None
-    with np.load(validation_path) as z:
-        return {"depth_m": z["reference_depth"], "ir": z["reference_ir"], "valid_count": z["valid_count"]}
-
-
 def _load_sensor_spec(config: CommissionConfig):
     from hw_mocks.sensor_spec import SensorSpec, draw_sensor
 
     if config.sensor_spec is not None:
         return SensorSpec.from_yaml(config.sensor_spec)
     return draw_sensor(config.seed)
-
-
-def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
-    """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
-    ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
-    Returns the loaded thresholds."""
-    from hw_mocks.objects import load_object
-    from trainer.model_dir import load_weights, load_metadata
-
-    run_dir = Path(config.run_dir)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise InputError(f"run directory {run_dir} exists and is not a directory")
-    if not config.objects:
-        raise InputError("no objects to press; give at least one")
-    for name in config.objects:
-        load_object(name)  # raises InputError for an unknown object or a bad mesh
-    if int(config.poses_per_object) < 2:  # the validation holds out a share of each object's poses
-        raise InputError(f"poses per object must be at least 2 (one or more is held out), got {config.poses_per_object}")
-    if int(config.seed) < 0:
-        raise InputError(f"seed must be >= 0, got {config.seed}")
-    if not (math.isfinite(config.finetune_minutes) and config.finetune_minutes > 0):
-        raise InputError(f"fine-tune minutes must be positive, got {config.finetune_minutes}")
-    if config.total_minutes is not None and not config.total_minutes > 0:  # inf: no budget
-        raise InputError(f"total minutes must be positive, got {config.total_minutes}")
-    if not (math.isfinite(config.leak_hold_s) and config.leak_hold_s > 0):
-        raise InputError(f"leak-test hold must be positive, got {config.leak_hold_s} s")
-    if config.base_model is not None and not Path(config.base_model).is_dir():
-        raise InputError(f"base model directory {config.base_model} does not exist")
-    if config.base_model is not None:
-        load_metadata(config.base_model)
-        load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
-    registry = Path(config.registry_dir) if config.registry_dir is not None else None
-    if registry is not None and registry.exists() and not registry.is_dir():
-        raise InputError(f"sensor registry {registry} is not a directory")
-    if not config.simulated:
-        if config.sim_faults or config.sensor_spec is not None:
-            raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")
-        if config.bench is None:
-            raise InputError("the real bench needs its settings (--bench BENCH.yaml), or use --sim")
-    else:
-        from hw_mocks.sim_bench import parse_sim_fault
-
-        for fault in config.sim_faults:
-            parse_sim_fault(fault)
-        if not 0.1 <= float(config.sim_speed) <= 100.0:  # the simulated bench's own bounds
-            raise InputError(f"simulation speed {config.sim_speed} must be within 0.1..100")
-    return acceptance.load_thresholds(config.thresholds)
 
 
 def run_commissioning(

@@ -11,7 +11,7 @@ from collect.errors import InputError
 
 
 def register(subparsers) -> None:
-    from calibrate.commissioning import CommissionConfig
+    from calibrate.commission_config import CommissionConfig
 
     p = subparsers.add_parser(
         "tui",
@@ -39,7 +39,7 @@ def register(subparsers) -> None:
 
 
 def run_tui(args) -> int:
-    from calibrate.commissioning import CommissionConfig, validate_config
+    from calibrate.commission_config import CommissionConfig, validate_config
 
     if not args.sim:
         raise InputError("the terminal UI drives the simulated bench only: add --sim (on real hardware, "

@@ -16,8 +16,9 @@ import time
 import numpy as np
 import pytest
 
-from calibrate import commissioning
+from calibrate import commission_config
 from calibrate.cli import main
+from calibrate.commission_config import CommissionConfig
 from calibrate.commission_events import (
     STEPS,
     ArmSafeStopped,
@@ -30,7 +31,7 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
-from calibrate.commissioning import CommissionConfig, run_commissioning
+from calibrate.commissioning import run_commissioning
 from calibrate.sensor_registry import SensorRegistry
 from collect.session_reader import Session
 from conftest import ctrl_c_once_recording
@@ -81,7 +82,7 @@ def faulted_then_resumed(tmp_path_factory):
     resumed_config = dataclasses.replace(config, sim_faults=(), finetune_minutes=1.0, total_minutes=0.01)
     events: list = []
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(commissioning, "MIN_FINETUNE_STEP_S", 8.0)
+        mp.setattr(commission_config, "MIN_FINETUNE_STEP_S", 8.0)
         result = run_commissioning(resumed_config, events.append)
     return {
         "config": resumed_config, "first": first, "first_events": first_events, "state_after_fault": state_after_fault,
@@ -131,8 +132,8 @@ def test_run_budget_shortens_the_finetune_step(faulted_then_resumed):
 def test_run_budget_gives_way_only_when_the_steps_before_ran_long(tmp_path):
     config = CommissionConfig(run_dir=tmp_path)  # 2.5 min fine-tune: a 180 s step; 5 min in all
     assert config.finetune_deadline_s(80.0) == (180.0, False)  # a usual run: 74-87 s to the fine-tune
-    assert config.finetune_deadline_s(126.0) == (300.0 - 126.0 - commissioning.AFTER_FINETUNE_S, True)
-    assert config.finetune_deadline_s(250.0) == (commissioning.MIN_FINETUNE_STEP_S, True)  # never below the floor
+    assert config.finetune_deadline_s(126.0) == (300.0 - 126.0 - commission_config.AFTER_FINETUNE_S, True)
+    assert config.finetune_deadline_s(250.0) == (commission_config.MIN_FINETUNE_STEP_S, True)  # never below the floor
     for unlimited in (None, math.inf):
         assert dataclasses.replace(config, total_minutes=unlimited).finetune_deadline_s(1e4) == (180.0, False)
     short = dataclasses.replace(config, finetune_minutes=0.5)  # a 60 s step, below the floor

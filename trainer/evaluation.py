@@ -49,6 +49,21 @@ def compare_with_truth(pred: np.ndarray, tof: np.ndarray, truth: np.ndarray, min
     }
 
 
+def per_object_metrics(
+    pred: np.ndarray, gt: np.ndarray, object_name: np.ndarray, min_depth: float, max_depth: float
+) -> dict[str, dict]:
+    """``trainer.metrics.depth_metrics`` of each object's frames, by object name in sorted order.
+
+    ``pred``, ``gt``: ``(N,H,W) float32 m``; ``object_name``: ``(N,)`` str, the object pressed in
+    each frame (frames of no object, ``""``, are left out).
+    """
+    kw = {"min_depth": min_depth, "max_depth": max_depth}
+    return {
+        name: depth_metrics(pred[object_name == name], gt[object_name == name], **kw)
+        for name in sorted(set(object_name) - {""})
+    }
+
+
 def evaluate_model(
     model_dir: str | Path,
     paths: list[str | Path],
@@ -78,11 +93,7 @@ def evaluate_model(
     result["model"] = str(model_dir)
     result["arch"] = meta.arch
     result["data"] = [s.to_dict() for s in frames.sources]
-    names = sorted(set(frames.object_name) - {""})
-    result["per_object"] = {
-        name: depth_metrics(pred[frames.object_name == name], frames.depth[frames.object_name == name], **kw)
-        for name in names
-    }
+    result["per_object"] = per_object_metrics(pred, frames.depth, frames.object_name, meta.min_depth, meta.max_depth)
     if frames.true_depth is not None:
         result["vs_true"] = compare_with_truth(pred, frames.depth, frames.true_depth, meta.min_depth, meta.max_depth)
     return result

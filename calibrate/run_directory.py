@@ -1,0 +1,122 @@
+"""The run directory of a commissioning (``RUN_DIR``): its file names and its ``state.json``.
+
+``RunState`` is ``RUN_DIR/state.json``: the settings of the run (``run_settings``) and the results of
+its completed steps, which a re-run with the same ``RUN_DIR`` skips (``calibrate.commissioning``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from calibrate.commission_events import STEPS, Step
+from collect.errors import InputError
+from collect.json_files import write_json
+
+if TYPE_CHECKING:
+    from calibrate.commission_config import CommissionConfig
+
+STATE_FILE = "state.json"
+STATE_VERSION = 1
+SESSION_FILE = "session.h5"
+REFERENCE_FILE = "reference.h5"
+MODEL_DIR = "model"
+ACCEPTANCE_FILE = "acceptance.json"
+REPORT_FILE = "report.html"
+LEAK_FILE = "leak_test.npz"
+CAMERA_FILE = "camera_health.npz"
+VALIDATION_FILE = "validation.npz"
+POSE_FILE = "pose_check.json"
+PLOTS_DIR = "plots"
+
+#: Settings that must match when a run directory is resumed.
+RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed")
+
+
+def utc_now() -> str:
+    """The current UTC time, ISO 8601 to the second (the time stamps of the run's JSON files)."""
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def run_settings(config: CommissionConfig, sensor_id: str) -> dict:
+    """The settings of a run as ``state.json`` records them (``sensor_id``: the simulated sensor's
+    serial, or ``"hardware"``)."""
+    return {
+        "simulated": bool(config.simulated),
+        "sensor": sensor_id,
+        "objects": list(config.objects),
+        "poses_per_object": int(config.poses_per_object),
+        "seed": int(config.seed),
+        "finetune_minutes": float(config.finetune_minutes),
+        "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
+        "base_model": str(config.base_model) if config.base_model else "base",
+        "thresholds": str(config.thresholds) if config.thresholds else "packaged",
+        "sim_faults": list(config.sim_faults),
+        "sim_speed": float(config.sim_speed),
+    }
+
+
+class RunState:
+    """``RUN_DIR/state.json``: the settings of the run and the results of its completed steps."""
+
+    def __init__(self, path: Path, data: dict):
+        self.path = path
+        self.data = data
+
+    @classmethod
+    def open(cls, run_dir: Path, settings: dict) -> "RunState":
+        """Load the state of ``run_dir`` (or start one); raises ``InputError`` when the directory
+        holds a run with other settings."""
+        path = run_dir / STATE_FILE
+        if not path.exists():
+            state = cls(path, {"version": STATE_VERSION, "settings": settings, "created": utc_now(), "steps": {}})
+            state.save()
+            return state
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise InputError(f"{path} is unreadable ({err}); use a new --out directory") from None
+        if data.get("version") != STATE_VERSION:
+            raise InputError(f"{path} is from another version of bubble commission; use a new --out directory")
+        saved = data.get("settings", {})
+        for key in RESUME_KEYS:
+            if saved.get(key) != settings.get(key):
+                raise InputError(
+                    f"{run_dir} holds a run with {key}={saved.get(key)!r}, not {settings.get(key)!r}; "
+                    "use a new --out directory to commission with other settings"
+                )
+        return cls(path, data)
+
+    def save(self) -> None:
+        write_json(self.path, self.data)
+
+    def done(self, step: Step) -> bool:
+        return step.value in self.data["steps"]
+
+    def get(self, step: Step) -> dict:
+        return self.data["steps"].get(step.value, {})
+
+    def record(self, step: Step, result: dict) -> None:
+        self.data["steps"][step.value] = {**result, "finished": utc_now()}
+        self.save()
+
+    def checks(self) -> list[dict]:
+        """Every check of the completed steps, in step order."""
+        out = []
+        for step in STEPS:
+            out += self.get(step).get("checks", [])
+        return out
+
+
+def set_aside(path: Path) -> None:
+    """Keep the file of an interrupted earlier attempt as ``<name>.aborted-<n><suffix>``."""
+    if not path.exists():
+        return
+    n = 1
+    while (aside := path.with_name(f"{path.stem}.aborted-{n}{path.suffix}")).exists():
+        n += 1
+    os.replace(path, aside)
