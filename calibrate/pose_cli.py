@@ -29,9 +29,11 @@ def _run(args) -> int:
     from calibrate.pose_check import run_pose_check
     from collect.errors import InputError
     from collect.output_files import check_json_output
+    from trainer.cli import check_model_arg
 
     if not args.threshold_mm > 0 or args.points < 1 or args.seed < 0:
         raise InputError("--threshold-mm must be > 0, --points >= 1 and --seed >= 0")
+    check_model_arg(args.model, "--model")
     if args.json:
         check_json_output(args.json)
     if args.plots and os.path.exists(args.plots) and not os.path.isdir(args.plots):

@@ -65,6 +65,75 @@ class SensorProfile:
         return self.path / "model" if (self.path / "model").is_dir() else None
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+_TEXT = (lambda v: isinstance(v, str), "a string")
+_OPTIONAL_NUMBER = (lambda v: v is None or _is_number(v), "a number or null")
+#: Fields of a profile (all optional but 'history') and of each history entry: (check, what it must be).
+_PROFILE_FIELDS = {
+    "serial": _TEXT,
+    "status": (lambda v: v in ("accepted", "rejected"), "'accepted' or 'rejected'"),
+    "intrinsics": (lambda v: v is None or isinstance(v, dict), "an object or null"),
+    "camera_in_tcp": (lambda v: v is None or (isinstance(v, list) and len(v) == 6 and all(map(_is_number, v))),
+                      "6 numbers or null"),
+    "simulated": (lambda v: isinstance(v, bool), "true or false"),
+    "last_commissioned": _TEXT,
+    "last_reason": _TEXT,
+    "accepted_at": _TEXT,
+    "accepted_metrics": (lambda v: v is None or isinstance(v, dict), "an object of metrics or null"),
+    "model": _TEXT,
+    "model_source": _TEXT,
+    "reference": _TEXT,
+}
+_HISTORY_FIELDS = {
+    "time": _TEXT,
+    "run_dir": _TEXT,
+    "accepted": (lambda v: isinstance(v, bool), "true or false"),
+    "reason": _TEXT,
+}
+_REQUIRED_HISTORY_FIELDS = ("time", "accepted")
+_METRIC_KEYS = ("abs_rel", "rmse", "a1")
+
+
+def check_profile(profile, path: Path) -> None:
+    """Raise InputError naming ``path`` (a ``profile.json``) and the first field of ``profile`` that
+    is missing or of the wrong type (what ``bubble sensors`` and ``register`` read)."""
+
+    def shown(value) -> str:
+        text = json.dumps(value)
+        return text if len(text) <= 40 else text[:37] + "..."
+
+    def bad(field: str, what: str, value) -> InputError:
+        return InputError(f"sensor registry profile {path} is corrupt: '{field}' must be {what}, got {shown(value)}")
+
+    if not isinstance(profile, dict):
+        raise InputError(f"sensor registry profile {path} is corrupt: it must hold a JSON object, got {shown(profile)}")
+    if "history" not in profile:
+        raise InputError(f"sensor registry profile {path} is corrupt: it has no 'history' of commissionings")
+    for field, (ok, what) in _PROFILE_FIELDS.items():
+        if field in profile and not ok(profile[field]):
+            raise bad(field, what, profile[field])
+    for key in _METRIC_KEYS:
+        value = (profile.get("accepted_metrics") or {}).get(key)
+        if not _OPTIONAL_NUMBER[0](value):
+            raise bad(f"accepted_metrics.{key}", _OPTIONAL_NUMBER[1], value)
+    history = profile["history"]
+    if not isinstance(history, list):
+        raise bad("history", "a list of commissionings", history)
+    for i, entry in enumerate(history):
+        if not isinstance(entry, dict):
+            raise bad(f"history[{i}]", "an object", entry)
+        for field in _REQUIRED_HISTORY_FIELDS:
+            if field not in entry:
+                raise InputError(f"sensor registry profile {path} is corrupt: 'history[{i}]' has no '{field}'")
+        checks = {**_HISTORY_FIELDS, **{key: _OPTIONAL_NUMBER for key in _METRIC_KEYS}}
+        for field, (ok, what) in checks.items():
+            if field in entry and not ok(entry[field]):
+                raise bad(f"history[{i}].{field}", what, entry[field])
+
+
 class SensorRegistry:
     """The registry directory (created on first registration)."""
 
@@ -145,10 +214,7 @@ class SensorRegistry:
             profile = json.loads((sdir / PROFILE).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise InputError(f"sensor registry entry {sdir} is unreadable: {err}") from None
-        history = profile.get("history") if isinstance(profile, dict) else None
-        if not (isinstance(history, list) and all(isinstance(h, dict) and isinstance(h.get("accepted"), bool)
-                                                  and isinstance(h.get("time"), str) for h in history)):
-            raise InputError(f"sensor registry entry {sdir} is corrupt: {PROFILE} needs a 'history' of commissionings")
+        check_profile(profile, sdir / PROFILE)
         return profile
 
     def get(self, serial: str) -> SensorProfile:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import threading
 
 from collect.bench import DEFAULT_OBJECTS
@@ -55,10 +56,28 @@ def object_list(objects: str | None, meshes: list[str], default: str = DEFAULT_O
     return result
 
 
+def check_mesh_files(meshes: list[str]) -> None:
+    """Raise InputError unless every ``--object-mesh`` names an existing mesh file (STL/OBJ/PLY)."""
+    from hw_mocks.objects import BUILTIN_OBJECTS, MESH_SUFFIXES
+
+    for mesh in meshes:
+        if mesh in BUILTIN_OBJECTS:  # a built-in object given here is pressed as usual
+            continue
+        if not mesh.strip():
+            raise InputError("--object-mesh is empty: give the path of a mesh file (.stl, .obj, .ply)")
+        if os.path.isdir(mesh):
+            raise InputError(f"--object-mesh {mesh} is a directory, not a mesh file (.stl, .obj, .ply)")
+        if not os.path.exists(mesh):
+            raise InputError(f"mesh file not found: {mesh}")
+        if os.path.splitext(mesh)[1].lower() not in MESH_SUFFIXES:
+            raise InputError(f"--object-mesh {mesh} is not a mesh file: give an .stl, .obj or .ply file")
+
+
 def bench_config(args: argparse.Namespace):
     """The ``BenchConfig`` of the command line: 'sim' with --sim, else the real bench of --bench."""
     from collect.bench import BenchConfig
 
+    check_mesh_files(args.object_mesh)
     if args.sim:
         objects = object_list(args.objects, args.object_mesh)
         if args.bench is not None:
@@ -76,9 +95,9 @@ def bench_config(args: argparse.Namespace):
 
 def run_collect(args: argparse.Namespace) -> int:
     from collect.bench import open_bench
-    from collect.collection import open_collection_writer, plan_bench_collection, run_collection
+    from collect.collection import open_collection_writer, plan_bench_collection, run_collection, session_metadata
     from collect.pose_planner import PlanSettings
-    from collect.session_writer import check_output_path
+    from collect.session_writer import check_output_path, resume_progress
 
     check_output_path(args.out, args.resume)
     settings = PlanSettings(poses_per_object=args.poses_per_object, seed=args.seed)
@@ -86,6 +105,17 @@ def run_collect(args: argparse.Namespace) -> int:
     display = _ProgressDisplay(enabled=not args.quiet)
     with open_bench(config) as bench:
         plan = plan_bench_collection(bench, settings)
+        if args.resume:  # read-only: a plan already complete leaves the file as it is
+            progress = resume_progress(args.out, **session_metadata(bench, plan.objects),
+                                       collection_plan=plan.describe())
+            if progress.plan_done(plan):
+                closed = ""
+                if not progress.closed_cleanly:  # cut off after its last pose: rewritten and closed, nothing added
+                    open_collection_writer(args.out, bench, plan, resume=True).close()
+                    closed = " (the file had not been closed: it is now)"
+                print(f"{args.out}: the plan is already complete ({_count(len(plan.poses), 'pose')} on "
+                      f"{_count(len(plan.objects), 'object')}); nothing to record{closed}")
+                return 0
         with open_collection_writer(args.out, bench, plan, resume=args.resume) as writer:
             with display:
                 result = run_collection(bench, plan, writer, display.update, threading.Event())
@@ -94,6 +124,10 @@ def run_collect(args: argparse.Namespace) -> int:
     print(f"recorded {result.frames} frames ({len(result.poses_done)} poses{skipped}, {result.dropped} dropped) "
           f"in {result.duration_s:.1f} s of bench time; {args.out} holds {frames} frames")
     return 0
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 class _ProgressDisplay:

@@ -25,6 +25,17 @@ def check_json_output(path) -> None:
         raise InputError(f"{path} exists and is not a JSON result; refusing to overwrite it")
 
 
+def check_parent_dirs(path) -> None:
+    """Raise InputError when a folder on the way to ``path`` (folders are created when missing)
+    exists as a file."""
+    path = Path(path)
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"cannot write {path}: {parent} is a file, not a directory")
+            return
+
+
 def _holds_json(path: Path) -> bool:
     """Whether ``path`` holds a JSON document (a recording is rejected by its first bytes, unread)."""
     try:

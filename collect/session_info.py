@@ -58,7 +58,8 @@ def describe_session(path) -> str:
     """``session_summary`` as the text ``bubble info`` prints."""
     info = session_summary(path)
     mb = info["file_bytes"] / 1e6
-    per_min = mb / (info["duration_s"] / 60) if info["duration_s"] > 0 else float("nan")
+    minutes = info["duration_s"] / 60
+    per_min = f"{mb / minutes:.0f} MB per minute of recording" if minutes > 0 else "no recording time"
     lines = [
         f"{info['path']}: bubble session, sensor {info['sensor_serial']}"
         f" ({'simulated' if info['simulated'] else 'real'}), created {info['created']},"
@@ -67,7 +68,7 @@ def describe_session(path) -> str:
         f"  frames: {info['frames']} of {info['width']}x{info['height']} over {info['duration_s']:.1f} s"
         f" ({info['fps']:.1f} fps); dropped {info['dropped']}, non-increasing timestamps {info['non_increasing_t']}",
         f"  streams: {info['arm_samples']} arm samples, {info['pressure_samples']} pressure readings",
-        f"  size: {mb:.1f} MB ({per_min:.0f} MB per minute of recording)",
+        f"  size: {mb:.1f} MB ({per_min})",
         "  " + f"{'object':<16}{'poses':>6}{'ref':>6}" + "".join(f"{p:>9}" for p in _PHASE_ORDER),
     ]
     for name, counts in info["objects"].items():

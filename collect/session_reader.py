@@ -47,6 +47,8 @@ _PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
 def open_h5(path) -> h5py.File:
     """Open ``path`` read-only. Raises InputError for a missing, unreadable, non-HDF5 or truncated file."""
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise InputError(f"{path} is a directory, not a session file")
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file")
     try:
@@ -65,8 +67,11 @@ def check_session_attrs(f: h5py.File) -> None:
     fmt = f.attrs.get(sf.ATTR_FORMAT)
     if isinstance(fmt, bytes):
         fmt = fmt.decode()
+    if fmt is None:
+        raise InputError(f"{f.filename}: an HDF5 file but not a {sf.FORMAT_NAME} file (it has no "
+                         f"'{sf.ATTR_FORMAT}' attribute)")
     if fmt != sf.FORMAT_NAME:
-        raise InputError(f"{f.filename}: not a {sf.FORMAT_NAME} file (format attribute: {fmt!r})")
+        raise InputError(f"{f.filename}: not a {sf.FORMAT_NAME} file (its '{sf.ATTR_FORMAT}' attribute is {fmt!r})")
     version = f.attrs.get(sf.ATTR_FORMAT_VERSION)
     if version is None or int(version) != sf.FORMAT_VERSION:
         raise InputError(

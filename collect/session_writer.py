@@ -164,7 +164,8 @@ class SessionWriter:
         self._closed = False
         plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
         if resume:
-            self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated, plan_text)
+            self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated, plan_text,
+                                          objects)
         else:
             self._file = _create(self.path)
         if plan_text is not None:
@@ -190,9 +191,9 @@ class SessionWriter:
         self._host_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_HOST, sf.ARM_T, sf.PRESSURE_T), RESUME_GAP_S)
         self._device_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_DEVICE), RESUME_GAP_S)
         self._seq = _ContinuedClock(_last_value(self._file, sf.FRAMES_SEQ), 1, restarted_only=False)
-        if resume and self.n_frames_at_open:
-            segments = json.loads(self._file.attrs.get(sf.ATTR_RESUMED_AT_FRAMES, "[]"))
-            self._file.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps(segments + [self.n_frames_at_open])
+        #: frame index where this resumed segment starts, listed in ``resumed_at_frames`` with the
+        #: segment's first frame (a resume that records no frame adds no segment)
+        self._segment_start = self.n_frames_at_open if resume and self.n_frames_at_open else None
         self._file.flush()
         self._frames = {name: self._file[name] for name in _FRAME_DATASETS}
         if self.simulated:
@@ -355,6 +356,10 @@ class SessionWriter:
         arms = [item for item in batch if item[0] == "arm"]
         pressures = [item for item in batch if item[0] == "pressure"]
         if frames:
+            if self._segment_start is not None:  # flushed together with the segment's first frames
+                segments = json.loads(self._file.attrs.get(sf.ATTR_RESUMED_AT_FRAMES, "[]"))
+                self._file.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps(segments + [self._segment_start])
+                self._segment_start = None
             columns = {
                 sf.FRAMES_IR: np.stack([f[1] for f in frames]),
                 sf.FRAMES_DEPTH: np.stack([f[2] for f in frames]),
@@ -452,6 +457,9 @@ def check_output_path(path, resume: bool) -> None:
     """Raise InputError unless ``path`` can be recorded to: a new file in an existing, writable
     directory, or (``resume``) an existing file. Cheap; call it before opening any device."""
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise InputError(f"{path} is a directory, not a session file; name a file in it, e.g. "
+                         f"{os.path.join(path, 'session.h5')}")
     if resume:
         if not os.path.isfile(path):
             raise InputError(f"cannot resume {path}: no such file")
@@ -462,6 +470,8 @@ def check_output_path(path, resume: bool) -> None:
         raise InputError(f"{path} already exists; use --resume to append to it or choose another output")
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
+        if os.path.exists(parent):
+            raise InputError(f"cannot create {path}: {parent} is a file, not a directory")
         raise InputError(f"cannot create {path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"cannot create {path}: directory {parent} is not writable")
@@ -531,20 +541,13 @@ def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool, com
 def _merge_objects(f: h5py.File, objects: list[dict]) -> list[int]:
     """Add the objects not yet in the file; return the file index of each given object."""
     names = [n.decode() if isinstance(n, bytes) else n for n in f[sf.OBJECTS_NAME][()]]
-    shas = [s.decode() if isinstance(s, bytes) else s for s in f[sf.OBJECTS_MESH_SHA256][()]]
     indices = []
     for obj in objects:
         name = str(obj["name"])
         if not name or "/" in name or name in (".", ".."):
             raise InputError(f"object name {name!r} cannot be stored (empty, '/', '.' or '..')")
-        if name in names:
-            i = names.index(name)
-            if shas[i] != obj["mesh_sha256"]:
-                raise InputError(
-                    f"object {name!r} in {f.filename} has another mesh (sha256 {shas[i][:12]}...) "
-                    f"than the one given ({obj['mesh_sha256'][:12]}...)"
-                )
-            indices.append(i)
+        if name in names:  # a resumed file's object, its mesh checked by ``_check_resumable``
+            indices.append(names.index(name))
             continue
         primitive = obj.get("primitive") or {}
         primitive = primitive if isinstance(primitive, str) else json.dumps(plain_json(primitive))
@@ -557,13 +560,12 @@ def _merge_objects(f: h5py.File, objects: list[dict]) -> list[int]:
         vertices.attrs[sf.ATTR_UNIT] = "m, object frame"
         group.create_dataset("faces", data=np.asarray(obj["faces"], dtype=np.int32))
         names.append(name)
-        shas.append(obj["mesh_sha256"])
         indices.append(len(names) - 1)
     return indices
 
 
 def _open_for_resume(path: str, serial: str, height: int, width: int, simulated: bool,
-                     plan_text: str | None) -> h5py.File:
+                     plan_text: str | None, objects: list[dict]) -> h5py.File:
     """Open an existing session for appending, after checking (read-only) that it can be resumed
     with this sensor, image size and plan; one whose writer died is rewritten first
     (``_recover_crashed``)."""
@@ -571,7 +573,7 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
 
     check_output_path(path, resume=True)
     with Session.open(path) as session:  # every attribute and dataset a session needs
-        _check_resumable(session, serial, height, width, simulated, plan_text)
+        _check_resumable(session, serial, height, width, simulated, plan_text, objects)
         crashed = not session.closed_cleanly
     if crashed:
         _recover_crashed(path)
@@ -588,8 +590,48 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
     return f
 
 
-def _check_resumable(session, serial: str, height: int, width: int, simulated: bool, plan_text: str | None) -> None:
-    """Raise InputError unless ``session`` (a ``Session``) was recorded with this sensor, size and plan."""
+@dataclass(frozen=True)
+class ResumeProgress:
+    """What a session file already holds of its plan (``resume_progress``)."""
+
+    completed_pose_ids: frozenset  # pose ids held and retracted
+    referenced_objects: frozenset  # names of the objects whose no-contact reference is complete
+    closed_cleanly: bool  # False: the last recording was cut off (a resume rewrites the file first)
+
+    def plan_done(self, plan) -> bool:
+        """Whether a resume of ``plan`` (a ``CollectionPlan``) has nothing left to record: every
+        pose done and every object's reference recorded (``run_collection`` would skip them all)."""
+        return (all(p.pose_id in self.completed_pose_ids for p in plan.poses)
+                and all(o.name in self.referenced_objects for o in plan.objects))
+
+
+def resume_progress(path, *, sensor_serial: str, intrinsics: dict, simulated: bool, objects: list[dict],
+                    collection_plan: dict | None = None, **_metadata) -> ResumeProgress:
+    """What ``path`` holds already, after the checks of ``SessionWriter(path, resume=True, ...)``
+    (same keywords; ``InputError`` for what such a resume would refuse). Read-only: the file is
+    left exactly as it was."""
+    from collect.session_reader import Session
+
+    path = os.fspath(path)
+    plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
+    check_output_path(path, resume=True)
+    with Session.open(path) as session:
+        _check_resumable(session, sensor_serial, int(intrinsics["height"]), int(intrinsics["width"]),
+                         bool(simulated), plan_text, objects)
+        frames = {sf.FRAMES_PHASE: session.phase, sf.FRAMES_POSE_ID: session.pose_id,
+                  sf.FRAMES_OBJECT: session.object_index}
+        names = session.object_names
+        return ResumeProgress(
+            completed_pose_ids=frozenset(_completed_pose_ids(frames)),
+            referenced_objects=frozenset(names[i] for i in _referenced_objects(frames) if i < len(names)),
+            closed_cleanly=session.closed_cleanly,
+        )
+
+
+def _check_resumable(session, serial: str, height: int, width: int, simulated: bool, plan_text: str | None,
+                     objects: list[dict]) -> None:
+    """Raise InputError unless ``session`` (a ``Session``) was recorded with this sensor, size and
+    plan, and its objects of the names in ``objects`` with the same meshes."""
     path = session.path
     if str(session.sensor_serial) != str(serial):
         raise InputError(f"cannot resume {path}: it was recorded with sensor {session.sensor_serial}, not {serial}")
@@ -602,6 +644,12 @@ def _check_resumable(session, serial: str, height: int, width: int, simulated: b
         changes = "; ".join(f"{key} {old} there, {new} now" for key, old, new in _differences(stored, json.loads(plan_text)))
         raise InputError(f"cannot resume {path}: it was recorded with another plan (objects, poses per object, "
                          f"seed or settings differ): {changes}")
+    stored = {o.name: o.mesh_sha256 for o in session.objects}
+    for obj in objects:
+        name, sha = str(obj["name"]), obj["mesh_sha256"]
+        if name in stored and stored[name] != sha:
+            raise InputError(f"object {name!r} in {path} has another mesh (sha256 {stored[name][:12]}...) "
+                             f"than the one given ({sha[:12]}...)")
 
 
 def _differences(old, new, key: str = "") -> list[tuple[str, object, object]]:
@@ -617,17 +665,19 @@ def _last_value(f: h5py.File, *names: str) -> float:
     return max((float(f[name][-1]) for name in names if f[name].shape[0]), default=-np.inf)
 
 
-def _completed_pose_ids(f: h5py.File) -> set[int]:
-    """Pose ids with both hold and retract frames (pressed, held and let go)."""
+def _completed_pose_ids(f) -> set[int]:
+    """Pose ids with both hold and retract frames (pressed, held and let go); ``f``: an open file,
+    or a dict of its ``frames/phase`` and ``frames/pose_id`` arrays."""
     phase, pose_id = f[sf.FRAMES_PHASE][()], f[sf.FRAMES_POSE_ID][()]
     held = set(np.unique(pose_id[phase == sf.PHASE_HOLD]).tolist())
     retracted = set(np.unique(pose_id[phase == sf.PHASE_RETRACT]).tolist())
     return {int(p) for p in held & retracted if p >= 0}
 
 
-def _referenced_objects(f: h5py.File) -> set[int]:
+def _referenced_objects(f) -> set[int]:
     """Objects whose no-contact reference is complete: free frames followed by a contact pose's
-    frames (a reference cut short by a fault or a stop is recorded again on resume)."""
+    frames (a reference cut short by a fault or a stop is recorded again on resume); ``f`` as for
+    ``_completed_pose_ids``, with ``frames/object``."""
     phase, obj = f[sf.FRAMES_PHASE][()], f[sf.FRAMES_OBJECT][()]
     free = set(np.unique(obj[phase == sf.PHASE_FREE]).tolist())
     posed = set(np.unique(obj[phase != sf.PHASE_FREE]).tolist())

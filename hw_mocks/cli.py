@@ -13,6 +13,8 @@ from collect.errors import InputError
 
 #: Deepest press the preview accepts (mm).
 MAX_PREVIEW_PRESS_MM = 30.0
+#: First bytes of every PNG file.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def register(subparsers) -> None:
@@ -34,12 +36,16 @@ def register(subparsers) -> None:
 
 
 def _new_sensor(args: argparse.Namespace) -> int:
+    from collect.output_files import check_parent_dirs
     from hw_mocks.sensor_spec import draw_sensor
 
     spec = draw_sensor(args.seed, args.defect)
     out = Path(args.out)
+    if out.is_dir():
+        raise InputError(f"--out {out} is a directory; name the spec file to write, e.g. {out / 'sensor.yaml'}")
     if out.exists():  # a spec describes the sensor a recording was made with: never replace one silently
         raise InputError(f"{out} already exists; choose another --out or delete it first")
+    check_parent_dirs(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         spec.to_yaml(out)
@@ -50,13 +56,36 @@ def _new_sensor(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
+    from hw_mocks.objects import BUILTIN_OBJECTS
     from hw_mocks.preview import render_preview
     from hw_mocks.sensor_spec import SensorSpec
 
     if not (0.0 <= args.press_mm <= MAX_PREVIEW_PRESS_MM):
         raise InputError(f"--press-mm must be within [0, {MAX_PREVIEW_PRESS_MM:g}], got {args.press_mm:g}")
-    spec = SensorSpec.from_yaml(args.sensor)
     out = Path(args.out)
+    _check_preview_output(out)
+    if args.object not in BUILTIN_OBJECTS and Path(args.object).is_dir():
+        raise InputError(f"--object {args.object} is a directory, not a mesh file (.stl, .obj, .ply)")
+    spec = SensorSpec.from_yaml(args.sensor)
     summary = render_preview(spec, args.object, args.press_mm / 1000.0, out)
     print(summary)
     return 0
+
+
+def _check_preview_output(out: Path) -> None:
+    """Raise InputError unless ``out`` can take the preview: a .png path, new or an earlier PNG."""
+    from collect.output_files import check_parent_dirs
+
+    if out.is_dir():
+        raise InputError(f"--out {out} is a directory; name the PNG file to write, e.g. {out / 'preview.png'}")
+    if out.suffix.lower() != ".png":
+        raise InputError(f"--out {out}: the preview is a PNG image; name a .png file")
+    if out.exists():
+        try:
+            with out.open("rb") as f:
+                is_png = f.read(8) == PNG_SIGNATURE
+        except OSError:
+            is_png = False
+        if not is_png:
+            raise InputError(f"{out} exists and is not a PNG image; refusing to overwrite it")
+    check_parent_dirs(out)

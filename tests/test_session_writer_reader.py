@@ -213,8 +213,10 @@ def test_bad_output_paths(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         _writer(tmp_path / "nowhere" / "s.h5")
     (tmp_path / "file").write_text("x")
-    with pytest.raises(InputError, match="does not exist"):
+    with pytest.raises(InputError, match="file is a file, not a directory"):
         _writer(tmp_path / "file" / "s.h5")
+    with pytest.raises(InputError, match="is a directory, not a session file"):
+        _writer(tmp_path)
     with pytest.raises(InputError, match="no such file"):
         _writer(tmp_path / "missing.h5", resume=True)
     with pytest.raises(InputError, match="recorded with sensor S1, not S2"):

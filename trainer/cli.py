@@ -56,7 +56,24 @@ def register(subparsers) -> None:
 
 
 def _objects(text: str | None) -> list[str] | None:
-    return None if not text else [name.strip() for name in text.split(",") if name.strip()]
+    """The names of ``--objects`` (None: not given, every object)."""
+    from collect.errors import InputError
+
+    if text is None:
+        return None
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    if not names:
+        raise InputError("--objects is empty: name at least one object (comma-separated), or leave it out for all")
+    return names
+
+
+def check_model_arg(value: str | None, option: str) -> None:
+    """Raise InputError when a model option (``--model``, ``--init``) names a file: a model is a directory."""
+    from collect.errors import InputError
+
+    if value is not None and value != "base" and Path(value).is_file():
+        raise InputError(f"{option} {value} is a file, not a model directory (give the directory that holds "
+                         f"metadata.json)")
 
 
 def metrics_table(title: str, rows: dict[str, dict]):
@@ -78,13 +95,17 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from collect.errors import InputError
-    from collect.output_files import check_json_output
+    from collect.output_files import check_json_output, check_parent_dirs
     from trainer.model_dir import WEIGHTS_FILE
     from trainer.training import TrainConfig, train_model
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file, not a model directory")
+    check_parent_dirs(out)
+    check_model_arg(args.init, "--init")
+    if args.holdout_object is not None and not args.holdout_object.strip():
+        raise InputError("--holdout-object is empty: name the object to leave out, or drop the option")
     if not args.resume and (out / WEIGHTS_FILE).exists():
         raise InputError(f"{out} already holds a model; use --resume to continue its training or choose another --out")
     if args.json:
@@ -157,6 +178,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from collect.output_files import check_json_output
     from trainer.evaluation import evaluate_model
 
+    check_model_arg(args.model, "--model")
     if args.json:
         check_json_output(args.json)
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)

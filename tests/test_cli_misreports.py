@@ -1,0 +1,203 @@
+"""Bad input that was refused with a misleading line (or had a wrong effect): each now gets one
+clear ``bubble: error:`` line and exit 2, and a resume with nothing left to do changes nothing."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from calibrate.cli import main
+from calibrate.sensor_registry import SensorRegistry
+from collect import session_format as sf
+from collect.session_reader import Session
+from collect.session_writer import SessionWriter
+
+
+def _refused(capsys, argv, needle) -> str:
+    """Run ``bubble argv``: exit 2 and one error line holding ``needle``."""
+    assert main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert needle in err, err
+    return err
+
+
+@pytest.fixture
+def places(tmp_path):
+    """A folder, a plain file and a sensor spec in ``tmp_path``."""
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    plain = tmp_path / "plain"
+    plain.write_text("x")
+    spec = tmp_path / "spec.yaml"
+    assert main(["sim", "new-sensor", "--seed", "1", "--out", str(spec)]) == 0
+    return folder, plain, spec
+
+
+def test_output_that_is_a_directory_or_under_a_file(tmp_path, places, capsys):
+    folder, plain, spec = places
+    capsys.readouterr()
+    _refused(capsys, ["collect", "--sim", "--quiet", "--out", folder], f"{folder} is a directory, not a session file")
+    _refused(capsys, ["collect", "--sim", "--quiet", "--resume", "--out", folder], "is a directory, not a session file")
+    _refused(capsys, ["collect", "--sim", "--quiet", "--out", plain / "s.h5"], f"{plain} is a file, not a directory")
+    _refused(capsys, ["sim", "new-sensor", "--seed", "2", "--out", folder], f"--out {folder} is a directory")
+    _refused(capsys, ["sim", "new-sensor", "--seed", "2", "--out", plain / "s.yaml"], f"{plain} is a file, not a directory")
+    preview = ["sim", "preview", "--sensor", spec, "--object", "box", "--out"]
+    _refused(capsys, preview + [folder], f"--out {folder} is a directory")
+    assert list(tmp_path.glob("folder.*")) == []  # was: the preview written to folder.png, exit 0
+    _refused(capsys, preview + [plain / "p.png"], f"{plain} is a file, not a directory")
+    assert list(folder.iterdir()) == [] and plain.read_text() == "x"
+
+
+def test_preview_never_overwrites_another_file(tmp_path, places, synthetic_session, capsys):
+    _, _, spec = places
+    capsys.readouterr()
+    recording = synthetic_session.read_bytes()
+    preview = ["sim", "preview", "--sensor", spec, "--object", "box", "--out"]
+    _refused(capsys, preview + [synthetic_session], "the preview is a PNG image; name a .png file")  # was: a traceback
+    notes = tmp_path / "notes.png"
+    notes.write_text("not a picture")
+    _refused(capsys, preview + [notes], "exists and is not a PNG image; refusing to overwrite it")
+    assert synthetic_session.read_bytes() == recording and notes.read_text() == "not a picture"
+
+
+def test_model_and_session_paths_of_the_wrong_kind(tmp_path, places, synthetic_session, capsys):
+    folder, plain, _ = places
+    capsys.readouterr()
+    _refused(capsys, ["train", "--data", synthetic_session, "--epochs", "0.01", "--out", plain / "model"],
+             f"{plain} is a file, not a directory")  # was: a traceback after loading the data
+    _refused(capsys, ["train", "--data", synthetic_session, "--init", plain, "--out", tmp_path / "m"],
+             f"--init {plain} is a file, not a model directory")
+    _refused(capsys, ["evaluate", "--model", plain, "--data", synthetic_session], f"--model {plain} is a file, not a model directory")
+    _refused(capsys, ["pose", "--model", plain, "--data", synthetic_session], f"--model {plain} is a file, not a model directory")
+    for argv in (["info", folder], ["train", "--data", folder, "--out", tmp_path / "m"],
+                 ["evaluate", "--model", "base", "--data", folder]):
+        _refused(capsys, argv, f"{folder} is a directory, not a session file")  # was: "no such file"
+    assert not (tmp_path / "m").exists()
+
+
+def test_empty_object_lists(tmp_path, synthetic_session, capsys):
+    for argv in (["evaluate", "--model", "base", "--data", synthetic_session, "--objects", ","],
+                 ["train", "--data", synthetic_session, "--objects", " , ", "--out", tmp_path / "m"]):
+        _refused(capsys, argv, "--objects is empty")  # was: "no press/hold frames in ..."
+    _refused(capsys, ["train", "--data", synthetic_session, "--holdout-object", "", "--out", tmp_path / "m"],
+             "--holdout-object is empty")  # was: trained with no object held out
+    assert not (tmp_path / "m").exists()
+
+
+def test_mesh_paths_that_are_not_mesh_files(tmp_path, places, capsys):
+    folder, plain, spec = places
+    capsys.readouterr()
+    collect = ["collect", "--sim", "--quiet", "--out", tmp_path / "s.h5", "--object-mesh"]
+    # each was: "unknown object '...': use one of mug, wine_glass, box, fingers or a mesh file"
+    _refused(capsys, collect + [folder], f"--object-mesh {folder} is a directory, not a mesh file")
+    _refused(capsys, collect + [plain], f"--object-mesh {plain} is not a mesh file")
+    _refused(capsys, collect + [tmp_path / "missing"], f"mesh file not found: {tmp_path / 'missing'}")
+    _refused(capsys, collect + [""], "--object-mesh is empty")
+    _refused(capsys, ["sim", "preview", "--sensor", spec, "--object", folder, "--out", tmp_path / "p.png"],
+             f"--object {folder} is a directory, not a mesh file")
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_hdf5_files_that_are_not_sessions(tmp_path, synthetic_session, capsys):
+    plain = tmp_path / "plain.h5"
+    with h5py.File(plain, "w") as f:
+        f["x"] = np.arange(3)
+    _refused(capsys, ["info", plain], f"{plain}: an HDF5 file but not a bubble-session file (it has no 'format' attribute)")
+    with h5py.File(synthetic_session, "a") as f:
+        f.attrs[sf.ATTR_FORMAT] = "other-format"
+    _refused(capsys, ["info", synthetic_session], "not a bubble-session file (its 'format' attribute is 'other-format')")
+
+
+def test_info_of_a_session_without_frames(tmp_path, capsys):
+    intrinsics = {"fx": 5.0, "fy": 5.0, "cx": 2.0, "cy": 1.5, "width": 5, "height": 4}
+    SessionWriter(tmp_path / "empty.h5", sensor_serial="S1", sensor_spec={}, intrinsics=intrinsics,
+                  camera_in_tcp=np.zeros(6), simulated=False, objects=[]).close()
+    assert main(["info", str(tmp_path / "empty.h5")]) == 0
+    out = capsys.readouterr().out
+    assert "frames: 0 of 5x4" in out and "(no recording time)" in out and "nan" not in out  # was: "nan MB per minute"
+
+
+def _collect_box(out, *extra):
+    return main(["collect", "--sim", "--objects", "box", "--poses-per-object", "1", "--seed", "3", "--quiet",
+                 "--out", str(out), *extra])
+
+
+def test_resume_of_a_complete_plan_records_nothing(tmp_path, capsys):
+    out = tmp_path / "done.h5"
+    assert _collect_box(out) == 0
+    capsys.readouterr()
+    recorded = out.read_bytes()
+    assert _collect_box(out, "--resume") == 0  # was: one more frame and a new segment in resumed_at_frames
+    assert "the plan is already complete (1 pose on 1 object); nothing to record" in capsys.readouterr().out
+    assert out.read_bytes() == recorded
+    # one cut off after its last pose (never closed) is closed, with nothing added
+    with h5py.File(out, "a") as f:
+        f.attrs[sf.ATTR_CLOSED] = ""
+    with Session.open(out) as s:
+        n, closed = s.n_frames, s.closed_cleanly
+    assert not closed
+    assert _collect_box(out, "--resume") == 0
+    assert "nothing to record (the file had not been closed: it is now)" in capsys.readouterr().out
+    with Session.open(out) as s, h5py.File(out, "r") as f:
+        assert s.closed_cleanly and s.n_frames == n and sf.ATTR_RESUMED_AT_FRAMES not in f.attrs
+    # the checks of a resume still come first: another plan is refused as before
+    assert _collect_box(out, "--resume", "--poses-per-object", "2") == 2
+    assert "another plan" in capsys.readouterr().err
+
+
+def test_a_resumed_segment_is_listed_only_when_it_records_a_frame(tmp_path):
+    h, w = 4, 5
+    intrinsics = {"fx": 5.0, "fy": 5.0, "cx": 2.0, "cy": 1.5, "width": w, "height": h}
+
+    def writer(resume):
+        return SessionWriter(tmp_path / "s.h5", sensor_serial="S1", sensor_spec={}, intrinsics=intrinsics,
+                             camera_in_tcp=np.zeros(6), simulated=False, objects=[], resume=resume)
+
+    def frame(w_, i):
+        w_.append_frame(np.zeros((h, w), np.uint16), np.zeros((h, w), np.uint16), i, i, i, -1, -1,
+                        sf.PHASE_FREE, np.zeros(6))
+
+    with writer(False) as w1:
+        frame(w1, 0)
+    with writer(True):
+        pass
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        assert sf.ATTR_RESUMED_AT_FRAMES not in f.attrs
+    with writer(True) as w2:
+        frame(w2, 1)
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        assert json.loads(f.attrs[sf.ATTR_RESUMED_AT_FRAMES]) == [1] and f[sf.FRAMES_SEQ].shape == (2,)
+
+
+@pytest.mark.parametrize(
+    "edit, field",
+    [
+        (lambda d: d["history"][0].__setitem__("accepted", "yes"), "'history[0].accepted' must be true or false, got \"yes\""),
+        (lambda d: d.__setitem__("history", 3), "'history' must be a list of commissionings, got 3"),
+        (lambda d: d.__setitem__("accepted_metrics", 3), "'accepted_metrics' must be an object of metrics or null, got 3"),
+        (lambda d: d["accepted_metrics"].__setitem__("a1", "high"), "'accepted_metrics.a1' must be a number or null"),
+        (lambda d: d["history"][0].__setitem__("a1", "high"), "'history[0].a1' must be a number or null"),
+        (lambda d: d.__setitem__("status", ["accepted"]), "'status' must be 'accepted' or 'rejected'"),
+        (lambda d: d.__setitem__("last_commissioned", 5), "'last_commissioned' must be a string, got 5"),
+        (lambda d: d.__setitem__("simulated", "no"), "'simulated' must be true or false"),
+        (lambda d: d["history"][0].pop("time"), "'history[0]' has no 'time'"),
+        (lambda d: d.pop("history"), "it has no 'history' of commissionings"),
+    ],
+)
+def test_registry_profile_fields_of_the_wrong_type(tmp_path, capsys, edit, field):
+    registry = SensorRegistry(tmp_path / "reg")
+    for serial in ("SB-A", "SB-B"):
+        registry.register(serial, accepted=True, run_dir=tmp_path, intrinsics={"width": 4, "height": 3},
+                          camera_in_tcp=None, simulated=True, acceptance={"accepted": True, "a1": 0.9, "abs_rel": 0.01})
+    path = tmp_path / "reg" / "SB-A" / "profile.json"
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    # was: a traceback, a wrong listing, or "needs a 'history' of commissionings" without the field
+    for argv in (["sensors", "--registry", tmp_path / "reg"], ["sensors", "--registry", tmp_path / "reg", "SB-A"]):
+        err = _refused(capsys, argv, field)
+        assert f"sensor registry profile {path} is corrupt: " in err
