@@ -49,7 +49,8 @@ def nocontact_maps(estimator, reference_path: Path) -> dict:
 
     ``valid_count (H,W) int32`` frames with valid ToF depth; ``err_mean``/``err_var`` ``(H,W) float32``
     m / m^2 of predicted - measured depth over those frames (NaN where never valid);
-    ``reference_depth (H,W) float32 m`` median valid ToF depth (0 = never valid); ``reference_ir``.
+    ``reference_depth (H,W) float32 m`` median valid ToF depth (0 = never valid); ``reference_ir (H,W)
+    float32`` mean IR.
     """
     from collect.session_reader import Session
     from trainer.evaluation import predict_frames

@@ -165,7 +165,8 @@ class SensorRegistry:
         """Record one commissioning of ``serial``; returns the updated profile.
 
         ``acceptance``: the ``acceptance.json`` content. ``model_dir`` and ``reference``
-        (``depth_m``, ``ir``, ``valid_count`` arrays) are stored only when ``accepted``.
+        (``depth_m`` (H,W) float32 m, ``ir`` (H,W) float32 and ``valid_count`` (H,W) arrays) are
+        stored only when ``accepted``.
         """
         sdir = self._sensor_dir(serial)
         sdir.mkdir(parents=True, exist_ok=True)
@@ -233,7 +234,7 @@ class SensorRegistry:
         return out
 
     def reference(self, serial: str) -> dict[str, np.ndarray]:
-        """The stored no-contact reference of an accepted sensor."""
+        """The stored no-contact reference of an accepted sensor (the ``reference`` arrays of ``register``)."""
         path = self.get(serial).path / "reference.npz"
         if not path.is_file():
             raise InputError(f"sensor {serial!r} has no accepted reference in {self.root}")

@@ -227,7 +227,7 @@ class Session:
         return np.flatnonzero(keep).astype(np.int64)
 
     def reference_frames(self, object: str) -> np.ndarray:
-        """Indices of the no-contact (``free``) frames of ``object`` recorded before its first press."""
+        """Indices ``(n,) int64`` of the no-contact (``free``) frames of ``object`` recorded before its first press."""
         oid = self.object_id(object)
         mine = self.object_index == oid
         pressed = np.flatnonzero(mine & (self.phase != sf.PHASE_FREE))
@@ -242,7 +242,7 @@ class Session:
         return int(gaps[gaps > 0].sum())
 
     def phase_name(self, idx) -> np.ndarray | str:
-        """Phase names of frames ``idx`` (str for an int index)."""
+        """Phase names of frames ``idx`` (an index array ``(n,)`` -> ``(n,) str``; an int -> str)."""
         values = self.phase[idx]
         if np.isscalar(values):
             return _PHASE_NAMES[int(values)]

@@ -417,6 +417,7 @@ class _ImageDataset:
         return [pool.submit(self._encode_one, image) for image in images]
 
     def append(self, images: np.ndarray, encoded) -> None:
+        """Append ``images`` (n,H,W), written as the chunks ``encoded`` by ``encode`` when it made them."""
         if encoded is None:
             _append_rows(self.dataset, images)
             return

@@ -300,7 +300,8 @@ class SimBench:
 
 
 def default_home_pose(objects) -> np.ndarray:
-    """TCP pose above the middle of the placed ``objects``, 80 mm over the tallest, pressing axis down."""
+    """TCP pose ``(6,)`` (m + rotvec, base frame) above the middle of the placed ``objects``, 80 mm over
+    the tallest, pressing axis down."""
     from hw_mocks.objects import PLATE_X, PLATE_Z
 
     if objects:
