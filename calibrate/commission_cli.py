@@ -19,32 +19,15 @@ from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
 
 
 def register(subparsers) -> None:
-    from calibrate.commission_config import CommissionConfig
-
     p = subparsers.add_parser(
         "commission",
         help="commission a sensor: leak test, camera health, calibration set, fine-tune, validate, report",
         description="Commission a new bubble sensor end to end and register it. Exit 0 accepted, 1 rejected, "
         "2 bad input. Re-running with the same --out resumes from the last completed step.",
     )
-    p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
-    p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
     p.add_argument("--bench", type=Path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
     p.add_argument("--out", type=Path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
-    p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
-    p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
-    p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
-    p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M",
-                   help="fine-tuning time budget (default %(default)s)")
-    p.add_argument("--total-minutes", type=float, default=CommissionConfig.total_minutes, metavar="M",
-                   help="wall-time budget of the whole run; the fine-tune is shortened to fit it (default %(default)s)")
-    p.add_argument("--leak-hold-s", type=float, default=10.0, metavar="S", help="leak-test hold, s of bench time (default 10)")
-    p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
-    p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
-                   help="contact poses per object (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the pose plan and of the simulated sensor")
-    p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS", help="inject a fault (simulated bench)")
-    p.add_argument("--sim-speed", type=float, default=1.0, help="simulated clock speed-up (simulated bench)")
+    add_run_options(p)
     p.add_argument("--quiet", action="store_true", help="print only the verdict")
     p.set_defaults(func=run_commission)
 
@@ -57,6 +40,53 @@ def register(subparsers) -> None:
     s.add_argument("--registry", type=Path, metavar="DIR", help="registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.set_defaults(func=run_sensors)
+
+
+def add_run_options(p) -> None:
+    """The options of a commissioning run that ``bubble commission`` and ``bubble tui`` share."""
+    from calibrate.commission_config import CommissionConfig
+
+    p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
+    p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
+    p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
+    p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
+    p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M",
+                   help="fine-tuning time budget (default %(default)s)")
+    p.add_argument("--total-minutes", type=float, default=CommissionConfig.total_minutes, metavar="M",
+                   help="wall-time budget of the whole run; the fine-tune is shortened to fit it (default %(default)s)")
+    p.add_argument("--leak-hold-s", type=float, default=CommissionConfig.leak_hold_s, metavar="S",
+                   help=f"leak-test hold, s of bench time (default {CommissionConfig.leak_hold_s:g})")
+    p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
+    p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
+                   help="contact poses per object (default %(default)s)")
+    p.add_argument("--seed", type=int, default=CommissionConfig.seed, help="seed of the pose plan and of the simulated sensor")
+    p.add_argument("--sim-fault", action="append", default=[], metavar="KIND@SECONDS", help="inject a fault (simulated bench)")
+    p.add_argument("--sim-speed", type=float, default=CommissionConfig.sim_speed, help="simulated clock speed-up (simulated bench)")
+
+
+def run_config(args, run_dir: Path, bench=None):
+    """The ``CommissionConfig`` of ``add_run_options``' options, for ``run_dir`` and ``bench`` (a real
+    bench's ``BenchConfig``; None for the simulated one)."""
+    from calibrate.commission_config import CommissionConfig
+
+    return CommissionConfig(
+        run_dir=run_dir,
+        simulated=args.sim,
+        sensor_spec=args.sensor,
+        bench=bench,
+        thresholds=args.thresholds,
+        registry_dir=args.registry,
+        base_model=args.base_model,
+        finetune_minutes=args.finetune_minutes,
+        total_minutes=args.total_minutes,
+        objects=tuple(name.strip() for name in args.objects.split(",") if name.strip()),
+        poses_per_object=args.poses_per_object,
+        seed=args.seed,
+        sim_faults=tuple(args.sim_fault),
+        sim_speed=args.sim_speed,
+        leak_hold_s=args.leak_hold_s,
+    )
 
 
 class ProgressPrinter:
@@ -107,10 +137,8 @@ class ProgressPrinter:
 
 
 def run_commission(args) -> int:
-    from calibrate.commission_config import CommissionConfig
     from calibrate.commissioning import run_commissioning
 
-    objects = tuple(name.strip() for name in args.objects.split(",") if name.strip())
     bench = None
     if args.bench is not None:
         if args.sim:
@@ -120,23 +148,7 @@ def run_commission(args) -> int:
         bench = BenchConfig.from_yaml(args.bench)
     if (args.sim_fault or args.sensor is not None) and not args.sim:
         raise InputError("--sensor and --sim-fault need --sim (they describe the simulated bench)")
-    config = CommissionConfig(
-        run_dir=args.out,
-        simulated=args.sim,
-        sensor_spec=args.sensor,
-        bench=bench,
-        thresholds=args.thresholds,
-        registry_dir=args.registry,
-        base_model=args.base_model,
-        finetune_minutes=args.finetune_minutes,
-        total_minutes=args.total_minutes,
-        objects=objects,
-        poses_per_object=args.poses_per_object,
-        seed=args.seed,
-        sim_faults=tuple(args.sim_fault),
-        sim_speed=args.sim_speed,
-        leak_hold_s=args.leak_hold_s,
-    )
+    config = run_config(args, args.out, bench)
     stop, done = threading.Event(), threading.Event()
     printer = (lambda e: None) if args.quiet else ProgressPrinter()
     outcome: dict = {}

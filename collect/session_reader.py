@@ -23,14 +23,7 @@ from collect import session_format as sf
 from collect.errors import InputError
 
 _REQUIRED = (
-    sf.FRAMES_IR,
-    sf.FRAMES_DEPTH,
-    sf.FRAMES_T_DEVICE,
-    sf.FRAMES_T_HOST,
-    sf.FRAMES_SEQ,
-    sf.FRAMES_OBJECT,
-    sf.FRAMES_POSE_ID,
-    sf.FRAMES_PHASE,
+    *sf.FRAME_DATASETS,
     sf.ARM_T,
     sf.ARM_TCP_POSE,
     sf.ARM_TCP_WRENCH,

@@ -431,17 +431,7 @@ class _ImageDataset:
 _PHASE_VALUES = frozenset(sf.PHASES.values())
 _IMAGE_DATASETS = (sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.SIM_TRUE_DEPTH)
 
-_FRAME_DATASETS = (
-    sf.FRAMES_IR,
-    sf.FRAMES_DEPTH,
-    sf.FRAMES_T_DEVICE,
-    sf.FRAMES_T_HOST,
-    sf.FRAMES_SEQ,
-    sf.FRAMES_OBJECT,
-    sf.FRAMES_POSE_ID,
-    sf.FRAMES_PHASE,
-    sf.FRAMES_TCP_POSE,
-)
+_FRAME_DATASETS = (*sf.FRAME_DATASETS, sf.FRAMES_TCP_POSE)
 
 
 def _now() -> str:
