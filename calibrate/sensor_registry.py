@@ -87,14 +87,15 @@ _PROFILE_FIELDS = {
     "model_source": _TEXT,
     "reference": _TEXT,
 }
+_METRIC_KEYS = ("abs_rel", "rmse", "a1")
 _HISTORY_FIELDS = {
     "time": _TEXT,
     "run_dir": _TEXT,
     "accepted": (lambda v: isinstance(v, bool), "true or false"),
     "reason": _TEXT,
+    **{key: _OPTIONAL_NUMBER for key in _METRIC_KEYS},
 }
 _REQUIRED_HISTORY_FIELDS = ("time", "accepted")
-_METRIC_KEYS = ("abs_rel", "rmse", "a1")
 
 
 def check_profile(profile, path: Path) -> None:
@@ -128,8 +129,7 @@ def check_profile(profile, path: Path) -> None:
         for field in _REQUIRED_HISTORY_FIELDS:
             if field not in entry:
                 raise InputError(f"sensor registry profile {path} is corrupt: 'history[{i}]' has no '{field}'")
-        checks = {**_HISTORY_FIELDS, **{key: _OPTIONAL_NUMBER for key in _METRIC_KEYS}}
-        for field, (ok, what) in checks.items():
+        for field, (ok, what) in _HISTORY_FIELDS.items():
             if field in entry and not ok(entry[field]):
                 raise bad(f"history[{i}].{field}", what, entry[field])
 

@@ -95,7 +95,8 @@ def bench_config(args: argparse.Namespace):
 
 def run_collect(args: argparse.Namespace) -> int:
     from collect.bench import open_bench
-    from collect.collection import open_collection_writer, plan_bench_collection, run_collection, session_metadata
+    from collect.collection import (open_collection_writer, plan_bench_collection, remaining_stops, run_collection,
+                                    session_metadata)
     from collect.pose_planner import PlanSettings
     from collect.session_writer import check_output_path, resume_progress
 
@@ -108,7 +109,8 @@ def run_collect(args: argparse.Namespace) -> int:
         if args.resume:  # read-only: a plan already complete leaves the file as it is
             progress = resume_progress(args.out, **session_metadata(bench, plan.objects),
                                        collection_plan=plan.describe())
-            if progress.plan_done(plan):
+            referenced = {oi for oi, o in enumerate(plan.objects) if o.name in progress.referenced_objects}
+            if not remaining_stops(plan, progress.completed_pose_ids, referenced):
                 closed = ""
                 if not progress.closed_cleanly:  # cut off after its last pose: rewritten and closed, nothing added
                     open_collection_writer(args.out, bench, plan, resume=True).close()

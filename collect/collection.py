@@ -98,6 +98,15 @@ def plan_bench_collection(bench, settings: PlanSettings) -> CollectionPlan:
     return plan_collection(bench.objects, bench.limits, settings, bench.arm.settings)
 
 
+def remaining_stops(plan: CollectionPlan, completed_pose_ids, referenced) -> list[tuple]:
+    """What a run of ``plan`` still has to record, given the pose ids a file holds complete and the
+    plan object indices ``referenced`` whose no-contact reference it holds: ``(stop, poses left,
+    whether the reference is recorded)`` for every object stop with anything left (empty: done)."""
+    stops = [(stop, [p for p in plan.poses_of(stop.object_index) if p.pose_id not in completed_pose_ids],
+              stop.object_index in referenced) for stop in plan.stops]
+    return [(stop, poses, has_reference) for stop, poses, has_reference in stops if poses or not has_reference]
+
+
 def open_collection_writer(path, bench, plan: CollectionPlan, resume: bool) -> SessionWriter:
     """The ``SessionWriter`` of a collection: ``bench``'s metadata and ``plan``'s settings (root attr
     ``collection_plan``; a resumed file must hold the same plan, else ``InputError``)."""
@@ -271,9 +280,8 @@ def run_collection(
             raise StopRequested("collection: stopped by the operator")
         recorder.set_stamp(stamp, bench.clock())
 
-    stops = [(stop, [p for p in plan.poses_of(stop.object_index) if p.pose_id not in writer.completed_pose_ids],
-              writer.object_indices[stop.object_index] in writer.referenced_objects) for stop in plan.stops]
-    stops = [(stop, poses, has_reference) for stop, poses, has_reference in stops if poses or not has_reference]
+    referenced = {oi for oi, file_index in enumerate(writer.object_indices) if file_index in writer.referenced_objects}
+    stops = remaining_stops(plan, writer.completed_pose_ids, referenced)
     if not stops:
         return result
     recorder.start()

@@ -183,10 +183,11 @@ class SessionWriter:
             raise
         self._file.attrs[sf.ATTR_CLOSED] = ""
         self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
+        phase = self._file[sf.FRAMES_PHASE][()]
         #: pose ids with hold and retract frames already in the file (resume skips them)
-        self.completed_pose_ids = frozenset(_completed_pose_ids(self._file))
+        self.completed_pose_ids = frozenset(_completed_pose_ids(phase, self._file[sf.FRAMES_POSE_ID][()]))
         #: object indices with no-contact reference frames already in the file
-        self.referenced_objects = frozenset(_referenced_objects(self._file))
+        self.referenced_objects = frozenset(_referenced_objects(phase, self._file[sf.FRAMES_OBJECT][()]))
         self.stats.frames_flushed = self.n_frames_at_open
         self._host_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_HOST, sf.ARM_T, sf.PRESSURE_T), RESUME_GAP_S)
         self._device_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_DEVICE), RESUME_GAP_S)
@@ -589,12 +590,6 @@ class ResumeProgress:
     referenced_objects: frozenset  # names of the objects whose no-contact reference is complete
     closed_cleanly: bool  # False: the last recording was cut off (a resume rewrites the file first)
 
-    def plan_done(self, plan) -> bool:
-        """Whether a resume of ``plan`` (a ``CollectionPlan``) has nothing left to record: every
-        pose done and every object's reference recorded (``run_collection`` would skip them all)."""
-        return (all(p.pose_id in self.completed_pose_ids for p in plan.poses)
-                and all(o.name in self.referenced_objects for o in plan.objects))
-
 
 def resume_progress(path, *, sensor_serial: str, intrinsics: dict, simulated: bool, objects: list[dict],
                     collection_plan: dict | None = None, **_metadata) -> ResumeProgress:
@@ -609,12 +604,11 @@ def resume_progress(path, *, sensor_serial: str, intrinsics: dict, simulated: bo
     with Session.open(path) as session:
         _check_resumable(session, sensor_serial, int(intrinsics["height"]), int(intrinsics["width"]),
                          bool(simulated), plan_text, objects)
-        frames = {sf.FRAMES_PHASE: session.phase, sf.FRAMES_POSE_ID: session.pose_id,
-                  sf.FRAMES_OBJECT: session.object_index}
         names = session.object_names
         return ResumeProgress(
-            completed_pose_ids=frozenset(_completed_pose_ids(frames)),
-            referenced_objects=frozenset(names[i] for i in _referenced_objects(frames) if i < len(names)),
+            completed_pose_ids=frozenset(_completed_pose_ids(session.phase, session.pose_id)),
+            referenced_objects=frozenset(names[i] for i in _referenced_objects(session.phase, session.object_index)
+                                         if i < len(names)),
             closed_cleanly=session.closed_cleanly,
         )
 
@@ -656,20 +650,18 @@ def _last_value(f: h5py.File, *names: str) -> float:
     return max((float(f[name][-1]) for name in names if f[name].shape[0]), default=-np.inf)
 
 
-def _completed_pose_ids(f) -> set[int]:
-    """Pose ids with both hold and retract frames (pressed, held and let go); ``f``: an open file,
-    or a dict of its ``frames/phase`` and ``frames/pose_id`` arrays."""
-    phase, pose_id = f[sf.FRAMES_PHASE][()], f[sf.FRAMES_POSE_ID][()]
+def _completed_pose_ids(phase: np.ndarray, pose_id: np.ndarray) -> set[int]:
+    """Pose ids with both hold and retract frames (pressed, held and let go), from the ``(N,)``
+    ``frames/phase`` and ``frames/pose_id`` columns."""
     held = set(np.unique(pose_id[phase == sf.PHASE_HOLD]).tolist())
     retracted = set(np.unique(pose_id[phase == sf.PHASE_RETRACT]).tolist())
     return {int(p) for p in held & retracted if p >= 0}
 
 
-def _referenced_objects(f) -> set[int]:
+def _referenced_objects(phase: np.ndarray, obj: np.ndarray) -> set[int]:
     """Objects whose no-contact reference is complete: free frames followed by a contact pose's
-    frames (a reference cut short by a fault or a stop is recorded again on resume); ``f`` as for
-    ``_completed_pose_ids``, with ``frames/object``."""
-    phase, obj = f[sf.FRAMES_PHASE][()], f[sf.FRAMES_OBJECT][()]
+    frames (a reference cut short by a fault or a stop is recorded again on resume), from the
+    ``(N,)`` ``frames/phase`` and ``frames/object`` columns."""
     free = set(np.unique(obj[phase == sf.PHASE_FREE]).tolist())
     posed = set(np.unique(obj[phase != sf.PHASE_FREE]).tolist())
     return {int(o) for o in free & posed if o >= 0}
