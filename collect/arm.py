@@ -101,6 +101,16 @@ def move_duration_s(distance_m: float, speed: float, accel: float) -> float:
     return distance_m / speed + speed / accel
 
 
+def backoff_direction(wrench, min_force_n: float) -> np.ndarray | None:
+    """Unit direction (3,) in the base frame that moves the sensor away from what pushes on it: the
+    force of ``wrench`` (6,) N, N m, its downward part (base -z, toward the plate) dropped. None when
+    that force is at most ``min_force_n`` N (nothing is touched, or only pulled down on)."""
+    force = np.asarray(wrench, dtype=float)[:3].copy()
+    force[2] = max(force[2], 0.0)
+    magnitude = float(np.linalg.norm(force))
+    return force / magnitude if magnitude > min_force_n else None
+
+
 def retract_speed(settings: MotionSettings) -> float:
     """Speed (m/s) of ``Arm.retract`` (after each press and in the safe stop): twice the approach speed."""
     return 2.0 * settings.approach_speed
@@ -427,8 +437,11 @@ class Arm:
     def retract(self, speed: float | None = None) -> ArmState:
         """Move away from the object, to the pose where the last contact move began.
 
-        Without a remembered pose it backs off ``settings.retract_m`` against the pressing axis if
-        the contact force is above ``settings.contact_force_n``, and stays put otherwise. Works after a force fault (the force check is suspended while moving away); raises
+        Without a remembered pose (e.g. a force fault while travelling, the bubble's side against an
+        object) it backs off ``settings.retract_m`` along the measured contact force, the push of
+        the touched object on the sensor, never toward the plate (the force's downward part is
+        dropped), if that force is above ``settings.contact_force_n``; otherwise it stays put.
+        Works after a force fault (the force check is suspended while moving away); raises
         ``HardwareFault('protective-stop')`` when the robot is in protective stop.
         """
         if self._rcv.isProtectiveStopped():
@@ -437,11 +450,12 @@ class Arm:
         now = self.state()
         if self._retract_pose is not None:
             target = self._retract_pose
-        elif now.pressing_force_n() <= self.settings.contact_force_n:
-            return now
         else:
+            away = backoff_direction(now.tcp_wrench, self.settings.contact_force_n)
+            if away is None:
+                return now
             target = now.tcp_pose.copy()
-            target[:3] -= tool_z_axis(now.tcp_pose) * self.settings.retract_m
+            target[:3] += away * self.settings.retract_m
         self._force_check = False
         try:
             sample, _ = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,

@@ -137,6 +137,35 @@ def test_a_contact_move_refuses_to_zero_a_sensor_that_already_feels_a_force():
         arm.close()
 
 
+def test_retract_without_a_remembered_pose_backs_off_along_the_contact_force():
+    # e.g. a force fault while travelling: the bubble's side stopped against an object, no contact
+    # move began, so there is no approach pose to go back to; back off from the push, never down
+    start = np.array([0.4, 0.0, 0.2, *DOWN])
+    scene = _Still()
+    controller = SimURController(scene, start)
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        for wrench, away in (([3.0, -4.0, 0.0], [0.6, -0.8, 0.0]),  # sideways
+                             ([0.0, 0.0, 5.0], [0.0, 0.0, 1.0]),  # a press from above: straight up
+                             ([3.0, 0.0, -4.0], [1.0, 0.0, 0.0])):  # pushed down and sideways: sideways only
+            scene.force[:3] = wrench
+            time.sleep(0.05)  # the monitor's next samples read it
+            before = arm.state().tcp_pose
+            after = arm.retract().tcp_pose
+            np.testing.assert_allclose(after[:3] - before[:3], MOTION.retract_m * np.array(away), atol=5e-4)
+            np.testing.assert_allclose(after[3:], before[3:], atol=1e-6)
+        moves = control.moves
+        for wrench in ([0.3, 0.0, 0.0], [0.0, 0.0, -5.0]):  # below contact_force_n; only pulled down
+            scene.force[:3] = wrench
+            time.sleep(0.05)
+            arm.retract()
+        assert control.moves == moves
+    finally:
+        arm.close()
+
+
 def test_travel_to_rises_straight_up_before_moving_across():
     tilted = (Rotation.from_rotvec(DOWN) * Rotation.from_euler("y", 10.0, degrees=True)).as_rotvec()
     start = np.array([0.4, -0.03, 0.06, *tilted])  # low, tilted, e.g. beside an object
