@@ -79,13 +79,12 @@ from calibrate.run_directory import (
     RunState,
     run_settings,
     set_aside,
-    utc_now,
 )
 from calibrate.run_report import write_run_report
 from calibrate.run_statistics import collection_stats, nocontact_maps, pick_examples, registry_reference
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.json_files import plain_json, write_json
-from collect.session_format import DEPTH_UNIT_M
+from collect.session_format import DEPTH_UNIT_M, utc_now
 from trainer.contact import contact_mask
 from trainer.metrics import METRIC_KEYS
 

@@ -9,13 +9,13 @@ from __future__ import annotations
 import json
 import math
 import os
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from calibrate.commission_events import STEPS, Step
 from collect.errors import InputError
 from collect.json_files import write_json
+from collect.session_format import utc_now
 
 if TYPE_CHECKING:
     from calibrate.commission_config import CommissionConfig
@@ -35,11 +35,6 @@ PLOTS_DIR = "plots"
 
 #: Settings that must match when a run directory is resumed.
 RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed")
-
-
-def utc_now() -> str:
-    """The current UTC time, ISO 8601 to the second (the time stamps of the run's JSON files)."""
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
 def run_settings(config: CommissionConfig, sensor_id: str) -> dict:

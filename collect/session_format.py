@@ -4,6 +4,8 @@ One file per recording session, readable with plain h5py. Writers (``collect.ses
 and readers (``collect.session_reader``) take every name from here.
 """
 
+from datetime import datetime, timezone
+
 FORMAT_NAME = "bubble-session"
 FORMAT_VERSION = 1
 
@@ -77,3 +79,9 @@ ATTR_PHASE_ENUM = "enum"  # frames/phase: JSON {name: value} of PHASES
 ATTR_CLOSED = "closed"  # root: ISO 8601 UTC time of the last clean close, "" while recording / after a crash
 ATTR_COLLECTION_PLAN = "collection_plan"  # root: JSON of the pose plan settings (objects, poses per object, seed)
 ATTR_RESUMED_AT_FRAMES = "resumed_at_frames"  # root: JSON list of the frame indices where resumed segments start
+
+
+def utc_now() -> str:
+    """The current UTC time as the format's time stamps write it (``created``, ``closed``; also the
+    commissioning run's JSON files): ISO 8601 to the second, e.g. ``2026-11-24T09:30:00+00:00``."""
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")

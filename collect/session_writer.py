@@ -34,7 +34,6 @@ import time
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from datetime import datetime, timezone
 
 import h5py
 import numpy as np
@@ -281,7 +280,7 @@ class SessionWriter:
         self._pool.shutdown()
         try:
             if self._error is None:
-                self._file.attrs[sf.ATTR_CLOSED] = _now()
+                self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
         finally:
             self._file.close()
         self._raise_if_failed()
@@ -435,10 +434,6 @@ _IMAGE_DATASETS = (sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.SIM_TRUE_DEPTH)
 _FRAME_DATASETS = (*sf.FRAME_DATASETS, sf.FRAMES_TCP_POSE)
 
 
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
-
-
 def _append_rows(dataset: h5py.Dataset, values: np.ndarray) -> None:
     n = dataset.shape[0]
     dataset.resize(n + len(values), axis=0)
@@ -485,7 +480,7 @@ def _write_root_attrs(f, serial, spec, intrinsics, camera_in_tcp, simulated) -> 
     f.attrs[sf.ATTR_SENSOR_SPEC] = json.dumps(spec)
     f.attrs[sf.ATTR_INTRINSICS] = json.dumps(plain_json(intrinsics))
     f.attrs[sf.ATTR_CAMERA_IN_TCP] = json.dumps([float(v) for v in np.asarray(camera_in_tcp).reshape(6)])
-    f.attrs[sf.ATTR_CREATED] = _now()
+    f.attrs[sf.ATTR_CREATED] = sf.utc_now()
     f.attrs[sf.ATTR_SIMULATED] = bool(simulated)
 
 
