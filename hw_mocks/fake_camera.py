@@ -38,7 +38,9 @@ TRUE_DEPTH_KEEP = 32
 PACE_NAME = "camera"
 
 
-def _img_frame(image: np.ndarray, seq: int, t_device: float, t_host: float):
+def img_frame(image: np.ndarray, seq: int, t_device: float, t_host: float):
+    """A depthai ``ImgFrame`` (RAW16) as an OAK sends it: ``image`` (H,W) uint16, sequence number,
+    device and host time stamps in s."""
     import depthai as dai
 
     msg = dai.ImgFrame()
@@ -91,7 +93,7 @@ class SimCameraDevice:
         state = self.scene.latest().state
         ir, depth = self.scene.sim.render(state, self._rng)
         t_device = t + self.boot_offset_s
-        return (_img_frame(depth, seq, t_device, t), _img_frame(ir, seq, t_device, t),
+        return (img_frame(depth, seq, t_device, t), img_frame(ir, seq, t_device, t),
                 np.asarray(state.true_depth, dtype=np.float32))
 
     def _run(self) -> None:

@@ -207,11 +207,11 @@ def test_a_cpu_starved_camera_twin_slows_simulated_time_instead_of_stalling(monk
 def test_the_simulated_camera_makes_room_in_a_full_queue_instead_of_letting_depthai_drop():
     import depthai as dai
 
-    from hw_mocks.fake_camera import _img_frame, _send_without_drop
+    from hw_mocks.fake_camera import _send_without_drop, img_frame
 
     queue = dai.MessageQueue("depth", 3, False)
     for seq in range(5):
-        _send_without_drop(queue, _img_frame(np.zeros((2, 2), np.uint16), seq, float(seq), float(seq)))
+        _send_without_drop(queue, img_frame(np.zeros((2, 2), np.uint16), seq, float(seq), float(seq)))
     assert queue.getSize() == 3  # the newest three, oldest first, as depthai's own drop would keep
     assert [queue.tryGet().getSequenceNum() for _ in range(3)] == [2, 3, 4]
     assert queue.tryGet() is None

@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import datetime
 import time
 
 import depthai as dai
@@ -15,18 +14,7 @@ import pytest
 from collect.camera import DEPTHAI_TOF_DEPTH_UNIT_M, QueueToFCamera, depth_to_session_units
 from collect.errors import HardwareFault
 from collect.session_format import DEPTH_UNIT_M
-
-
-def _msg(image, seq, t_device, t_host):
-    m = dai.ImgFrame()
-    m.setType(dai.ImgFrame.Type.RAW16)
-    m.setWidth(image.shape[1])
-    m.setHeight(image.shape[0])
-    m.setData(np.ascontiguousarray(image, dtype=np.uint16).view(np.uint8).reshape(-1))
-    m.setSequenceNum(seq)
-    m.setTimestampDevice(datetime.timedelta(seconds=t_device))
-    m.setTimestamp(datetime.timedelta(seconds=t_host))
-    return m
+from hw_mocks.fake_camera import img_frame
 
 
 class _Camera(QueueToFCamera):
@@ -65,11 +53,11 @@ def test_frames_are_paired_by_sequence_number_and_unpacked():
     depth = rng.integers(50, 120, size=(172, 224)).astype(np.uint16)
     ir = rng.integers(0, 65535, size=(172, 224)).astype(np.uint16)
     # Frame 0's amplitude got lost: the camera must skip the unpaired depth and deliver frame 1.
-    cam.depth_q.send(_msg(depth, 0, 10.0, 100.0))
-    cam.depth_q.send(_msg(depth, 1, 10.1, 100.1))
-    cam.amp_q.send(_msg(ir, 1, 10.1, 100.1))
-    cam.depth_q.send(_msg(depth, 3, 10.3, 100.3))
-    cam.amp_q.send(_msg(ir, 3, 10.3, 100.3))
+    cam.depth_q.send(img_frame(depth, 0, 10.0, 100.0))
+    cam.depth_q.send(img_frame(depth, 1, 10.1, 100.1))
+    cam.amp_q.send(img_frame(ir, 1, 10.1, 100.1))
+    cam.depth_q.send(img_frame(depth, 3, 10.3, 100.3))
+    cam.amp_q.send(img_frame(ir, 3, 10.3, 100.3))
     f1 = cam.get_frame()
     assert (f1.seq, f1.t_device, f1.t_host) == (1, pytest.approx(10.1), pytest.approx(100.1))
     np.testing.assert_array_equal(f1.depth, depth.astype(np.uint32) * 100)
@@ -94,8 +82,8 @@ def test_device_clock_going_backwards_is_a_fault():
     cam.start()
     img = np.ones((4, 4), np.uint16)
     for seq, t in ((5, 2.0), (6, 1.0)):
-        cam.depth_q.send(_msg(img, seq, t, t))
-        cam.amp_q.send(_msg(img, seq, t, t))
+        cam.depth_q.send(img_frame(img, seq, t, t))
+        cam.amp_q.send(img_frame(img, seq, t, t))
     cam.get_frame()
     with pytest.raises(HardwareFault) as err:
         cam.get_frame()
