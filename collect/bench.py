@@ -17,8 +17,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import sys
-import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -30,6 +28,7 @@ import numpy as np
 from collect.arm import Arm, MotionSettings
 from collect.camera import STALL_TIMEOUT_S, ToFCamera
 from collect.errors import HardwareFault, InputError
+from collect.native_output import folded, native_output_into
 from collect.pressure_board import PressureBoard
 from collect.safety import SafetyLimits
 
@@ -209,39 +208,15 @@ class URBenchConfig(BenchConfig):
         home = limits.check_pose(self.home_pose)
         library_said: list[str] = []
         try:
-            with _native_stderr_into(library_said):
+            with native_output_into(library_said):
                 receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.rtde_hz)
                 control = rtde_control.RTDEControlInterface(self.robot_ip, self.rtde_hz)
         except RuntimeError as err:
-            said = f" ({'; '.join(library_said)})" if library_said else ""
-            raise HardwareFault("arm-disconnected", f"arm: cannot connect to {self.robot_ip}: {err}{said}") from err
+            raise HardwareFault("arm-disconnected",
+                                f"arm: cannot connect to {self.robot_ip}: {err}{folded(library_said)}") from err
         return Bench(arm=Arm(control, receive, limits, settings=self.motion, state_hz=self.state_hz),
                      camera=DepthaiToFCamera(self.camera_id, self.camera_fps, self.tof_profile),
                      pressure=PressureBoard(self.serial_port), objects=objects, home_pose=home, simulated=False)
-
-
-@contextlib.contextmanager
-def _native_stderr_into(lines: list[str]) -> Iterator[None]:
-    """Hold back what native code writes to file descriptor 2 during the block (ur_rtde prints its
-    own ``connect: Connection refused`` before raising), so that a failure stays one line: the
-    non-empty lines written are appended to ``lines``; after a block that did not raise they are
-    also passed on to stderr."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
-        raised = True
-        try:
-            yield
-            raised = False
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            text = sink.read().decode(errors="replace")
-            lines.extend(line.strip() for line in text.splitlines() if line.strip())
-            if text and not raised:
-                sys.stderr.write(text)
 
 
 @BenchConfig.register("sim")

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collect.errors import HardwareFault, InputError
+from collect.native_output import folded, native_output_into
 from collect.session_format import DEPTH_UNIT_M
 
 #: Unit of the depth frames the OAK ToF node outputs.
@@ -181,15 +182,18 @@ class DepthaiToFCamera(QueueToFCamera):
         self._intrinsics: dict | None = None
 
     def start(self) -> None:
-        import depthai as dai
-
-        if self.profile not in dai.ToFConfig.Profile.__members__:
-            raise InputError(f"camera: unknown ToF profile '{self.profile}' "
-                             f"(one of {', '.join(dai.ToFConfig.Profile.__members__)})")
+        library_said: list[str] = []
         try:
-            device = dai.Device(dai.DeviceInfo(self.device_id)) if self.device_id else dai.Device()
+            with native_output_into(library_said):  # depthai's import warnings and its own "no device" line
+                import depthai as dai
+
+                if self.profile not in dai.ToFConfig.Profile.__members__:
+                    raise InputError(f"camera: unknown ToF profile '{self.profile}' "
+                                     f"(one of {', '.join(dai.ToFConfig.Profile.__members__)})")
+                device = dai.Device(dai.DeviceInfo(self.device_id)) if self.device_id else dai.Device()
         except RuntimeError as err:
-            raise HardwareFault("camera-missing", f"camera: cannot open the OAK ToF device: {err}") from err
+            raise HardwareFault("camera-missing",
+                                f"camera: cannot open the OAK ToF device: {err}{folded(library_said)}") from err
         tof_cams = [c for c in device.getConnectedCameraFeatures() if dai.CameraSensorType.TOF in c.supportedTypes]
         if not tof_cams:
             device.close()
