@@ -440,7 +440,8 @@ class Arm:
         Without a remembered pose (e.g. a force fault while travelling, the bubble's side against an
         object) it backs off ``settings.retract_m`` along the measured contact force, the push of
         the touched object on the sensor, never toward the plate (the force's downward part is
-        dropped), if that force is above ``settings.contact_force_n``; otherwise it stays put.
+        dropped), if that force is above ``settings.contact_force_n``, and only as far as the
+        workspace box allows; otherwise it stays put.
         Works after a force fault (the force check is suspended while moving away); raises
         ``HardwareFault('protective-stop')`` when the robot is in protective stop.
         """
@@ -455,7 +456,7 @@ class Arm:
             if away is None:
                 return now
             target = now.tcp_pose.copy()
-            target[:3] += away * self.settings.retract_m
+            target[:3] += away * self.limits.room_along(now.tcp_pose[:3], away, self.settings.retract_m)
         self._force_check = False
         try:
             sample, _ = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,

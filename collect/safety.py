@@ -65,6 +65,18 @@ class SafetyLimits:
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"safety: {name} must be a positive number, got {value}")
 
+    def room_along(self, position, direction, up_to_m: float) -> float:
+        """How far (m, at most ``up_to_m``) the TCP at ``position`` (3,) m may move along the unit
+        ``direction`` (3,) and stay inside the workspace box (0 at or beyond its wall)."""
+        p, d = np.asarray(position, dtype=float), np.asarray(direction, dtype=float)
+        room = float(up_to_m)
+        for x, dx, lo, hi in zip(p, d, self.workspace_min, self.workspace_max):
+            if dx > 0:
+                room = min(room, (hi - x) / dx)
+            elif dx < 0:
+                room = min(room, (lo - x) / dx)
+        return max(room, 0.0)
+
     def check_pose(self, pose) -> np.ndarray:
         """Validate a target pose; returns it as (6,) float64 or raises ``SafetyViolation``."""
         p = np.asarray(pose, dtype=float)

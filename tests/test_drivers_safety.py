@@ -41,6 +41,15 @@ def test_limits_accept_a_good_move_and_reject_each_kind_of_violation():
     assert issubclass(SafetyViolation, InputError)  # reported as bad input: exit 2, one line
 
 
+def test_room_along_a_direction_stops_at_the_workspace_wall():
+    inside = [0.4, 0.0, 0.2]
+    assert LIMITS.room_along(inside, [0.0, 0.0, 1.0], 0.03) == pytest.approx(0.03)  # the box is far
+    assert LIMITS.room_along([0.69, 0.0, 0.2], [1.0, 0.0, 0.0], 0.03) == pytest.approx(0.01)
+    assert LIMITS.room_along([0.69, 0.0, 0.2], [0.6, 0.8, 0.0], 0.03) == pytest.approx(0.01 / 0.6)
+    assert LIMITS.room_along([0.4, -0.29, 0.2], [0.0, -1.0, 0.0], 0.03) == pytest.approx(0.01)
+    assert LIMITS.room_along([0.7, 0.0, 0.2], [1.0, 0.0, 0.0], 0.03) == 0.0  # at the wall
+
+
 def test_tilt_is_measured_from_straight_down():
     assert tilt_deg([0, 0, 0, *DOWN]) == pytest.approx(0.0, abs=1e-9)
     assert tilt_deg([0, 0, 0, 0.0, 0.0, 0.0]) == pytest.approx(180.0)
@@ -156,6 +165,13 @@ def test_retract_without_a_remembered_pose_backs_off_along_the_contact_force():
             after = arm.retract().tcp_pose
             np.testing.assert_allclose(after[:3] - before[:3], MOTION.retract_m * np.array(away), atol=5e-4)
             np.testing.assert_allclose(after[3:], before[3:], atol=1e-6)
+        scene.force[:3] = 0.0
+        time.sleep(0.05)
+        near_wall = np.array([LIMITS.workspace_max[0] - 0.01, 0.0, 0.2, *DOWN])
+        arm.move_to(near_wall)
+        scene.force[:3] = [5.0, 0.0, 0.0]  # pushed toward the workspace wall 10 mm away: only 10 mm
+        time.sleep(0.05)
+        np.testing.assert_allclose(arm.retract().tcp_pose[:3], [LIMITS.workspace_max[0], 0.0, 0.2], atol=5e-4)
         moves = control.moves
         for wrench in ([0.3, 0.0, 0.0], [0.0, 0.0, -5.0]):  # below contact_force_n; only pulled down
             scene.force[:3] = wrench
