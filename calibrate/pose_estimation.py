@@ -48,6 +48,12 @@ MIN_POINTS = 30
 #: along the cylinder's symmetric directions (held there only by the then weak prior), skipping those
 #: frames; 1e-8 ends them all, still stopping only when a step moves the pose by ~1e-8 (10 nm).
 FIT_TOLERANCE = 1e-8
+#: Points farther than this (m) from the surface at the fit's starting pose are dropped before the
+#: first solve: gross ToF outliers (a flying pixel tens of mm off the membrane) otherwise dominate the
+#: least-squares cost, and the solve wandered off and ran out of evaluations on 11 of 275 hold frames
+#: of session 22's bench_pose (`runs/bp22`), all on the ToF depth. A start 2 mm / 2 degrees off
+#: leaves every true contact point well inside it.
+GROSS_OUTLIER_M = 5e-3
 #: Weight of the prior residual (1: the position error in m weighs like one contact point's signed distance).
 #: With the earlier 1e-2 the fit of a held-out mug pose wandered across the cylinder's axis by
 #: 1-30 mm from frame to frame of one static hold, on ToF depth as on predicted depth.
@@ -402,10 +408,11 @@ class FitResult:
 class ProximityPoseEstimator:
     """Fits a shape's pose to contact points; one instance per shape, reused across frames.
 
-    After the first fit, points farther from the surface than ``outlier_k`` robust standard
+    Before the first fit, points farther than ``GROSS_OUTLIER_M`` from the surface at the starting
+    pose are dropped. After it, points farther from the surface than ``outlier_k`` robust standard
     deviations of the residuals (and than ``outlier_floor_m``) are dropped - ToF flying pixels,
     membrane that bends in near the object without touching it - and the fit is refined from
-    there (``outlier_k = 0`` turns this off).
+    there (``outlier_k = 0`` turns both off).
     """
 
     def __init__(self, shape: Shape, prior_weight: float = PRIOR_WEIGHT,
@@ -465,15 +472,19 @@ class ProximityPoseEstimator:
         x0 = (start or prior).theta()
         if x0[3:] @ theta_prior[3:] < 0:  # same hemisphere as the prior
             x0 = np.concatenate([x0[:3], -x0[3:]])
+        n_outliers = 0
+        near = np.abs(point_residuals(x0, points, self.shape, with_jacobian=False)[0]) <= GROSS_OUTLIER_M
+        if self.outlier_k > 0 and not near.all() and near.sum() >= MIN_POINTS:
+            n_outliers = int(len(points) - near.sum())
+            points = points[near]
         sol = self._solve(x0, points, theta_prior)
         evaluations = int(sol.njev or sol.nfev)
-        n_outliers = 0
         if self.outlier_k > 0 and sol.status > 0:
             r = sol.fun[: len(points)]
             spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))
             keep = np.abs(r) <= max(self.outlier_k * spread, self.outlier_floor_m)
             if not keep.all() and keep.sum() >= MIN_POINTS:
-                n_outliers = int(len(points) - keep.sum())
+                n_outliers += int(len(points) - keep.sum())
                 points = points[keep]
                 sol = self._solve(sol.x, points, theta_prior)
                 evaluations += int(sol.njev or sol.nfev)
