@@ -14,6 +14,7 @@ import depthai as dai
 import pytest
 
 from collect.camera import DepthaiToFCamera
+from test_drivers_rtde_signatures import split_top_level
 
 
 def _overloads(func) -> list[str]:
@@ -46,18 +47,8 @@ CALLS = [
 
 
 def _params(signature: str) -> list[str]:
-    inner = signature[signature.index("(") + 1: signature.rindex(") ->")]
-    parts, depth, start = [], 0, 0
-    for i, ch in enumerate(inner):
-        if ch in "[(<":
-            depth += 1
-        elif ch in "])>":
-            depth -= 1
-        if ch == "," and depth == 0:
-            parts.append(inner[start:i].strip())
-            start = i + 1
-    parts.append(inner[start:].strip())
-    return [p for p in parts[1:] if p]  # without self
+    """``name: type [= default]`` of each parameter after self."""
+    return split_top_level(signature[signature.index("(") + 1: signature.rindex(") ->")])[1:]
 
 
 def _accepts(signature: str, passed: list[str]) -> bool:

@@ -22,7 +22,7 @@ from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
 from hw_mocks.sim_bench import SimClock
 
 
-def _split_top_level(text: str) -> list[str]:
+def split_top_level(text: str) -> list[str]:
     """Split ``text`` at commas outside brackets and angle brackets."""
     parts, depth, start = [], 0, 0
     for i, ch in enumerate(text):
@@ -49,7 +49,7 @@ def real_signatures(cls, name: str) -> list[list[tuple[str, object]]]:
             continue
         inner = line[len(name) + 1: line.rindex(") ->")]
         params = []
-        for part in _split_top_level(inner)[1:]:
+        for part in split_top_level(inner)[1:]:
             pname, _, rest = part.partition(":")
             default = inspect.Parameter.empty
             if " = " in rest:
