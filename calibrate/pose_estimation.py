@@ -49,10 +49,11 @@ MIN_POINTS = 30
 #: frames; 1e-8 ends them all, still stopping only when a step moves the pose by ~1e-8 (10 nm).
 FIT_TOLERANCE = 1e-8
 #: Points farther than this (m) from the surface at the fit's starting pose are dropped before the
-#: first solve: gross ToF outliers (a flying pixel tens of mm off the membrane) otherwise dominate the
-#: least-squares cost, and the solve wandered off and ran out of evaluations on 11 of 275 hold frames
-#: of session 22's bench_pose (`runs/bp22`), all on the ToF depth. A start 2 mm / 2 degrees off
-#: leaves every true contact point well inside it.
+#: first solve. A ToF contact patch holds ~10 stray single pixels away from the contact (depth noise
+#: where the IR amplitude is low reaches past the contact threshold); the 2-7 of them 30-40 mm from
+#: the object otherwise dominate the least-squares cost, and the solve wandered off and ran out of
+#: evaluations on 11 of 275 hold frames of session 22's bench_pose (`runs/bp22`), all on the ToF
+#: depth. A start 2 mm / 2 degrees off leaves every true contact point well inside it.
 GROSS_OUTLIER_M = 5e-3
 #: Weight of the prior residual (1: the position error in m weighs like one contact point's signed distance).
 #: With the earlier 1e-2 the fit of a held-out mug pose wandered across the cylinder's axis by
