@@ -48,8 +48,9 @@ MIN_POINTS = 30
 #: along the cylinder's symmetric directions (held there only by the then weak prior), skipping those
 #: frames; 1e-8 ends them all, still stopping only when a step moves the pose by ~1e-8 (10 nm).
 FIT_TOLERANCE = 1e-8
-#: Points farther than this (m) from the surface at the fit's starting pose are dropped before the
-#: first solve. A ToF contact patch holds ~10 stray single pixels away from the contact (depth noise
+#: Points farther than this (m) beyond the median point's distance from the surface at the fit's
+#: starting pose are dropped before the first solve (relative to the median, so that a start several
+#: mm off, e.g. a real fixture's placement error, keeps the whole patch). A ToF contact patch holds ~10 stray single pixels away from the contact (depth noise
 #: where the IR amplitude is low reaches past the contact threshold); the 2-7 of them 30-40 mm from
 #: the object otherwise dominate the least-squares cost, and the solve wandered off and ran out of
 #: evaluations on 11 of 275 hold frames of session 22's bench_pose (`runs/bp22`), all on the ToF
@@ -409,11 +410,12 @@ class FitResult:
 class ProximityPoseEstimator:
     """Fits a shape's pose to contact points; one instance per shape, reused across frames.
 
-    Before the first fit, points farther than ``GROSS_OUTLIER_M`` from the surface at the starting
-    pose are dropped. After it, points farther from the surface than ``outlier_k`` robust standard
-    deviations of the residuals (and than ``outlier_floor_m``) are dropped - ToF flying pixels,
-    membrane that bends in near the object without touching it - and the fit is refined from
-    there (``outlier_k = 0`` turns both off).
+    Before the first fit, points farther from the surface at the starting pose than the median
+    point plus ``GROSS_OUTLIER_M`` are dropped (stray ToF pixels away from the contact). After it,
+    points farther from the surface than ``outlier_k`` robust standard deviations of the residuals
+    (and than ``outlier_floor_m``) are dropped - ToF flying pixels, membrane that bends in near the
+    object without touching it - and the fit is refined from there (``outlier_k = 0`` turns both
+    off).
     """
 
     def __init__(self, shape: Shape, prior_weight: float = PRIOR_WEIGHT,
@@ -474,7 +476,8 @@ class ProximityPoseEstimator:
         if x0[3:] @ theta_prior[3:] < 0:  # same hemisphere as the prior
             x0 = np.concatenate([x0[:3], -x0[3:]])
         n_outliers = 0
-        near = np.abs(point_residuals(x0, points, self.shape, with_jacobian=False)[0]) <= GROSS_OUTLIER_M
+        distance = np.abs(point_residuals(x0, points, self.shape, with_jacobian=False)[0])
+        near = distance <= float(np.median(distance)) + GROSS_OUTLIER_M  # a start off by more widens it
         if self.outlier_k > 0 and not near.all() and near.sum() >= MIN_POINTS:
             n_outliers = int(len(points) - near.sum())
             points = points[near]
