@@ -50,11 +50,11 @@ MIN_POINTS = 30
 FIT_TOLERANCE = 1e-8
 #: Points farther than this (m) beyond the median point's distance from the surface at the fit's
 #: starting pose are dropped before the first solve (relative to the median, so that a start several
-#: mm off, e.g. a real fixture's placement error, keeps the whole patch). A ToF contact patch holds ~10 stray single pixels away from the contact (depth noise
-#: where the IR amplitude is low reaches past the contact threshold); the 2-7 of them 30-40 mm from
-#: the object otherwise dominate the least-squares cost, and the solve wandered off and ran out of
-#: evaluations on 11 of 275 hold frames of session 22's bench_pose (`runs/bp22`), all on the ToF
-#: depth. A start 2 mm / 2 degrees off leaves every true contact point well inside it.
+#: mm off, e.g. a real fixture's placement error, keeps the whole patch). A ToF contact patch holds
+#: ~10 stray single pixels away from the contact (depth noise where the IR amplitude is low reaches
+#: past the contact threshold); the 2-7 of them 30-40 mm from the object otherwise dominate the
+#: least-squares cost, and the solve wandered off and ran out of evaluations on 11 of 275 hold frames
+#: of session 22's bench_pose (`runs/bp22`), all on the ToF depth.
 GROSS_OUTLIER_M = 5e-3
 #: Weight of the prior residual (1: the position error in m weighs like one contact point's signed distance).
 #: With the earlier 1e-2 the fit of a held-out mug pose wandered across the cylinder's axis by
@@ -476,11 +476,13 @@ class ProximityPoseEstimator:
         if x0[3:] @ theta_prior[3:] < 0:  # same hemisphere as the prior
             x0 = np.concatenate([x0[:3], -x0[3:]])
         n_outliers = 0
-        distance = np.abs(point_residuals(x0, points, self.shape, with_jacobian=False)[0])
-        near = distance <= float(np.median(distance)) + GROSS_OUTLIER_M  # a start off by more widens it
-        if self.outlier_k > 0 and not near.all() and near.sum() >= MIN_POINTS:
-            n_outliers = int(len(points) - near.sum())
-            points = points[near]
+        if self.outlier_k > 0:
+            distance = np.abs(point_residuals(x0, points, self.shape, with_jacobian=False)[0])
+            near = distance <= float(np.median(distance)) + GROSS_OUTLIER_M  # a start off by more widens it
+            n_near = int(near.sum())
+            if MIN_POINTS <= n_near < len(points):
+                n_outliers = len(points) - n_near
+                points = points[near]
         sol = self._solve(x0, points, theta_prior)
         evaluations = int(sol.njev or sol.nfev)
         if self.outlier_k > 0 and sol.status > 0:

@@ -438,12 +438,11 @@ class Arm:
         """Move away from the object, to the pose where the last contact move began.
 
         Without a remembered pose (e.g. a force fault while travelling, the bubble's side against an
-        object) it backs off ``settings.retract_m`` along the measured contact force, the push of
-        the touched object on the sensor, never toward the plate (the force's downward part is
-        dropped), if that force is above ``settings.contact_force_n``, and only as far as the
-        workspace box allows; otherwise it stays put.
-        Works after a force fault (the force check is suspended while moving away); raises
-        ``HardwareFault('protective-stop')`` when the robot is in protective stop.
+        object) it backs off ``settings.retract_m`` along the measured contact force (``backoff_direction``:
+        never toward the plate) if that force is above ``settings.contact_force_n``, and only as far
+        as the workspace box allows; otherwise it stays put. Works after a force fault (the force
+        check is suspended while moving away); raises ``HardwareFault('protective-stop')`` when the
+        robot is in protective stop.
         """
         if self._rcv.isProtectiveStopped():
             raise HardwareFault("protective-stop",
