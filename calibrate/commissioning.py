@@ -84,6 +84,7 @@ from calibrate.run_report import write_run_report
 from calibrate.run_statistics import collection_stats, nocontact_maps, pick_examples, registry_reference
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.json_files import plain_json, write_json
+from collect.loop_thread import LoopThread
 from collect.session_format import DEPTH_UNIT_M, utc_now
 from trainer.contact import contact_mask
 from trainer.metrics import METRIC_KEYS
@@ -124,8 +125,7 @@ class _Flow:
         self._bench_cm = None
         self.state: RunState | None = None
         self._latest_frame = None
-        self._snapshot_stop = threading.Event()
-        self._snapshot_thread: threading.Thread | None = None
+        self._snapshots = LoopThread(self._snapshot_loop, "bench-snapshots")
         #: ``time.monotonic()`` when ``run()`` began (s): the run's wall-time budget counts from there.
         self.started = time.monotonic()
 
@@ -144,7 +144,7 @@ class _Flow:
 
     def _snapshot_loop(self) -> None:
         period = 1.0 / SNAPSHOT_HZ
-        while not self._snapshot_stop.wait(period):
+        while not self._snapshots.stop_event.wait(period):
             bench = self.bench
             if bench is None:
                 continue
@@ -198,19 +198,14 @@ class _Flow:
         bench.arm.stop_on(self.stop_event)  # a stop mid-motion halts the arm within one state sample
         bench.camera = _FrameTap(bench.camera, self._set_latest_frame)
         self.bench = bench
-        self._snapshot_stop.clear()
-        self._snapshot_thread = threading.Thread(target=self._snapshot_loop, name="bench-snapshots", daemon=True)
-        self._snapshot_thread.start()
+        self._snapshots.start()
 
     def _set_latest_frame(self, frame) -> None:
         self._latest_frame = frame
 
     def close_bench(self, safe_stop: bool) -> None:
         """Stop the snapshots, then (``safe_stop``: stop and retract the arm and) close every device."""
-        self._snapshot_stop.set()
-        if self._snapshot_thread is not None:
-            self._snapshot_thread.join(timeout=2.0)
-            self._snapshot_thread = None
+        self._snapshots.stop()
         bench, self.bench = self.bench, None
         if bench is None:
             return

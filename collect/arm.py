@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collect.errors import HardwareFault, InputError, StopRequested
+from collect.loop_thread import LoopThread
 from collect.safety import SafetyLimits, tool_z_axis
 from collect.transforms import rotation_between_rad
 
@@ -150,25 +151,20 @@ class Arm:
         self._fault: HardwareFault | None = None
         self._force_check = True
         self._retract_pose: np.ndarray | None = None
-        self._stop_evt = threading.Event()
         self._stop_request: threading.Event | None = None
-        self._thread: threading.Thread | None = None
+        self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Start the monitor thread (idempotent); blocks until the first sample is in."""
-        if self._thread is not None:
+        if self._monitor_loop.running:
             return
-        self._thread = threading.Thread(target=self._monitor, name="arm-monitor", daemon=True)
-        self._thread.start()
+        self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
 
     def close(self) -> None:
         """Stop the monitor and disconnect both interfaces."""
-        self._stop_evt.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        self._monitor_loop.stop()
         for iface in (self._ctl, self._rcv):
             iface.disconnect()
 
@@ -188,7 +184,7 @@ class Arm:
     def _watch(self) -> None:
         next_t = time.monotonic()
         prev_force = 0.0
-        while not self._stop_evt.is_set():
+        while not self._monitor_loop.stop_event.is_set():
             if not self._rcv.isConnected():
                 self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
                 return
@@ -215,7 +211,7 @@ class Arm:
             next_t += self._period
             delay = next_t - time.monotonic()
             if delay > 0:
-                self._stop_evt.wait(delay)
+                self._monitor_loop.stop_event.wait(delay)
             else:
                 next_t = time.monotonic()
 
@@ -235,7 +231,7 @@ class Arm:
     @property
     def running(self) -> bool:
         """Whether the monitor thread runs."""
-        return self._thread is not None
+        return self._monitor_loop.running
 
     @property
     def fault(self) -> HardwareFault | None:
@@ -261,7 +257,7 @@ class Arm:
 
     def state(self) -> ArmState:
         """Latest sample ``(t, tcp_pose, tcp_wrench)`` (read directly when the monitor is not running)."""
-        if self._thread is None:
+        if not self._monitor_loop.running:
             return self._read()
         with self._cond:
             return self._latest

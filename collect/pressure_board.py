@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import serial
 
 from collect.errors import HardwareFault
+from collect.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +91,7 @@ class PressureBoard:
         self.stale_timeout_s = stale_timeout_s
         self._clock = clock
         self._serial: serial.Serial | None = None
-        self._thread: threading.Thread | None = None
-        self._stop_evt = threading.Event()
+        self._reader_loop = LoopThread(self._reader, "pressure-reader", join_timeout_s=1.0)
         self._lock = threading.Condition()
         self._latest: PressureReading | None = None
         self._readings: list[PressureReading] = []
@@ -110,15 +110,11 @@ class PressureBoard:
             raise HardwareFault("serial-missing", f"pressure board: cannot open {self.port}: {err}") from err
         self._serial.reset_input_buffer()
         self._last_valid = self._clock()
-        self._thread = threading.Thread(target=self._reader, name="pressure-reader", daemon=True)
-        self._thread.start()
+        self._reader_loop.start()
 
     def close(self) -> None:
         """Stop the reader and close the port."""
-        self._stop_evt.set()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
-            self._thread = None
+        self._reader_loop.stop()
         if self._serial is not None:
             self._serial.close()
             self._serial = None
@@ -126,7 +122,7 @@ class PressureBoard:
     # ------------------------------------------------------------------ reader thread
     def _reader(self) -> None:
         buffer = b""
-        while not self._stop_evt.is_set():
+        while not self._reader_loop.stop_event.is_set():
             try:
                 chunk = self._serial.read(max(1, self._serial.in_waiting))
             except (serial.SerialException, OSError, TypeError) as err:
@@ -207,7 +203,7 @@ class PressureBoard:
     def check(self) -> None:
         """Raise the fault of the board: a run of corrupt lines, unplugged, or no valid reading for
         ``stale_timeout_s``."""
-        if self._fault is None and self._thread is not None and self._clock() - self._last_valid > self.stale_timeout_s:
+        if self._fault is None and self._reader_loop.running and self._clock() - self._last_valid > self.stale_timeout_s:
             self._set_fault(HardwareFault(
                 "serial-timeout", f"pressure board: no valid reading for {self.stale_timeout_s:.1f} s on {self.port}"))
         if self._fault is not None:

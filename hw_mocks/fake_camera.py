@@ -26,6 +26,7 @@ import threading
 import numpy as np
 
 from collect.camera import CameraFrame, QueueToFCamera, STALL_TIMEOUT_S
+from collect.loop_thread import LoopThread
 from collect.session_format import DEPTH_UNIT_M
 
 # depthai warns at import that no USB device can be reached: irrelevant for the simulated device.
@@ -68,20 +69,16 @@ class SimCameraDevice:
         self.amplitude_queue = dai.MessageQueue("amplitude", queue_size, False)
         self._true_depth: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._loop = LoopThread(self._run, "sim-camera")
         self.frames_sent = 0
 
     def start(self) -> None:
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
-        self._thread.start()
+        """Start sending frames (from the next multiple of the frame period)."""
+        self._loop.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        """Stop sending frames."""
+        self._loop.stop()
 
     def true_depth(self, seq: int) -> np.ndarray | None:
         """True membrane depth ``(H,W) float32 m`` of a recent frame, or None once forgotten."""
@@ -102,10 +99,10 @@ class SimCameraDevice:
         # Frames start on the next multiple of the frame period (the sensor free-runs from boot).
         seq = int(np.ceil(clock.now() / period))
         try:
-            while not self._stop.is_set():
+            while not self._loop.stop_event.is_set():
                 t = seq * period
                 self.scene.pace(PACE_NAME, t)
-                if not clock.sleep_until(t, self._stop):
+                if not clock.sleep_until(t, self._loop.stop_event):
                     return
                 if not self.scene.fault_active("camera-stall", t):  # a stalled device sends nothing
                     self._send(seq, t)

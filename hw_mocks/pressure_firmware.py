@@ -20,11 +20,11 @@ from __future__ import annotations
 import fcntl
 import os
 import select
-import threading
 import tty
 
 import numpy as np
 
+from collect.loop_thread import LoopThread
 from collect.pressure_board import SEQ_MODULO, encode_line
 
 FIRMWARE_VERSION = "bubble-pb 1.3.0"
@@ -49,19 +49,16 @@ class PressureFirmware:
         flags = fcntl.fcntl(self._master, fcntl.F_GETFL)
         fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
         self.port = os.ttyname(self._slave)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._loop = LoopThread(self._run, "pressure-firmware", join_timeout_s=1.0)
         self.unplugged = False
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="pressure-firmware", daemon=True)
-        self._thread.start()
+        """Start serving the port."""
+        self._loop.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
-            self._thread = None
+        """Stop serving and close both ends of the pty."""
+        self._loop.stop()
         self._close()
 
     def _close(self) -> None:
@@ -110,7 +107,7 @@ class PressureFirmware:
         t_next = clock.now()
         seq = 0
         pending = b""
-        while not self._stop.is_set():
+        while not self._loop.stop_event.is_set():
             if self.scene.fault_active("serial-unplug"):
                 self.unplugged = True
                 self._close()
@@ -133,5 +130,5 @@ class PressureFirmware:
             seq = (seq + 1) % SEQ_MODULO
             t_next += period
             self.scene.pace(PACE_NAME, t_next)
-            if not clock.sleep_until(t_next, self._stop):
+            if not clock.sleep_until(t_next, self._loop.stop_event):
                 return

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collect.errors import InputError
+from collect.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -187,22 +188,15 @@ class SimBench:
         self._pace_lock = threading.Lock()
         self._solve_now()
         self.clock.limit = self._time_limit
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._loop = LoopThread(self._physics, "sim-physics")
 
     def start(self) -> None:
         """Start the physics thread (idempotent)."""
-        if self._thread is None:
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._physics, name="sim-physics", daemon=True)
-            self._thread.start()
+        self._loop.start()
 
     def stop(self) -> None:
         """Stop the physics thread."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        self._loop.stop()
 
     def _solve_now(self) -> None:
         """Solve at the pose the arm's trajectory reaches ``LOOKAHEAD_S`` from now."""
@@ -239,7 +233,7 @@ class SimBench:
 
     def _physics(self) -> None:
         period_real = 1.0 / (float(self.spec.fps) * self.clock.speed)
-        while not self._stop.is_set():
+        while not self._loop.stop_event.is_set():
             started = time.monotonic()
             t = self.now()
             last = self.latest()
@@ -252,7 +246,7 @@ class SimBench:
                     log.exception("simulated bubble: membrane solve failed; physics stopped")
                     self.physics_failed = True
                     return
-            self._stop.wait(max(0.0, period_real - (time.monotonic() - started)))
+            self._loop.stop_event.wait(max(0.0, period_real - (time.monotonic() - started)))
 
     def now(self) -> float:
         """Simulated time (s)."""
