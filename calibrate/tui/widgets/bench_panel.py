@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from rich.table import Table
 from rich.text import Text
 from textual.widgets import Static
 
@@ -46,39 +45,32 @@ class BenchPanel(Static):
 
     def _redraw(self) -> None:
         snap = self.snapshot
-        grid = Table.grid(padding=(0, 1))
-        grid.add_column(style="bold", no_wrap=True)
-        grid.add_column(no_wrap=True)
         mode = Text("SIMULATED", style="bold cyan") if self.simulated else Text("REAL", style="bold yellow")
-        grid.add_row("mode", mode)
         if not self.connected:
             link = Text("not connected", style="dim")
         elif self.snapshot_age_s is not None and self.snapshot_age_s > STALE_AFTER_S:
             link = Text(f"stale ({self.snapshot_age_s:.0f} s)", style="bold yellow")
         else:
             link = Text("connected", style="green")
-        grid.add_row("link", link)
         arm_styles = {"moving": "bold green", "stopping": "bold red", "stopped": "yellow", "idle": "dim"}
-        grid.add_row("arm", Text(self.arm_state, style=arm_styles.get(self.arm_state, "")))
+        rows: list[tuple[str, Text | str]] = [
+            ("mode", mode), ("link", link), ("arm", Text(self.arm_state, style=arm_styles.get(self.arm_state, "")))]
         if snap is None:
-            grid.add_row("", Text("no data yet", style="dim"))
-            self.update(grid, layout=False)
+            rows.append(("", Text("no data yet", style="dim")))
+            self.update(_two_columns(rows), layout=False)
             return
         x, y, z, rx, ry, rz = (float(v) for v in snap.tcp_pose)
-        grid.add_row("TCP", f"x {x * 1e3:8.1f} mm")
-        grid.add_row("", f"y {y * 1e3:8.1f} mm")
-        grid.add_row("", f"z {z * 1e3:8.1f} mm")
-        grid.add_row("", f"r [{rx:+.3f} {ry:+.3f} {rz:+.3f}]")
+        rows += [("TCP", f"x {x * 1e3:8.1f} mm"), ("", f"y {y * 1e3:8.1f} mm"), ("", f"z {z * 1e3:8.1f} mm"),
+                 ("", f"r [{rx:+.3f} {ry:+.3f} {rz:+.3f}]")]
         fx, fy, fz, tx, ty, tz = (float(v) for v in snap.wrench)
         force = math.sqrt(fx * fx + fy * fy + fz * fz)
-        grid.add_row("force", f"|F| {force:6.2f} N  Fz {fz:+6.2f}")
-        grid.add_row("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")
+        rows += [("force", f"|F| {force:6.2f} N  Fz {fz:+6.2f}"), ("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")]
         if math.isfinite(snap.pressure_hpa):
-            grid.add_row("bubble", f"{snap.pressure_hpa:8.1f} hPa")
+            rows.append(("bubble", f"{snap.pressure_hpa:8.1f} hPa"))
         else:
-            grid.add_row("bubble", Text("no reading from the board", style="yellow"))
-        grid.add_row("camera", self._camera_line(snap))
-        self.update(grid, layout=False)
+            rows.append(("bubble", Text("no reading from the board", style="yellow")))
+        rows.append(("camera", self._camera_line(snap)))
+        self.update(_two_columns(rows), layout=False)
 
     @staticmethod
     def _camera_line(snap: BenchSnapshot) -> Text:
@@ -91,3 +83,12 @@ class BenchPanel(Static):
             valid = float(np.count_nonzero(np.asarray(snap.depth_m) > 0)) / max(1, h * w)
             line.append(f"  valid {valid * 100:.0f} %")
         return line
+
+
+def _two_columns(rows: list[tuple[str, Text | str]]) -> Text:
+    """``(label, value)`` rows as two columns, one line each: bold labels padded to the widest and
+    a space, then the value, cut with an ellipsis at the panel's edge (plain text, no ``rich`` table
+    to measure: the panel is redrawn at every refresh)."""
+    width = max(len(label) for label, _ in rows)
+    lines = [Text.assemble((label.ljust(width), "bold"), " ", value) for label, value in rows]
+    return Text("\n", no_wrap=True, overflow="ellipsis").join(lines)
