@@ -85,6 +85,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
+    from collect.pose_planner import check_unique_names
     from hw_mocks.objects import load_object
     from trainer.model_dir import load_weights, load_metadata
 
@@ -93,8 +94,9 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         raise InputError(f"run directory {run_dir} exists and is not a directory")
     if not config.objects:
         raise InputError("no objects to press; give at least one")
-    for name in config.objects:
-        load_object(name)  # raises InputError for an unknown object or a bad mesh
+    # InputError for an unknown object, a bad mesh, or one named twice (the run would reach the
+    # collection step, after the arm's first moves, before the planner said so)
+    check_unique_names([load_object(name).name for name in config.objects])
     if int(config.poses_per_object) < 2:  # the validation holds out a share of each object's poses
         raise InputError(f"poses per object must be at least 2 (one or more is held out), got {config.poses_per_object}")
     if int(config.seed) < 0:

@@ -224,6 +224,7 @@ class _Flow:
 
         self.open_bench()
         b = self.bench
+        self.collection_plan()  # a plan this bench cannot run (its limits, its objects) fails before any motion
         b.arm.travel_to(b.home_pose)  # free air above the plate: nothing touches the bubble
         firmware = b.pressure.firmware_version()
         serial = b.sensor_serial
@@ -315,13 +316,20 @@ class _Flow:
             "frames": len(frames),
         }
 
-    def step_collect(self) -> dict:
-        from collect.collection import open_collection_writer, plan_bench_collection, run_collection
+    def collection_plan(self):
+        """The collection's pose plan over the open bench's objects (``CollectionPlan``; seeded: the
+        same plan every time). Raises ``InputError`` when the bench cannot run it safely."""
+        from collect.collection import plan_bench_collection
         from collect.pose_planner import PlanSettings
 
-        b = self.bench
         settings = PlanSettings(poses_per_object=self.config.poses_per_object, seed=self.config.seed)
-        plan = plan_bench_collection(b, settings)
+        return plan_bench_collection(self.bench, settings)
+
+    def step_collect(self) -> dict:
+        from collect.collection import open_collection_writer, run_collection
+
+        b = self.bench
+        plan = self.collection_plan()
         path = self.run_dir / SESSION_FILE
         # An interrupted earlier attempt is continued: run_collection skips its completed poses.
         writer = open_collection_writer(path, b, plan, resume=path.exists())

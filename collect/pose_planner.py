@@ -164,6 +164,14 @@ def pressing_rotation(tilt_deg: float, tilt_direction_rad: float, yaw_rad: float
     return tilt * Rotation.from_rotvec([0.0, 0.0, yaw_rad]) * DOWN
 
 
+def check_unique_names(names: list[str]) -> None:
+    """Raise ``InputError`` when an object name repeats: a session, its plan and its reference
+    frames key their objects by name."""
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise InputError(f"object names must be unique, got {', '.join(duplicates)} twice")
+
+
 def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings = PlanSettings(),
                     motion: MotionSettings = MotionSettings()) -> CollectionPlan:
     """Plan reference stops and ``settings.poses_per_object`` contact poses for each placed object,
@@ -175,10 +183,7 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
     """
     if not objects:
         raise InputError("no objects to collect on: give --objects and/or --object-mesh")
-    names = [o.name for o in objects]
-    duplicates = sorted({n for n in names if names.count(n) > 1})
-    if duplicates:
-        raise InputError(f"object names must be unique, got {', '.join(duplicates)} twice")
+    check_unique_names([o.name for o in objects])
     s = settings
     check_motion_settings(motion, limits)
     limits.check_force(s.max_press_force_n)

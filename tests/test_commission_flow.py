@@ -33,6 +33,8 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import run_commissioning
 from calibrate.sensor_registry import SensorRegistry
+from collect.errors import InputError
+from collect.safety import SafetyViolation
 from collect.session_reader import Session
 from conftest import ctrl_c_once_recording
 from trainer.metrics import METRIC_KEYS
@@ -263,6 +265,7 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
         ("a file", ["--out", "{tmp}/given"], "not a directory"),
         (None, ["--sim-fault", "meteor@3"], "unknown fault"),
         (None, ["--objects", "teapot"], "teapot"),
+        (None, ["--objects", "mug,box,mug"], "object names must be unique, got mug twice"),
         ("version: 1\nchecks: {heldout_a1: {min: x}}\n", ["--thresholds", "{tmp}/given"], "finite number"),
         (None, ["--poses-per-object", "0"], "poses per object"),
         (None, ["--total-minutes", "0"], "total minutes"),
@@ -276,7 +279,27 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("bubble: error: ") and err.count("\n") == 1 and fragment in err
-    assert not (tmp_path / "registry").exists()
+    assert not (tmp_path / "registry").exists() and not (tmp_path / "run").exists()  # refused before the bench opens
+
+
+def test_a_plan_the_bench_cannot_run_fails_before_the_arm_moves(tmp_path, monkeypatch):
+    """The collection is planned as the bench connects: a plan its limits refuse ends the run
+    before the arm's first motion, not at the collection step after the leak test and references."""
+    from collect import collection
+    from collect.arm import Arm
+
+    moves = []
+    real_travel_to = Arm.travel_to
+    monkeypatch.setattr(Arm, "travel_to", lambda arm, *a, **k: moves.append(a) or real_travel_to(arm, *a, **k))
+
+    def refuse(bench, settings):
+        raise SafetyViolation("object 'box' cannot be reached safely: the workspace ends below it")
+
+    monkeypatch.setattr(collection, "plan_bench_collection", refuse)
+    with pytest.raises(InputError, match="cannot be reached safely"):
+        run_commissioning(tiny_config(tmp_path), lambda event: None)
+    assert moves == []
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["state.json"]
 
 
 def test_ctrl_c_during_commissioning_stops_the_arm_and_exits_130(tmp_path):
