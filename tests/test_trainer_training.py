@@ -129,6 +129,18 @@ def test_generous_deadline_leaves_the_budget_alone(session, tmp_path):
             train_model(_config([session], tmp_path / "bad", deadline_s=bad))
 
 
+def test_a_session_given_twice_is_refused(session, tmp_path):
+    """Twice in the training data its frames would weigh double; in the validation data as well, the
+    model would be validated on frames it trained on. A link to the file is the same session."""
+    link = tmp_path / "link.h5"
+    link.symlink_to(session)
+    with pytest.raises(InputError, match="given twice in --data"):
+        train_model(_config([session, link], tmp_path / "m", epochs=1))
+    with pytest.raises(InputError, match="in both --data and --val-data"):
+        train_model(_config([session], tmp_path / "m", epochs=1, val_data=[str(link)]))
+    assert not (tmp_path / "m").exists()
+
+
 def test_deadline_refused_under_torchrun(session, tmp_path, monkeypatch):
     monkeypatch.setattr(DistContext, "from_env", classmethod(lambda cls: DistContext(rank=0, world_size=2)))
     with pytest.raises(InputError, match="torchrun"):

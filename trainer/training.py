@@ -187,6 +187,14 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
     if config.batch_size < 1:
         raise InputError(f"batch size must be at least 1, got {config.batch_size}")
+    given: dict[Path, str] = {}  # a session given twice would weigh double, or be validated on after training on it
+    for option, paths in (("--data", config.data), ("--val-data", config.val_data)):
+        for path in paths:
+            key = Path(path).resolve()
+            if key in given:
+                where = f"twice in {option}" if given[key] == option else f"in both {given[key]} and {option}"
+                raise InputError(f"session {path} is given {where}; give each session once")
+            given[key] = option
     h, w = config.input_size
     if h % INPUT_MULTIPLE or w % INPUT_MULTIPLE:
         raise InputError(f"input size {w}x{h} must be a multiple of {INPUT_MULTIPLE} in both directions")
