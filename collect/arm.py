@@ -289,8 +289,9 @@ class Arm:
         """Validate, send and supervise one linear move.
 
         ``guard(sample) -> True`` stops the move early (guarded move). Returns the final sample and
-        whether the guard fired. Raises the monitor's fault (unless ``ignore_faults``) and
-        ``HardwareFault('arm-timeout')`` when the move takes far longer than planned.
+        whether the guard fired. Raises the monitor's fault (unless ``ignore_faults``; a protective
+        stop always ends the move) and ``HardwareFault('arm-timeout')`` when the move takes far
+        longer than planned.
         """
         target = self.limits.check_move(target, speed, accel)
         self.start()
@@ -308,6 +309,9 @@ class Arm:
                 except (HardwareFault, StopRequested):
                     self.stop()
                     raise
+            elif self._rcv.isProtectiveStopped():  # the robot holds still: the move cannot finish
+                raise HardwareFault("protective-stop", "arm: robot went into protective stop during the move; "
+                                                       "clear it on the teach pendant")
             if guard is not None and guard(sample):
                 self.stop()
                 return self._settle(), True
@@ -438,7 +442,7 @@ class Arm:
         never toward the plate) if that force is above ``settings.contact_force_n``, and only as far
         as the workspace box allows; otherwise it stays put. Works after a force fault (the force
         check is suspended while moving away); raises ``HardwareFault('protective-stop')`` when the
-        robot is in protective stop.
+        robot is in protective stop or goes into it on the way.
         """
         if self._rcv.isProtectiveStopped():
             raise HardwareFault("protective-stop",

@@ -283,6 +283,7 @@ class Bench:
         self.intrinsics: dict = {}
         self.sensor_serial = ""
         self.limits = arm.limits
+        self._unretracted = ""  # why the last safe stop could not retract ("" after a retract)
 
     def start(self) -> None:
         """Open the pressure board, start the camera and the arm monitor; read serial and intrinsics."""
@@ -306,9 +307,12 @@ class Bench:
         try:
             self.arm.stop()
             self.arm.retract()
+            self._unretracted = ""
             return True
         except (HardwareFault, InputError) as err:  # InputError: the retract itself broke a safety limit
-            log.error("bench: arm stopped but not retracted: %s", err)
+            if str(err) != self._unretracted:  # open_bench's exit repeats the stop a run already made
+                log.error("bench: arm stopped but not retracted: %s", err)
+            self._unretracted = str(err)
             return False
 
     def close(self) -> None:

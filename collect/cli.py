@@ -151,6 +151,8 @@ class _ProgressDisplay:
     def __exit__(self, *exc):
         if self._live is not None:
             self._live.__exit__(*exc)
+            if not self._live.console.is_terminal:  # rich leaves its last frame unterminated in a file
+                self._live.console.line()
 
     def update(self, *, object_name, pose_index, poses_per_object, phase, frames, force_n, pressure_hpa) -> None:
         if self._live is None:

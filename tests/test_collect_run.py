@@ -102,6 +102,16 @@ def test_resume_refuses_other_format_version_and_truncated_files(tmp_path, synth
     assert "truncated file" in _error_line(capsys)
 
 
+def test_the_fault_line_starts_its_own_line_after_the_live_status_in_a_log(tmp_path, capsys):
+    """Without a terminal (a log file, CI) rich writes the live status once, unterminated, when it
+    stops: the fault line must not run on from it."""
+    argv = ["collect", "--sim", "--objects", "box", "--poses-per-object", "2", "--seed", "3",
+            "--sim-fault", "camera-stall@2.0", "--out", str(tmp_path / "log.h5")]
+    assert main(argv) == 3
+    *status, fault = capsys.readouterr().err.splitlines()
+    assert fault.startswith("bubble: fault: camera-stall") and status and "frames" in status[-1]
+
+
 def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):
     rc, out = _collect(tmp_path, "--sim-fault", "camera-stall@2.0")
     assert rc == 3
