@@ -20,8 +20,9 @@ the robot's protective stop and the measured force against ``SafetyLimits.force_
 Over the limit it sends ``stopL`` at once and records ``HardwareFault('force-spike')`` when the
 force jumped past the limit within one sample (by more than half the limit: a collision or a
 sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running motion raises
-it. ``retract`` is allowed after a force fault (the force check is suspended while moving away)
-but not after a protective stop, which only the operator can clear on the teach pendant.
+it (a fault is sticky: the force is not checked again after it). ``retract`` moves away after
+any recorded fault, a force fault included, and ends on a new one on the way; not after a
+protective stop, which only the operator can clear on the teach pendant.
 
 A run's first move starts wherever the arm was left, maybe low beside an object: ``travel_to``
 rises straight up to the travel height before moving across. A contact move zeroes the force
@@ -149,7 +150,6 @@ class Arm:
         self._latest: ArmState | None = None
         self._stream: list[ArmState] = []
         self._fault: HardwareFault | None = None
-        self._force_check = True
         self._retract_pose: np.ndarray | None = None
         self._stop_request: threading.Event | None = None
         self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
@@ -195,7 +195,7 @@ class Arm:
                 self._set_fault(HardwareFault(
                     "protective-stop",
                     f"arm: robot is in protective stop (safety mode {mode}); clear it on the teach pendant"))
-            elif self._force_check and self._fault is None and force > self.limits.force_limit_n:
+            elif self._fault is None and force > self.limits.force_limit_n:
                 self.stop()
                 jumped = force - prev_force > 0.5 * self.limits.force_limit_n
                 kind = "force-spike" if jumped else "force-limit"
@@ -289,15 +289,17 @@ class Arm:
         """Validate, send and supervise one linear move.
 
         ``guard(sample) -> True`` stops the move early (guarded move). Returns the final sample and
-        whether the guard fired. Raises the monitor's fault (unless ``ignore_faults``; a protective
-        stop always ends the move) and ``HardwareFault('arm-timeout')`` when the move takes far
-        longer than planned.
+        whether the guard fired. Raises the monitor's fault, and ``HardwareFault('arm-timeout')``
+        when the move takes far longer than planned. ``ignore_faults`` (the retract): the fault
+        recorded before the move (and the operator's stop) do not end it; a protective stop or a new
+        fault on the way (a collision) do.
         """
         target = self.limits.check_move(target, speed, accel)
         self.start()
         start = self.state()
         distance = float(np.linalg.norm(target[:3] - start.tcp_pose[:3]))
         budget = move_duration_s(distance, speed, accel) + MOVE_TIMEOUT_MARGIN_S
+        known_fault = self._fault
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
         t_end = self.clock() + budget
         t_end_real = time.monotonic() + REAL_TIME_SLACK * budget
@@ -312,6 +314,8 @@ class Arm:
             elif self._rcv.isProtectiveStopped():  # the robot holds still: the move cannot finish
                 raise HardwareFault("protective-stop", "arm: robot went into protective stop during the move; "
                                                        "clear it on the teach pendant")
+            elif self._fault is not known_fault:  # the monitor has stopped the arm there
+                raise self._fault
             if guard is not None and guard(sample):
                 self.stop()
                 return self._settle(), True
@@ -440,9 +444,10 @@ class Arm:
         Without a remembered pose (e.g. a force fault while travelling, the bubble's side against an
         object) it backs off ``settings.retract_m`` along the measured contact force (``backoff_direction``:
         never toward the plate) if that force is above ``settings.contact_force_n``, and only as far
-        as the workspace box allows; otherwise it stays put. Works after a force fault (the force
-        check is suspended while moving away); raises ``HardwareFault('protective-stop')`` when the
-        robot is in protective stop or goes into it on the way.
+        as the workspace box allows; otherwise it stays put. Moves away after any fault, a force fault
+        included (the fault already recorded does not stop it); a new fault on the way (a collision
+        over the force limit) stops it there and is raised, and so is ``HardwareFault('protective-stop')``
+        when the robot is in protective stop or goes into it on the way.
         """
         if self._rcv.isProtectiveStopped():
             raise HardwareFault("protective-stop",
@@ -456,11 +461,7 @@ class Arm:
                 return now
             target = now.tcp_pose.copy()
             target[:3] += away * self.limits.room_along(now.tcp_pose[:3], away, self.settings.retract_m)
-        self._force_check = False
-        try:
-            sample, _ = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,
-                                       ignore_faults=True)
-        finally:
-            self._force_check = True
+        sample, _ = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,
+                                   ignore_faults=True)
         self._retract_pose = None
         return sample
