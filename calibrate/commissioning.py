@@ -126,6 +126,7 @@ class _Flow:
         self.state: RunState | None = None
         self._latest_frame = None
         self._snapshots = LoopThread(self._snapshot_loop, "bench-snapshots")
+        self._plan = None  # the collection's CollectionPlan, once planned on the open bench
         #: ``time.monotonic()`` when ``run()`` began (s): the run's wall-time budget counts from there.
         self.started = time.monotonic()
 
@@ -317,13 +318,15 @@ class _Flow:
         }
 
     def collection_plan(self):
-        """The collection's pose plan over the open bench's objects (``CollectionPlan``; seeded: the
-        same plan every time). Raises ``InputError`` when the bench cannot run it safely."""
+        """The collection's pose plan over the open bench's objects (``CollectionPlan``; seeded),
+        planned once per run. Raises ``InputError`` when the bench cannot run it safely."""
         from collect.collection import plan_bench_collection
         from collect.pose_planner import PlanSettings
 
-        settings = PlanSettings(poses_per_object=self.config.poses_per_object, seed=self.config.seed)
-        return plan_bench_collection(self.bench, settings)
+        if self._plan is None:
+            settings = PlanSettings(poses_per_object=self.config.poses_per_object, seed=self.config.seed)
+            self._plan = plan_bench_collection(self.bench, settings)
+        return self._plan
 
     def step_collect(self) -> dict:
         from collect.collection import open_collection_writer, run_collection
