@@ -20,9 +20,12 @@ the robot's protective stop and the measured force against ``SafetyLimits.force_
 Over the limit it sends ``stopL`` at once and records ``HardwareFault('force-spike')`` when the
 force jumped past the limit within one sample (by more than half the limit: a collision or a
 sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running motion raises
-it (a fault is sticky: the force is not checked again after it). ``retract`` moves away after
-any recorded fault, a force fault included, and ends on a new one on the way; not after a
-protective stop, which only the operator can clear on the teach pendant.
+it. The first fault is sticky (``fault``, raised by every later motion), but the force stays
+watched after it: once the force has fallen below ``FORCE_REARM_FRACTION`` of the limit, a new
+excursion over the limit stops the arm again and is recorded as the latest fault. ``retract``
+moves away after any recorded fault, a force fault included (the force is then still over the
+limit), and ends on a new one on the way (a collision while retracting after a camera stall, say);
+not after a protective stop, which only the operator can clear on the teach pendant.
 
 A run's first move starts wherever the arm was left, maybe low beside an object: ``travel_to``
 rises straight up to the travel height before moving across. A contact move zeroes the force
@@ -58,6 +61,9 @@ ARRIVAL_SPEED_M_S = 2e-3
 #: and a real-time backstop (this many times the budget) for a simulated clock that runs slow.
 MOVE_TIMEOUT_MARGIN_S = 2.0
 REAL_TIME_SLACK = 10.0
+#: After a force excursion the monitor watches for a new one once the force has fallen below this
+#: fraction of the limit (hysteresis: sensor noise at the limit is not a string of new faults).
+FORCE_REARM_FRACTION = 0.8
 
 
 @dataclass(frozen=True)
@@ -149,7 +155,8 @@ class Arm:
         self._cond = threading.Condition()
         self._latest: ArmState | None = None
         self._stream: list[ArmState] = []
-        self._fault: HardwareFault | None = None
+        self._fault: HardwareFault | None = None  # the first recorded fault (sticky)
+        self._latest_fault: HardwareFault | None = None  # the last recorded fault (ends a retract)
         self._retract_pose: np.ndarray | None = None
         self._stop_request: threading.Event | None = None
         self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
@@ -184,24 +191,30 @@ class Arm:
     def _watch(self) -> None:
         next_t = time.monotonic()
         prev_force = 0.0
+        limit = self.limits.force_limit_n
+        was_stopped = False  # protective stop in the previous sample
+        over_limit = False  # within the last excursion over the force limit (until re-armed)
         while not self._monitor_loop.stop_event.is_set():
             if not self._rcv.isConnected():
                 self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
                 return
             sample = self._read()
             force = float(np.linalg.norm(sample.tcp_wrench[:3]))
-            if self._rcv.isProtectiveStopped():
+            stopped = self._rcv.isProtectiveStopped()
+            if stopped and not was_stopped:
                 mode = self._rcv.getSafetyMode()
                 self._set_fault(HardwareFault(
                     "protective-stop",
                     f"arm: robot is in protective stop (safety mode {mode}); clear it on the teach pendant"))
-            elif self._fault is None and force > self.limits.force_limit_n:
+            elif not stopped and force > limit and not over_limit:
                 self.stop()
-                jumped = force - prev_force > 0.5 * self.limits.force_limit_n
+                jumped = force - prev_force > 0.5 * limit
                 kind = "force-spike" if jumped else "force-limit"
                 self._set_fault(HardwareFault(
-                    kind, f"arm: measured force {force:.1f} N exceeds the limit {self.limits.force_limit_n:.1f} N "
+                    kind, f"arm: measured force {force:.1f} N exceeds the limit {limit:.1f} N "
                           f"({'sudden jump' if jumped else 'ramped up'}); arm stopped"))
+            was_stopped = stopped
+            over_limit = force > limit or (over_limit and force > FORCE_REARM_FRACTION * limit)
             prev_force = force
             with self._cond:
                 if self._latest is None or sample.t > self._latest.t:  # a paused (simulated) clock adds nothing
@@ -219,6 +232,7 @@ class Arm:
         with self._cond:
             if self._fault is None:
                 self._fault = fault
+            self._latest_fault = fault
             self._cond.notify_all()
 
     def _next_sample(self, timeout_s: float = 1.0) -> ArmState:
@@ -299,7 +313,7 @@ class Arm:
         start = self.state()
         distance = float(np.linalg.norm(target[:3] - start.tcp_pose[:3]))
         budget = move_duration_s(distance, speed, accel) + MOVE_TIMEOUT_MARGIN_S
-        known_fault = self._fault
+        known_fault = self._latest_fault
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
         t_end = self.clock() + budget
         t_end_real = time.monotonic() + REAL_TIME_SLACK * budget
@@ -314,8 +328,8 @@ class Arm:
             elif self._rcv.isProtectiveStopped():  # the robot holds still: the move cannot finish
                 raise HardwareFault("protective-stop", "arm: robot went into protective stop during the move; "
                                                        "clear it on the teach pendant")
-            elif self._fault is not known_fault:  # the monitor has stopped the arm there
-                raise self._fault
+            elif self._latest_fault is not known_fault:  # the arm was stopped there (a collision)
+                raise self._latest_fault
             if guard is not None and guard(sample):
                 self.stop()
                 return self._settle(), True

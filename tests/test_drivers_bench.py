@@ -96,6 +96,23 @@ def test_a_contact_move_while_pressed_is_a_preload_fault_and_the_safe_stop_retra
         np.testing.assert_allclose(bench.arm.state().tcp_pose, above, atol=5e-4)
 
 
+def test_a_collision_during_the_safe_stop_after_another_fault_stops_the_retract(caplog):
+    """After a fault from another device (here a camera stall) the force stays watched: a collision
+    during the safe stop's retract stops the arm there and is said once, while the run still reports
+    the first fault (before, the retract ignored the force and carried on into the collision)."""
+    with open_bench(_config()) as bench:
+        above = _press_cycle(bench, hold_s=0.0)
+        bench.arm.abort(HardwareFault("camera-stall", "camera: no frame for 0.6 s"))
+        bench.sim.faults.append(SimFault("force-spike", bench.clock() + 0.05))
+        assert not bench.safe_stop()
+        assert bench.arm.fault.kind == "camera-stall"  # the first fault is what the run reports
+        time.sleep(0.1)
+        assert np.linalg.norm(bench.sim.arm.tcp_speed()[:3]) == 0.0  # at rest
+        assert bench.arm.state().tcp_pose[2] < above[2] - 1e-3  # stopped on the way out
+    said = [r.getMessage() for r in caplog.records if "not retracted" in r.getMessage()]
+    assert len(said) == 1 and "sudden jump" in said[0], said
+
+
 def test_parse_sim_fault():
     assert parse_sim_fault("camera-stall@12.5") == SimFault("camera-stall", 12.5)
     assert parse_sim_fault(" force-spike@3 ").at_s == 3.0
