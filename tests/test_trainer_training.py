@@ -197,6 +197,7 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         ("evaluate", "--model", model, "--data", other_size),
         ("evaluate", "--model", model, "--data", with_nan),
         ("evaluate", "--model", model, "--data", session, "--objects", "teapot"),
+        ("evaluate", "--model", model, "--data", session, session),  # its frames would count twice
         ("evaluate", "--model", pickled, "--data", session),
         ("evaluate", "--model", tmp_path / "no_model", "--data", session),
         ("train", "--data", tmp_path / "missing.h5", "--out", tmp_path / "x", "--epochs", "1"),

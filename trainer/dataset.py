@@ -98,6 +98,19 @@ class FrameSet:
         return mask
 
 
+def check_each_session_once(paths_by_option: dict[str, list[str | Path]]) -> None:
+    """Raise ``InputError`` when one session file (the same file, also through a link) is named
+    twice, within one option's list or in two of them (``{"--data": [...], "--val-data": [...]}``)."""
+    given: dict[Path, str] = {}
+    for option, paths in paths_by_option.items():
+        for path in paths:
+            key = Path(path).resolve()
+            if key in given:
+                where = f"twice in {option}" if given[key] == option else f"in both {given[key]} and {option}"
+                raise InputError(f"session {path} is given {where}; give each session once")
+            given[key] = option
+
+
 def file_sha256(path: str | Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as fh:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from collect.errors import InputError
-from trainer.dataset import CONTACT_PHASES, load_frames
+from trainer.dataset import CONTACT_PHASES, check_each_session_once, load_frames
 from trainer.inference import DepthEstimator
 from trainer.metrics import depth_metrics
 
@@ -77,6 +77,7 @@ def evaluate_model(
     of ``predict`` on this machine), ``runtime``, ``per_object`` metrics, and ``vs_true`` on
     simulated data. Raises ``InputError`` for bad files or frames of another size than the model's.
     """
+    check_each_session_once({"--data": paths})  # a session twice would count its frames twice
     estimator = DepthEstimator.load(model_dir, runtime=runtime)
     meta = estimator.metadata
     frames = load_frames(paths, objects=objects, phases=CONTACT_PHASES, free_fraction=0.0)

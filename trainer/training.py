@@ -32,7 +32,7 @@ from torch import nn
 from collect.errors import InputError
 from trainer.augmentation import augment_ir
 from trainer.checkpoint import CHECKPOINT_STATE, CHECKPOINT_WEIGHTS, has_checkpoint, load_checkpoint, save_checkpoint
-from trainer.dataset import FrameSet, NetworkTensors, load_frames, to_network_tensors
+from trainer.dataset import FrameSet, NetworkTensors, check_each_session_once, load_frames, to_network_tensors
 from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
@@ -187,14 +187,8 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
     if config.batch_size < 1:
         raise InputError(f"batch size must be at least 1, got {config.batch_size}")
-    given: dict[Path, str] = {}  # a session given twice would weigh double, or be validated on after training on it
-    for option, paths in (("--data", config.data), ("--val-data", config.val_data)):
-        for path in paths:
-            key = Path(path).resolve()
-            if key in given:
-                where = f"twice in {option}" if given[key] == option else f"in both {given[key]} and {option}"
-                raise InputError(f"session {path} is given {where}; give each session once")
-            given[key] = option
+    # a session given twice would weigh double, or be validated on after training on it
+    check_each_session_once({"--data": config.data, "--val-data": config.val_data})
     h, w = config.input_size
     if h % INPUT_MULTIPLE or w % INPUT_MULTIPLE:
         raise InputError(f"input size {w}x{h} must be a multiple of {INPUT_MULTIPLE} in both directions")
