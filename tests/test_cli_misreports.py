@@ -201,3 +201,17 @@ def test_registry_profile_fields_of_the_wrong_type(tmp_path, capsys, edit, field
     for argv in (["sensors", "--registry", tmp_path / "reg"], ["sensors", "--registry", tmp_path / "reg", "SB-A"]):
         err = _refused(capsys, argv, field)
         assert f"sensor registry profile {path} is corrupt: " in err
+
+
+def test_output_read_by_a_pipe_that_closes_early_is_no_traceback(synthetic_session):
+    """``bubble info S.h5 | head -1``: the reader goes away after one line; the tool stops quietly."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", "info", str(synthetic_session)],
+                            cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # closed before the tool writes: its first write breaks the pipe
+    err = proc.stderr.read().decode()
+    proc.stderr.close()
+    assert proc.wait() == 1 and err == "", err
