@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass
 
 import h5py
@@ -47,12 +48,19 @@ def open_h5(path) -> h5py.File:
     try:
         return h5py.File(path, "r")
     except OSError as err:
-        raise InputError(f"{path}: not a readable HDF5 session ({_short(err)})") from None
+        raise InputError(f"{path}: not a readable HDF5 session ({h5_error_text(err)})") from None
 
 
-def _short(err: Exception) -> str:
+def h5_error_text(err: Exception) -> str:
+    """One line saying why an h5py call failed: the system's reason for a failed file write
+    (``No space left on device``), else the part of HDF5's message in parentheses."""
     text = str(err)
-    return text.split("(", 1)[1].rsplit(")", 1)[0] if "(" in text and text.endswith(")") else text
+    reason = re.search(r"error message = '([^']+)'", text)
+    if reason:
+        return reason.group(1)
+    if "(" in text and text.endswith(")"):
+        text = text.split("(", 1)[1].rsplit(")", 1)[0]
+    return " ".join(text.split())
 
 
 def check_session_attrs(f: h5py.File) -> None:
@@ -179,7 +187,7 @@ class Session:
             raise
         except (OSError, RuntimeError, KeyError, ValueError) as err:
             f.close()
-            raise InputError(f"{os.fspath(path)}: corrupt or truncated session ({_short(err)})") from None
+            raise InputError(f"{os.fspath(path)}: corrupt or truncated session ({h5_error_text(err)})") from None
 
     def close(self) -> None:
         self._f.close()
@@ -318,7 +326,7 @@ class Session:
         try:
             return self._read(self._f[name], idx)
         except (OSError, RuntimeError) as err:
-            raise InputError(f"{self.path}: corrupt or truncated session, cannot read {name} ({_short(err)})") from None
+            raise InputError(f"{self.path}: corrupt or truncated session, cannot read {name} ({h5_error_text(err)})") from None
 
     def _read(self, ds: h5py.Dataset, idx) -> np.ndarray:
         if isinstance(idx, (int, np.integer)):

@@ -19,6 +19,13 @@ restarted (the simulated bench starts at 0; a rebooted host or camera), its benc
 recorded one (frames between two segments were never recorded, not dropped). The frame index
 where each segment starts is listed in the root attr ``resumed_at_frames``.
 
+Disk space: a disk that fills up mid-write leaves HDF5 metadata half written (datasets that
+cannot be read back), so the writer stops before that happens, like a ROS bag recorder's
+``min_space``: it refuses to start with less than ``MIN_FREE_BYTES`` free on the file's disk and,
+checking after every flush, stops writing once the free space falls below it. The file is then
+complete up to that flush and closed cleanly; the producer gets ``HardwareFault("recorder")``
+(the run stops the arm, retracts and can be resumed with ``--resume`` once space is freed).
+
 Compression: the byte-shuffle + deflate (level 1) HDF5 filters, applied by the writer itself in
 parallel threads and stored with direct chunk writes (see ``IMAGE_COMPRESSION``,
 docs/session_format.md and docs/bench_recorder.md for the measurements behind this choice).
@@ -29,6 +36,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import shutil
 import threading
 import time
 import zlib
@@ -41,6 +49,7 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import HardwareFault, InputError
 from collect.json_files import plain_json
+from collect.session_reader import h5_error_text
 
 #: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
 #: every HDF5 reader decodes (h5py, h5dump, MATLAB, HDFView; LZF is h5py-only). The writer
@@ -62,8 +71,26 @@ LIBVER = ("v108", "v108")
 
 _STR = h5py.string_dtype("utf-8")
 
+#: Free space (bytes) the writer keeps on the file's disk: it will not start with less, and stops
+#: writing (the file complete up to its last flush) when less is left. 200 MiB is ~20 s of a
+#: simulated recording (~10 MB/s with the true depth), 40 times what one flush interval adds.
+MIN_FREE_BYTES = 200 * 2**20
+
 #: Gap (s) between the last recorded sample and a resumed segment whose clock restarted.
 RESUME_GAP_S = 1.0
+
+
+class _LowDiskSpace(Exception):
+    """The writer stopped before the disk filled up: the file is complete up to its last flush."""
+
+
+def _free_bytes(path: str) -> int:
+    """Free bytes (for this user) on the disk that holds ``path``'s folder."""
+    return shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free
+
+
+def _mb(n_bytes: int) -> str:
+    return f"{n_bytes / 2**20:.0f} MB"
 
 
 class _ContinuedClock:
@@ -129,9 +156,11 @@ class SessionWriter:
         flush_interval_s: longest time between flushes while data is arriving, s (<= 1).
         compression: h5py filter keywords of the image datasets of a new file (default
             ``IMAGE_COMPRESSION``); a resumed file keeps its own.
+        min_free_bytes: free space kept on the file's disk (default ``MIN_FREE_BYTES``).
 
     Raises:
-        InputError: the file exists (without ``resume``), cannot be created, or (with ``resume``) is
+        InputError: less than ``min_free_bytes`` free on the file's disk, the file exists (without
+            ``resume``), cannot be created, or (with ``resume``) is
             missing, not a session, of another format version, sensor, image size or plan (these
             are checked read-only: such a refused resume leaves the file as it was), or holds an
             object of the same name with another mesh.
@@ -151,8 +180,10 @@ class SessionWriter:
         collection_plan: dict | None = None,
         flush_interval_s: float = 0.5,
         compression: dict | None = None,
+        min_free_bytes: int | None = None,
     ):
         self.path = os.fspath(path)
+        self.min_free_bytes = MIN_FREE_BYTES if min_free_bytes is None else int(min_free_bytes)
         self.simulated = bool(simulated)
         self.height = int(intrinsics["height"])
         self.width = int(intrinsics["width"])
@@ -162,6 +193,11 @@ class SessionWriter:
         self._error: BaseException | None = None
         self._closed = False
         plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
+        if os.path.isdir(os.path.dirname(os.path.abspath(self.path))):  # else _create says what is wrong
+            free = _free_bytes(self.path)
+            if free < self.min_free_bytes:
+                raise InputError(f"only {_mb(free)} free on the disk of {self.path}; recording needs at least "
+                                 f"{_mb(self.min_free_bytes)}: free some space first")
         if resume:
             self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated, plan_text,
                                           objects)
@@ -279,10 +315,13 @@ class SessionWriter:
         self._thread.join()
         self._pool.shutdown()
         try:
-            if self._error is None:
+            if self._error is None or isinstance(self._error, _LowDiskSpace):  # complete up to the last flush
                 self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
         finally:
-            self._file.close()
+            try:
+                self._file.close()
+            except (OSError, RuntimeError) as err:  # the disk filled up after all (another program)
+                self._error = self._error or err
         self._raise_if_failed()
 
     def __enter__(self) -> "SessionWriter":
@@ -305,7 +344,7 @@ class SessionWriter:
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
-            raise HardwareFault("recorder", f"cannot write {self.path}: {self._error}") from self._error
+            raise HardwareFault("recorder", f"cannot write {self.path}: {h5_error_text(self._error)}") from self._error
 
     def _run(self) -> None:
         last_flush = time.monotonic()
@@ -332,6 +371,12 @@ class SessionWriter:
                     self.stats.frames_flushed = self.n_frames_at_open + self.stats.frames_written
                     dirty = False
                     last_flush = time.monotonic()
+                    free = _free_bytes(self.path)
+                    if free < self.min_free_bytes:
+                        self._error = _LowDiskSpace(
+                            f"only {_mb(free)} left on its disk, recording stopped at frame "
+                            f"{self.stats.frames_flushed} (it keeps {_mb(self.min_free_bytes)} free); "
+                            "free some space, then rerun with --resume")
                 self.stats.write_s += time.perf_counter() - t0
             except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
                 self._error = err

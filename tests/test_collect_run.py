@@ -124,6 +124,29 @@ def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):
         assert s.arm().tcp_pose[-1, 2] > 0.04
 
 
+def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes_it(tmp_path, capsys, monkeypatch):
+    """The recorder stops while it can still close the file cleanly (``MIN_FREE_BYTES`` set 12 MB
+    under the disk's free space, ~1 s of recording): one fault line, every flushed frame kept; once
+    space is free again, ``--resume`` completes the plan."""
+    import shutil
+
+    import collect.session_writer as session_writer
+
+    monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", shutil.disk_usage(tmp_path).free - 12 * 2**20)
+    rc, out = _collect(tmp_path)
+    assert rc == 3
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
+    assert "left on its disk" in err and "--resume" in err
+    with Session.open(out) as s:
+        assert s.closed_cleanly and s.n_frames > 0
+        s.ir(slice(None)), s.depth_m(slice(None)), s.true_depth(slice(None))  # every frame reads back
+    monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", 0)
+    assert _collect(tmp_path, "--resume")[0] == 0
+    with Session.open(out) as s:
+        assert len(s.select(phase="hold")) > 0 and s.closed_cleanly
+
+
 def test_the_bench_motion_settings_set_the_speed_of_every_collection_motion(tmp_path):
     out = tmp_path / "slow.h5"
     slow = MotionSettings(travel_speed=0.1, approach_speed=0.03, press_speed=0.01)

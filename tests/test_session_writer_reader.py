@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from collect import session_format as sf
-from collect.errors import InputError
+from collect.errors import HardwareFault, InputError
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
 
@@ -33,10 +33,13 @@ OBJECT = {
 }
 
 
+def _metadata(serial, simulated=False, objects=(OBJECT,)) -> dict:
+    return dict(sensor_serial=serial, sensor_spec={"serial": serial}, intrinsics=INTRINSICS,
+                camera_in_tcp=[0, 0, -0.093, 0, 0, 0], simulated=simulated, objects=list(objects))
+
+
 def _writer(path, serial="S1", simulated=False, resume=False, objects=(OBJECT,)):
-    return SessionWriter(path, sensor_serial=serial, sensor_spec={"serial": serial}, intrinsics=INTRINSICS,
-                         camera_in_tcp=[0, 0, -0.093, 0, 0, 0], simulated=simulated, objects=list(objects),
-                         resume=resume)
+    return SessionWriter(path, **_metadata(serial, simulated, objects), resume=resume)
 
 
 def _frame(i):
@@ -140,6 +143,39 @@ def test_sigkill_keeps_every_flushed_frame_and_resume_continues(tmp_path):
         assert s.n_frames == n_crashed + 1 and s.closed_cleanly
         assert list(s.select(pose_id=5)) == [n_crashed]
     assert sorted(os.listdir(tmp_path)) == ["crash.h5"]
+
+
+def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_path):
+    """A disk that fills up mid-write leaves HDF5 metadata half written; the writer stops while
+    ``min_free_bytes`` are left instead: every flushed frame readable, the file closed cleanly and
+    resumable. Here the real disk with the limit 256 kB under its free space (~85 noisy frames)."""
+    path = tmp_path / "full.h5"
+    rng = np.random.default_rng(0)
+    free = shutil.disk_usage(tmp_path).free
+    with pytest.raises(InputError, match="free on the disk") as refused:
+        SessionWriter(path, **_metadata("S1"), min_free_bytes=free + 2**40)
+    assert not path.exists() and len(str(refused.value).splitlines()) == 1
+    w = SessionWriter(path, **_metadata("S1"), min_free_bytes=free - 2**18, flush_interval_s=0.05)
+    written = []
+    with pytest.raises(HardwareFault, match="left on its disk.*rerun with --resume") as stopped:
+        for i in range(20000):
+            ir = rng.integers(0, 2**16, (H, W), dtype=np.uint16)  # incompressible
+            w.append_frame(ir, ir, i / 45, i / 45, i, 0, -1, sf.PHASE_FREE, np.zeros(6))
+            written.append(ir)
+            if i % 20 == 0:
+                time.sleep(0.02)
+    assert stopped.value.kind == "recorder" and len(str(stopped.value).splitlines()) == 1
+    with pytest.raises(HardwareFault, match="left on its disk"):
+        w.close()
+    with Session.open(path) as s:
+        assert s.closed_cleanly and 0 < s.n_frames == w.stats.frames_flushed <= len(written)
+        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(written[: s.n_frames]))
+        n_kept = s.n_frames
+    w = SessionWriter(path, **_metadata("S1"), resume=True, min_free_bytes=0)
+    with w:
+        w.append_frame(*_frame(1), 999.0, 999.0, 10**6, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    with Session.open(path) as s:
+        assert s.n_frames == n_kept + 1 and s.closed_cleanly
 
 
 def test_a_resumed_segment_whose_clocks_restarted_continues_them(tmp_path):
