@@ -314,7 +314,10 @@ class Session:
             if isinstance(item, h5py.Dataset):
                 sizes[name] = int(item.id.get_storage_size())
 
-        self._f.visititems(visit)
+        try:
+            self._f.visititems(visit)
+        except (OSError, RuntimeError) as err:  # e.g. a file damaged by a full disk: addr overflow
+            raise InputError(f"{self.path}: corrupt or truncated session ({h5_error_text(err)})") from None
         return sizes
 
     def collection_plan(self) -> dict | None:
