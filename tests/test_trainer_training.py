@@ -13,6 +13,8 @@ import torch
 import calibrate.cli
 from collect.errors import InputError
 from conftest import make_synthetic_session
+from safetensors import SafetensorError
+
 from trainer.checkpoint import has_checkpoint
 from trainer.distributed import DistContext
 from trainer.inference import DepthEstimator
@@ -174,6 +176,24 @@ def test_train_command_small_run(bubble, session, tmp_path):
     assert code == 0
     assert load_metadata(out).training["split"] == {"kind": "holdout-object", "object": "box"}
     assert json.loads((tmp_path / "m.json").read_text())["split"] == "holdout-object"
+
+
+def test_a_full_disk_when_the_model_is_written_is_one_line(bubble, session, tmp_path, capsys, monkeypatch):
+    """safetensors' own error for a full disk (as measured on a 1 MB tmpfs) is said as one line
+    naming the file, exit 2; no weights are left (safetensors renames a finished temporary file)."""
+    import trainer.model_dir
+
+    def full_disk(tensors, filename, metadata=None):
+        raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+
+    monkeypatch.setattr(trainer.model_dir, "save_file", full_disk)
+    out = tmp_path / "m"
+    code = bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.1", "--no-onnx",
+                  "--threads", "1")
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and err[-1] == (f"bubble: error: cannot write {out / WEIGHTS_FILE}: No space left on "
+                                     "device; free some space or write elsewhere"), err
+    assert not (out / WEIGHTS_FILE).exists()
 
 
 def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):

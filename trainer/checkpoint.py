@@ -12,11 +12,12 @@ from pathlib import Path
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 from torch import nn
 
 from collect.errors import InputError
 from collect.json_files import write_json
+from trainer.model_dir import write_safetensors
 
 CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
@@ -36,9 +37,7 @@ def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     for index, state in opt["state"].items():
         for name, value in state.items():
             tensors[f"optim.{index}.{name}"] = torch.as_tensor(value).detach().cpu().contiguous()
-    tmp = model_dir / (CHECKPOINT_WEIGHTS + ".tmp")
-    save_file(tensors, str(tmp))
-    tmp.replace(model_dir / CHECKPOINT_WEIGHTS)
+    write_safetensors(tensors, model_dir / CHECKPOINT_WEIGHTS)
     state = {"param_groups": opt["param_groups"], "progress": progress}
     write_json(model_dir / CHECKPOINT_STATE, state)
 

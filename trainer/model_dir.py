@@ -14,8 +14,11 @@ the architecture in the metadata with ``InputError``.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import os
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -97,12 +100,24 @@ def resolve_model_dir(name: str | Path) -> Path:
     return BASE_MODEL_DIR if str(name) == "base" else Path(name)
 
 
+def write_safetensors(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str] | None = None) -> None:
+    """Write ``tensors`` (contiguous, CPU) to the safetensors file ``path``. safetensors writes a
+    temporary file and renames it over ``path``, so a failed write (a full disk) leaves ``path`` as
+    it was; it is raised as ``OSError`` with the system's reason and ``path``."""
+    try:
+        save_file(tensors, str(path), metadata=metadata)
+    except SafetensorError as err:  # an I/O error reads "... I/O error: No space left on device (os error 28)"
+        code = re.search(r"os error (\d+)", str(err))
+        number = int(code.group(1)) if code else errno.EIO
+        raise OSError(number, os.strerror(number), str(path)) from None
+
+
 def save_model(model_dir: str | Path, network: nn.Module, metadata: ModelMetadata) -> Path:
     """Write ``network``'s weights and ``metadata`` into ``model_dir`` (created if needed)."""
     model_dir = Path(model_dir)
     model_dir.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().to("cpu").contiguous() for k, v in network.state_dict().items()}
-    save_file(state, str(model_dir / WEIGHTS_FILE), metadata={"arch": metadata.arch})
+    write_safetensors(state, model_dir / WEIGHTS_FILE, metadata={"arch": metadata.arch})
     write_metadata(model_dir, metadata)
     return model_dir
 
