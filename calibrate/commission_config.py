@@ -85,13 +85,16 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
+    from calibrate.run_directory import SESSION_FILE
     from collect.pose_planner import check_unique_names
+    from collect.session_writer import check_free_space
     from hw_mocks.objects import load_object
     from trainer.model_dir import load_weights, load_metadata
 
     run_dir = Path(config.run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"run directory {run_dir} exists and is not a directory")
+    check_free_space(run_dir / SESSION_FILE)  # the recorder's own refusal would come after the arm's first moves
     if not config.objects:
         raise InputError("no objects to press; give at least one")
     # InputError for an unknown object, a bad mesh, or one named twice (the run would reach the

@@ -85,12 +85,26 @@ class _LowDiskSpace(Exception):
 
 
 def _free_bytes(path: str) -> int:
-    """Free bytes (for this user) on the disk that holds ``path``'s folder."""
-    return shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free
+    """Free bytes (for this user) on the disk that would hold ``path``: that of its nearest
+    existing folder."""
+    folder = os.path.dirname(os.path.abspath(path))
+    while not os.path.isdir(folder):
+        folder = os.path.dirname(folder)
+    return shutil.disk_usage(folder).free
 
 
 def _mb(n_bytes: int) -> str:
     return f"{n_bytes / 2**20:.0f} MB"
+
+
+def check_free_space(path, min_free_bytes: int | None = None) -> None:
+    """Raise ``InputError`` when the disk that would hold the recording ``path`` has less than
+    ``min_free_bytes`` (default ``MIN_FREE_BYTES``) free: the writer would not start there."""
+    needed = MIN_FREE_BYTES if min_free_bytes is None else int(min_free_bytes)
+    free = _free_bytes(os.fspath(path))
+    if free < needed:
+        raise InputError(f"only {_mb(free)} free on the disk of {os.fspath(path)}; recording needs at least "
+                         f"{_mb(needed)}: free some space first")
 
 
 class _ContinuedClock:
@@ -193,11 +207,7 @@ class SessionWriter:
         self._error: BaseException | None = None
         self._closed = False
         plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
-        if os.path.isdir(os.path.dirname(os.path.abspath(self.path))):  # else _create says what is wrong
-            free = _free_bytes(self.path)
-            if free < self.min_free_bytes:
-                raise InputError(f"only {_mb(free)} free on the disk of {self.path}; recording needs at least "
-                                 f"{_mb(self.min_free_bytes)}: free some space first")
+        check_free_space(self.path, self.min_free_bytes)
         if resume:
             self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated, plan_text,
                                           objects)

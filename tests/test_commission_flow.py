@@ -282,6 +282,21 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
     assert not (tmp_path / "registry").exists() and not (tmp_path / "run").exists()  # refused before the bench opens
 
 
+def test_a_disk_too_full_to_record_on_is_refused_before_the_bench_opens(tmp_path, capsys, monkeypatch):
+    """The recorder will not start with less than ``MIN_FREE_BYTES`` free; commissioning says so
+    before the bench opens, not at the collection step after the leak test has moved the arm."""
+    import shutil
+
+    import collect.session_writer as session_writer
+
+    monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", shutil.disk_usage(tmp_path).free + 2**40)
+    argv = ["commission", "--sim", "--out", str(tmp_path / "run"), "--registry", str(tmp_path / "registry")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: error: only ") and err.count("\n") == 1 and "free on the disk of" in err, err
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_plan_the_bench_cannot_run_fails_before_the_arm_moves(tmp_path, monkeypatch):
     """The collection is planned as the bench connects: a plan its limits refuse ends the run
     before the arm's first motion, not at the collection step after the leak test and references."""
