@@ -98,9 +98,10 @@ def run_collect(args: argparse.Namespace) -> int:
     from collect.collection import (open_collection_writer, plan_bench_collection, remaining_stops, run_collection,
                                     session_metadata)
     from collect.pose_planner import PlanSettings
-    from collect.session_writer import check_output_path, resume_progress
+    from collect.session_writer import check_free_space, check_output_path, resume_progress
 
     check_output_path(args.out, args.resume)
+    check_free_space(args.out)  # before the bench opens, like every check of the output
     settings = PlanSettings(poses_per_object=args.poses_per_object, seed=args.seed)
     config = bench_config(args)
     display = _ProgressDisplay(enabled=not args.quiet)
