@@ -104,6 +104,15 @@ def test_contact_patches_follow_the_dents_and_weight_the_loss(synthetic_session)
         assert (ref - frame)[patch].min() > 0.5e-3  # pushed in towards the camera by more than 0.5 mm
     t = to_network_tensors(frames, InputGeometry(172, 224, 224, 224), IRNormalization.fit(frames.ir))
     assert int(t.contact.sum()) == int(contact.sum()) and not t.contact[:, :, :26].any()
+    # ToF noise past the threshold at single pixels away from the dent is no contact: not weighted up
+    k = np.flatnonzero(pressed)[0]
+    specks = (np.array([30, 150, 80]), np.array([60, 180, 20]))  # pixels, and a 2x2 block at (80, 20)
+    assert not contact[k][specks].any() and frames.depth[k][specks].all()
+    frames.depth[k][specks] -= 2e-3
+    frames.depth[k, 80:82, 20:22] -= 2e-3
+    noisy = frames.contact()[k]
+    assert not noisy[specks].any() and not noisy[80:82, 20:22].any()
+    np.testing.assert_array_equal(noisy, contact[k])  # the dent itself is kept whole
 
     pred = torch.zeros(1, 1, 1, 2)
     target = torch.tensor([[[[0.1, 0.2]]]])

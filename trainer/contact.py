@@ -9,6 +9,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy import ndimage
 
 from collect.errors import InputError
 
@@ -34,6 +35,20 @@ def reference_depth(frames: np.ndarray) -> np.ndarray:
         ref = np.nanmedian(masked, axis=0)
     ref = np.nan_to_num(ref, nan=0.0)
     return ref.astype(np.float32)
+
+
+def drop_specks(mask: np.ndarray, min_pixels: int) -> np.ndarray:
+    """``mask (H,W) or (N,H,W) bool`` without its 8-connected parts of fewer than ``min_pixels``
+    pixels in each image (single pixels where depth noise crossed the threshold)."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.ndim == 3:
+        return np.stack([drop_specks(m, min_pixels) for m in mask]) if len(mask) else mask.copy()
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
+    if n == 0:
+        return mask.copy()
+    keep = np.bincount(labels.ravel()) >= min_pixels
+    keep[0] = False
+    return keep[labels]
 
 
 def contact_mask(depth: np.ndarray, reference: np.ndarray,

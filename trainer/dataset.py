@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from trainer.contact import contact_mask, reference_depth
+from trainer.contact import contact_mask, drop_specks, reference_depth
 from collect.errors import InputError
 from collect.session_reader import Session
 from trainer.preprocessing import InputGeometry, IRNormalization
@@ -34,6 +34,9 @@ REFERENCE_FRAMES = 32
 #: Depth decrease from the no-contact reference (m) that puts a pixel in a contact patch for the
 #: loss weighting (lower than the acceptance's 1.5 mm so that the rims of a dent count too).
 CONTACT_LOSS_THRESHOLD_M = 0.5e-3
+
+#: Contact patches of fewer pixels (8-connected) are ToF noise past the threshold, not contact.
+CONTACT_MIN_PIXELS = 5
 
 
 @dataclass(frozen=True)
@@ -94,7 +97,8 @@ class FrameSet:
         mask = np.zeros(self.depth.shape, dtype=bool)
         for r in np.unique(self.reference_index):
             mine = self.reference_index == r
-            mask[mine] = contact_mask(self.depth[mine], self.reference[r], CONTACT_LOSS_THRESHOLD_M)
+            mask[mine] = drop_specks(contact_mask(self.depth[mine], self.reference[r], CONTACT_LOSS_THRESHOLD_M),
+                                     CONTACT_MIN_PIXELS)
         return mask
 
 
