@@ -41,13 +41,12 @@ def drop_specks(mask: np.ndarray, min_pixels: int) -> np.ndarray:
     """``mask (H,W) or (N,H,W) bool`` without its 8-connected parts of fewer than ``min_pixels``
     pixels in each image (single pixels where depth noise crossed the threshold)."""
     mask = np.asarray(mask, dtype=bool)
-    if mask.ndim == 3:
-        return np.stack([drop_specks(m, min_pixels) for m in mask]) if len(mask) else mask.copy()
-    labels, n = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
-    if n == 0:
-        return mask.copy()
-    keep = np.bincount(labels.ravel()) >= min_pixels
-    keep[0] = False
+    neighbours = np.ones((3, 3), dtype=bool)
+    if mask.ndim == 3:  # connected within each image only
+        neighbours = np.stack([np.zeros_like(neighbours), neighbours, np.zeros_like(neighbours)])
+    labels, _ = ndimage.label(mask, structure=neighbours)
+    keep = np.bincount(labels.ravel(), minlength=1) >= min_pixels
+    keep[0] = False  # the background
     return keep[labels]
 
 

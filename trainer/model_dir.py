@@ -101,15 +101,18 @@ def resolve_model_dir(name: str | Path) -> Path:
 
 
 def write_safetensors(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str] | None = None) -> None:
-    """Write ``tensors`` (contiguous, CPU) to the safetensors file ``path``. safetensors writes a
-    temporary file and renames it over ``path``, so a failed write (a full disk) leaves ``path`` as
-    it was; it is raised as ``OSError`` with the system's reason and ``path``."""
+    """Write ``tensors`` (contiguous, CPU) to the safetensors file ``path`` atomically: a temporary
+    file beside it, renamed over ``path``. A failed write (a full disk) leaves ``path`` as it was
+    and is raised as ``OSError`` with the system's reason and ``path``."""
+    tmp = path.with_name(path.name + ".tmp")
     try:
-        save_file(tensors, str(path), metadata=metadata)
+        save_file(tensors, str(tmp), metadata=metadata)
     except SafetensorError as err:  # an I/O error reads "... I/O error: No space left on device (os error 28)"
+        tmp.unlink(missing_ok=True)
         code = re.search(r"os error (\d+)", str(err))
         number = int(code.group(1)) if code else errno.EIO
         raise OSError(number, os.strerror(number), str(path)) from None
+    tmp.replace(path)
 
 
 def save_model(model_dir: str | Path, network: nn.Module, metadata: ModelMetadata) -> Path:
