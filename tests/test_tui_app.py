@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from textual.geometry import Region
 
 from calibrate.commission_events import (
     BenchSnapshot,
@@ -31,6 +32,7 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
 from calibrate.sensor_registry import SensorRegistry
+from calibrate.tui.halfblock import UPPER_HALF
 from calibrate.tui.app import IDLE_HINT, RUN_HINT, BenchApp
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, YOUNG_OBJECTS
@@ -271,6 +273,42 @@ def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
             assert app.steps.row(Step.COLLECT).status == "stopped" and app.arm_state == "stopped"
 
     asyncio.run(scenario())
+
+
+def test_sensor_view_draws_each_snapshot_once_and_through_the_app_filters(in_tmp, monkeypatch):
+    """Showing the sensor tab again with no new snapshot draws nothing anew (a key press would wait for
+    it); the image lines pass through the app's line filters like any widget's (NO_COLOR: greys)."""
+    monkeypatch.setenv("NO_COLOR", "1")
+
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events())
+        app = BenchApp(make_config(), flow=flow, clock=FixedClock())
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("2")
+            await pilot.pause()
+            image = app.sensor.depth_image
+            drawn = image.scaled
+            lines = image.render_lines(Region(0, 0, *image.size))
+            await pilot.press("1")
+            await pilot.press("2")
+            await pilot.pause()
+            kept = image.scaled is drawn
+            app.sensor.show(*bench_images())  # a new snapshot's arrays (equal values, new objects)
+            await pilot.pause()
+            redrawn = image.scaled is not drawn
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+        return lines, kept, redrawn
+
+    lines, kept, redrawn = asyncio.run(scenario())
+    assert kept and redrawn
+    cells = [seg.style for line in lines for seg in line if UPPER_HALF in seg.text]
+    assert len(cells) > 100
+    for style in cells:
+        for color in (style.color, style.bgcolor):
+            r, g, b = color.get_truecolor()
+            assert r == g == b
 
 
 # ---------------------------------------------------------------- snapshots

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from rich.segment import Segment
 from textual.containers import Horizontal, Vertical
-from textual.geometry import Size
+from textual.geometry import Region, Size
 from textual.strip import Strip
 from textual.widget import Widget
 from textual.widgets import Static
@@ -14,7 +14,14 @@ from calibrate.tui.halfblock import DEPTH, GREY, Colormap, Scaled, fit_cells, ha
 
 
 class HalfBlockImage(Widget):
-    """One image scaled to fit the widget (square pixels, centred), redrawn when it changes."""
+    """One image scaled to fit the widget (square pixels, centred), redrawn when it changes.
+
+    It hands the compositor its cached lines as they are (``render_lines``), passed through the
+    app's line filters once per image instead of through textual's per-line styling on every frame:
+    the widget has no border, padding or text to style, and that pass over its ~30 segments per line
+    was most of the cost of a preview update, which a key press arriving with it had to wait for
+    (docs/tui.md "Responsiveness").
+    """
 
     DEFAULT_CSS = """
     HalfBlockImage { width: 1fr; height: 1fr; }
@@ -35,10 +42,18 @@ class HalfBlockImage(Widget):
         self.refresh()
 
     def _build(self, size: Size) -> None:
-        """Cache one strip per line for ``size`` (cells)."""
+        """Cache one strip per line for ``size`` (cells), through the app's line filters."""
         style = self.rich_style
+        background = self.background_colors[1]
+        filters = self.get_line_filters()
+
+        def filtered(strip: Strip) -> Strip:
+            for line_filter in filters:
+                strip = strip.apply_filter(line_filter, background)
+            return strip
+
         self._strips = []
-        self._blank = Strip.blank(size.width, style)
+        self._blank = filtered(Strip.blank(size.width, style))
         self._strips_for = (size.width, size.height)
         if self.scaled is None:
             return
@@ -46,13 +61,18 @@ class HalfBlockImage(Widget):
         pad = (size.width - cols) // 2
         left = [Segment(" " * pad, style)] if pad else []
         for segments in halfblock_rows(self.scaled.index, cols, rows, self.colormap):
-            self._strips.append(Strip(left + segments, pad + cols).extend_cell_length(size.width, style))
+            self._strips.append(filtered(Strip(left + segments, pad + cols).extend_cell_length(size.width, style)))
 
-    def render_line(self, y: int) -> Strip:
+    def render_lines(self, crop: Region) -> list[Strip]:
+        """The cached lines in ``crop`` (widget coordinates)."""
         size = self.size
         if self._strips_for != (size.width, size.height):
             self._build(size)
-        return self._strips[y] if y < len(self._strips) else self._blank
+        lines = [self._strips[y] if y < len(self._strips) else self._blank for y in crop.line_range]
+        x1, x2 = crop.column_span
+        if (x1, x2) != (0, size.width):
+            lines = [line.crop(x1, x2) for line in lines]
+        return lines
 
 
 class SensorView(Vertical):
@@ -68,6 +88,8 @@ class SensorView(Vertical):
         self.depth_caption = Static("ToF depth: no frame yet", classes="caption")
         self.depth_image = HalfBlockImage(DEPTH)
         self.legend = Static(self._legend_text(), classes="sensor-legend")
+        self._shown_ir: np.ndarray | None = None  # the arrays drawn last, as passed to ``show``
+        self._shown_depth: np.ndarray | None = None
 
     def compose(self):
         with Horizontal(classes="sensor-images"):
@@ -84,12 +106,18 @@ class SensorView(Vertical):
         return f"[#db3907]near[/] → [#3e7df5]far[/]  [on #460046]  [/] no data{no_data}"
 
     def show(self, ir: np.ndarray | None, depth_m: np.ndarray | None) -> None:
-        """Draw new images: ``ir`` (H,W) uint16 amplitude, ``depth_m`` (H,W) float32 m, 0 = invalid."""
-        if ir is not None:
+        """Draw new images: ``ir`` (H,W) uint16 amplitude, ``depth_m`` (H,W) float32 m, 0 = invalid.
+
+        None, or the very array drawn last (showing the sensor tab again with no new snapshot), leaves
+        that image as it is.
+        """
+        if ir is not None and ir is not self._shown_ir:
+            self._shown_ir = ir
             scaled = scale_image(np.asarray(ir, dtype=np.float32))
             self.ir_image.set_image(scaled)
             self.ir_caption.update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}", layout=False)
-        if depth_m is not None:
+        if depth_m is not None and depth_m is not self._shown_depth:
+            self._shown_depth = depth_m
             depth = np.asarray(depth_m, dtype=np.float32)
             scaled = scale_image(depth, valid=depth > 0)
             self.depth_image.set_image(scaled)
