@@ -26,6 +26,13 @@ checking after every flush, stops writing once the free space falls below it. Th
 complete up to that flush and closed cleanly; the producer gets ``HardwareFault("recorder")``
 (the run stops the arm, retracts and can be resumed with ``--resume`` once space is freed).
 
+Deleted file: a recording file deleted (or replaced) while it is written would take every frame
+with it when the writer closes it. After every flush the writer checks that its open file is still
+the one at its path; if not, it stops writing and at once copies the open file, complete up to
+that flush, back to its path (its folder recreated if that was deleted too; next to it as
+``<name>.restored-<n>.h5`` when another file took its place). The producer gets
+``HardwareFault("recorder")`` saying where the frames are.
+
 Compression: the byte-shuffle + deflate (level 1) HDF5 filters, applied by the writer itself in
 parallel threads and stored with direct chunk writes (see ``IMAGE_COMPRESSION``,
 docs/session_format.md and docs/bench_recorder.md for the measurements behind this choice).
@@ -80,8 +87,28 @@ MIN_FREE_BYTES = 200 * 2**20
 RESUME_GAP_S = 1.0
 
 
-class _LowDiskSpace(Exception):
-    """The writer stopped before the disk filled up: the file is complete up to its last flush."""
+class _StoppedWriting(Exception):
+    """The writer stopped writing on purpose: the file is complete up to its last flush."""
+
+
+class _LowDiskSpace(_StoppedWriting):
+    """The disk is about to fill up."""
+
+
+class _FileDeleted(_StoppedWriting):
+    """The open file is no longer the one at its path; the writer copied it back (``restored_to``)."""
+
+    def __init__(self, frames: int):
+        super().__init__(frames)
+        self.frames = frames  # frames in the file (complete up to the last flush)
+        self.restored_to: str | None = None
+        self.restore_error: str | None = None  # why the copy failed
+
+    def __str__(self) -> str:
+        stopped = f"the file was deleted during the recording; recording stopped at frame {self.frames}"
+        if self.restored_to is None:
+            return f"{stopped}, and its frames could not be restored: {self.restore_error}"
+        return f"{stopped}, and those frames were restored to {self.restored_to}; rerun with --resume"
 
 
 def _free_bytes(path: str) -> int:
@@ -91,6 +118,39 @@ def _free_bytes(path: str) -> int:
     while not os.path.isdir(folder):
         folder = os.path.dirname(folder)
     return shutil.disk_usage(folder).free
+
+
+def _file_replaced(fd: int, path: str) -> bool:
+    """Whether the open file ``fd`` is no longer the file at ``path`` (deleted, or replaced)."""
+    try:
+        at_path = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return True
+    own = os.fstat(fd)
+    return (at_path.st_dev, at_path.st_ino) != (own.st_dev, own.st_ino)
+
+
+def _restore(fd: int, path: str) -> str:
+    """Copy the open file ``fd`` (deleted from ``path``) to ``path``, recreating its folder, or next to
+    it as ``<name>.restored-<n><ext>`` when another file is there now. Returns the copy's path."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    root, ext = os.path.splitext(path)
+    target, n = path, 0
+    while os.path.lexists(target):
+        n += 1
+        target = f"{root}.restored-{n}{ext}"
+    size = os.fstat(fd).st_size
+    with open(target, "xb") as out:
+        offset = 0
+        while offset < size:
+            chunk = os.pread(fd, min(2**24, size - offset), offset)
+            if not chunk:
+                break
+            out.write(chunk)
+            offset += len(chunk)
+        out.flush()
+        os.fsync(out.fileno())
+    return target
 
 
 def _mb(n_bytes: int) -> str:
@@ -325,7 +385,7 @@ class SessionWriter:
         self._thread.join()
         self._pool.shutdown()
         try:
-            if self._error is None or isinstance(self._error, _LowDiskSpace):  # complete up to the last flush
+            if self._error is None or isinstance(self._error, _StoppedWriting):  # complete up to the last flush
                 self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
         finally:
             try:
@@ -354,7 +414,8 @@ class SessionWriter:
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
-            raise HardwareFault("recorder", f"cannot write {self.path}: {h5_error_text(self._error)}") from self._error
+            reason = str(self._error) if isinstance(self._error, _StoppedWriting) else h5_error_text(self._error)
+            raise HardwareFault("recorder", f"cannot write {self.path}: {reason}") from self._error
 
     def _run(self) -> None:
         last_flush = time.monotonic()
@@ -382,7 +443,9 @@ class SessionWriter:
                     dirty = False
                     last_flush = time.monotonic()
                     free = _free_bytes(self.path)
-                    if free < self.min_free_bytes:
+                    if _file_replaced(self._file.id.get_vfd_handle(), self.path):
+                        self._error = self._restore_deleted_file()
+                    elif free < self.min_free_bytes:
                         self._error = _LowDiskSpace(
                             f"only {_mb(free)} left on its disk, recording stopped at frame "
                             f"{self.stats.frames_flushed} (it keeps {_mb(self.min_free_bytes)} free); "
@@ -390,6 +453,18 @@ class SessionWriter:
                 self.stats.write_s += time.perf_counter() - t0
             except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
                 self._error = err
+
+    def _restore_deleted_file(self) -> "_FileDeleted":
+        """The file was deleted (or replaced) since the last flush: mark it closed cleanly (it is
+        complete up to that flush) and copy it back to its path, before anything else is lost."""
+        deleted = _FileDeleted(self.stats.frames_flushed)
+        try:
+            self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
+            self._file.flush()
+            deleted.restored_to = _restore(self._file.id.get_vfd_handle(), self.path)
+        except OSError as err:
+            deleted.restore_error = h5_error_text(err)
+        return deleted
 
     def _next_batch(self, timeout: float) -> list:
         """Items waiting in the queue (waiting up to ``timeout`` s for the first), up to the ``None``

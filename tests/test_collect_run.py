@@ -147,6 +147,39 @@ def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes
         assert len(s.select(phase="hold")) > 0 and s.closed_cleanly
 
 
+def test_a_recording_deleted_mid_run_stops_the_arm_and_is_restored_for_resume(tmp_path, capsys):
+    """Someone deletes the session file while the bench records: the run stops with one fault line
+    (exit 3) saying where the frames went, the file is back at its path, and ``--resume`` completes it."""
+    import os
+    import time
+
+    out = tmp_path / "s.h5"
+    deleted = threading.Event()
+
+    def delete_once_recording():
+        deadline = time.monotonic() + 60
+        while not out.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.5)
+        os.remove(out)
+        deleted.set()
+
+    deleter = threading.Thread(target=delete_once_recording, daemon=True)
+    deleter.start()
+    rc, _ = _collect(tmp_path)
+    deleter.join()
+    assert deleted.is_set() and rc == 3
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
+    assert f"restored to {out}; rerun with --resume" in err
+    with Session.open(out) as s:
+        assert s.closed_cleanly and s.n_frames > 30
+        s.ir(slice(None)), s.true_depth(slice(None))  # every frame reads back
+    assert _collect(tmp_path, "--resume")[0] == 0
+    with Session.open(out) as s:
+        assert len(s.select(phase="hold")) > 0 and s.closed_cleanly
+
+
 def test_the_bench_motion_settings_set_the_speed_of_every_collection_motion(tmp_path):
     out = tmp_path / "slow.h5"
     slow = MotionSettings(travel_speed=0.1, approach_speed=0.03, press_speed=0.01)

@@ -178,6 +178,60 @@ def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_pa
         assert s.n_frames == n_kept + 1 and s.closed_cleanly
 
 
+def _record_until_fault(writer, frames: list, on_frame=lambda i: None):
+    """Append distinct frames every 5 ms until the writer faults; returns the fault."""
+    with pytest.raises(HardwareFault) as fault:
+        for i in range(2000):
+            ir = np.full((H, W), i, np.uint16)
+            writer.append_frame(ir, ir, i / 45, i / 45, i, 0, -1, sf.PHASE_FREE, np.zeros(6))
+            frames.append(ir)
+            on_frame(i)
+            time.sleep(0.005)
+    return fault.value
+
+
+def test_a_recording_deleted_with_its_folder_is_restored_and_resumable(tmp_path):
+    """Deleting the run folder mid-recording would lose every frame when the writer closes its
+    unlinked file: the writer notices at its next flush, copies the file (complete up to that flush)
+    back, folder included, and stops with one fault line saying where the frames are."""
+    path = tmp_path / "run" / "s.h5"
+    path.parent.mkdir()
+    w = SessionWriter(path, **_metadata("S1"), flush_interval_s=0.05)
+    frames: list = []
+    fault = _record_until_fault(w, frames, lambda i: i == 60 and shutil.rmtree(path.parent))
+    assert fault.kind == "recorder" and len(str(fault).splitlines()) == 1
+    assert "deleted during the recording" in str(fault) and f"restored to {path}; rerun with --resume" in str(fault)
+    with pytest.raises(HardwareFault, match="restored to"):
+        w.close()
+    with Session.open(path) as s:
+        assert s.closed_cleanly and 60 < s.n_frames == w.stats.frames_flushed < len(frames)
+        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(frames[: s.n_frames]))
+        n_kept = s.n_frames
+    with SessionWriter(path, **_metadata("S1"), resume=True) as w:
+        w.append_frame(*_frame(1), 999.0, 999.0, 10**6, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    with Session.open(path) as s:
+        assert s.n_frames == n_kept + 1 and s.closed_cleanly
+
+
+def test_a_recording_replaced_by_another_file_is_restored_beside_it(tmp_path):
+    path = tmp_path / "s.h5"
+    w = SessionWriter(path, **_metadata("S1"), flush_interval_s=0.05)
+
+    def replace(i):
+        if i == 30:
+            path.unlink()
+            path.write_bytes(b"someone else's file")
+
+    fault = _record_until_fault(w, [], replace)
+    restored = tmp_path / "s.restored-1.h5"
+    assert f"restored to {restored};" in str(fault)
+    with pytest.raises(HardwareFault):
+        w.close()
+    assert path.read_bytes() == b"someone else's file"
+    with Session.open(restored) as s:
+        assert s.closed_cleanly and s.n_frames == w.stats.frames_flushed > 30
+
+
 def test_a_resumed_segment_whose_clocks_restarted_continues_them(tmp_path):
     """A simulated bench (or a rebooted host / camera) starts its clocks and sequence numbers at 0
     again: the resumed segment is shifted to follow the recorded one; a clock that went on is kept."""
