@@ -24,7 +24,8 @@ cannot be read back), so the writer stops before that happens, like a ROS bag re
 ``min_space``: it refuses to start with less than ``MIN_FREE_BYTES`` free on the file's disk and,
 checking after every flush, stops writing once the free space falls below it. The file is then
 complete up to that flush and closed cleanly; the producer gets ``HardwareFault("recorder")``
-(the run stops the arm, retracts and can be resumed with ``--resume`` once space is freed).
+(the run stops the arm and retracts; once space is freed, ``bubble collect --resume``, or
+``bubble commission`` run again, continues the file).
 
 Deleted file: a recording file deleted (or replaced) while it is written would take every frame
 with it when the writer closes it. After every flush the writer checks that its open file is still
@@ -108,7 +109,7 @@ class _FileDeleted(_StoppedWriting):
         stopped = f"the file was deleted during the recording; recording stopped at frame {self.frames}"
         if self.restored_to is None:
             return f"{stopped}, and its frames could not be restored: {self.restore_error}"
-        return f"{stopped}, and those frames were restored to {self.restored_to}; rerun with --resume"
+        return f"{stopped}, and those frames were restored to {self.restored_to}: resume the recording from there"
 
 
 def _free_bytes(path: str) -> int:
@@ -449,7 +450,7 @@ class SessionWriter:
                         self._error = _LowDiskSpace(
                             f"only {_mb(free)} left on its disk, recording stopped at frame "
                             f"{self.stats.frames_flushed} (it keeps {_mb(self.min_free_bytes)} free); "
-                            "free some space, then rerun with --resume")
+                            "free some space, then resume the recording")
                 self.stats.write_s += time.perf_counter() - t0
             except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
                 self._error = err

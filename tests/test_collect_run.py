@@ -137,7 +137,7 @@ def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes
     assert rc == 3
     err = capsys.readouterr().err
     assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
-    assert "left on its disk" in err and "--resume" in err
+    assert "left on its disk" in err and "resume the recording" in err
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 0
         s.ir(slice(None)), s.depth_m(slice(None)), s.true_depth(slice(None))  # every frame reads back
@@ -171,7 +171,7 @@ def test_a_recording_deleted_mid_run_stops_the_arm_and_is_restored_for_resume(tm
     assert deleted.is_set() and rc == 3
     err = capsys.readouterr().err
     assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
-    assert f"restored to {out}; rerun with --resume" in err
+    assert f"restored to {out}: resume the recording from there" in err
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 30
         s.ir(slice(None)), s.true_depth(slice(None))  # every frame reads back

@@ -157,7 +157,7 @@ def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_pa
     assert not path.exists() and len(str(refused.value).splitlines()) == 1
     w = SessionWriter(path, **_metadata("S1"), min_free_bytes=free - 2**18, flush_interval_s=0.05)
     written = []
-    with pytest.raises(HardwareFault, match="left on its disk.*rerun with --resume") as stopped:
+    with pytest.raises(HardwareFault, match="left on its disk.*free some space, then resume the recording") as stopped:
         for i in range(20000):
             ir = rng.integers(0, 2**16, (H, W), dtype=np.uint16)  # incompressible
             w.append_frame(ir, ir, i / 45, i / 45, i, 0, -1, sf.PHASE_FREE, np.zeros(6))
@@ -200,7 +200,7 @@ def test_a_recording_deleted_with_its_folder_is_restored_and_resumable(tmp_path)
     frames: list = []
     fault = _record_until_fault(w, frames, lambda i: i == 60 and shutil.rmtree(path.parent))
     assert fault.kind == "recorder" and len(str(fault).splitlines()) == 1
-    assert "deleted during the recording" in str(fault) and f"restored to {path}; rerun with --resume" in str(fault)
+    assert "deleted during the recording" in str(fault) and f"restored to {path}: resume the recording from there" in str(fault)
     with pytest.raises(HardwareFault, match="restored to"):
         w.close()
     with Session.open(path) as s:
@@ -224,7 +224,7 @@ def test_a_recording_replaced_by_another_file_is_restored_beside_it(tmp_path):
 
     fault = _record_until_fault(w, [], replace)
     restored = tmp_path / "s.restored-1.h5"
-    assert f"restored to {restored};" in str(fault)
+    assert f"restored to {restored}:" in str(fault)
     with pytest.raises(HardwareFault):
         w.close()
     assert path.read_bytes() == b"someone else's file"
