@@ -260,6 +260,43 @@ def test_quit_mid_run_stops_first_and_exits_after_the_flow_returns(in_tmp):
     asyncio.run(scenario())
 
 
+def test_a_new_run_starts_from_empty_panels(in_tmp):
+    """The panels a run filled (steps, collection, training curve, verdict) are back to their idle
+    text when the next run starts; the first run's start finds them idle and redraws none."""
+    finish = [StepFinished(Step.COLLECT, True, "16 poses"), Verdict(False, CHECKS, "run/report.html")]
+    flow = ScriptedFlow(mid_run_events(), finish, result=lambda config, stopped: CommissionResult(
+        accepted=False, checks=CHECKS, run_dir=config.run_dir, report_path=Path("run/report.html")))
+
+    def panel_texts(app):
+        return (str(app.acceptance.verdict_line.content), str(app.training.line.content), app.collection.line.plain,
+                {step: app.steps.row(step).status for step in (Step.CONNECT, Step.COLLECT)})
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=flow, clock=FixedClock())
+        async with app.run_test(size=SIZE) as pilot:
+            idle = panel_texts(app)
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.result is not None, pilot)
+            after_run = panel_texts(app)
+            flow.emitted.clear()
+            flow.release.clear()
+            flow.events, flow.finish = [], []
+            app.start_commissioning()
+            await asyncio.to_thread(flow.emitted.wait, 10)
+            await pilot.pause()
+            restarted = panel_texts(app)
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+        return idle, after_run, restarted
+
+    idle, after_run, restarted = asyncio.run(scenario())
+    assert idle == ("no verdict yet", "waiting for fine-tuning", "waiting for collection",
+                    {Step.CONNECT: "pending", Step.COLLECT: "pending"})
+    assert all(a != b for a, b in zip(after_run, idle))
+    assert restarted == idle
+
+
 def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
     async def scenario():
         flow = ScriptedFlow(mid_run_events(), error=HardwareFault("camera-stall", "no frame for 1.0 s"))

@@ -45,12 +45,26 @@ INVALID_RGB = (70, 0, 70)  # dark magenta: no data (ToF dropout, housing)
 
 class Colormap:
     """A 256-entry colour table plus the colour of invalid pixels, with rich styles cached per
-    (upper, lower) cell colour pair (index 256 = invalid)."""
+    (upper, lower) cell colour pair (index 256 = invalid), and the segments of runs of equal cells."""
+
+    #: Cached runs at most; the cache starts again when full (a 39x27-cell image uses ~800).
+    MAX_CACHED_RUNS = 50_000
 
     def __init__(self, lut: np.ndarray, invalid_rgb: tuple[int, int, int] = INVALID_RGB):
         self.lut = lut  # (256,3) uint8 RGB
         self._colors = [Color.from_rgb(*map(int, rgb)) for rgb in lut] + [Color.from_rgb(*invalid_rgb)]
         self._styles: dict[tuple[int, int], Style] = {}
+        self._runs: dict[tuple[int, int, int], Segment] = {}
+
+    def run(self, upper: int, lower: int, cells: int) -> Segment:
+        """The segment of ``cells`` equal half-block cells (upper, lower pixel colour indices)."""
+        key = (upper, lower, cells)
+        segment = self._runs.get(key)
+        if segment is None:
+            if len(self._runs) >= self.MAX_CACHED_RUNS:
+                self._runs.clear()
+            segment = self._runs[key] = Segment(UPPER_HALF * cells, self.style(upper, lower))
+        return segment
 
     def style(self, upper: int, lower: int) -> Style:
         """Style of a half-block cell: foreground = upper pixel, background = lower pixel."""
@@ -122,15 +136,15 @@ def halfblock_rows(index: np.ndarray, cols: int, rows: int, colormap: Colormap) 
     xs = np.minimum(((np.arange(cols) + 0.5) * w / cols).astype(np.int64), w - 1)
     sampled = index[np.ix_(ys, xs)].astype(np.int64) & ~3  # 64 levels: bounds the style cache
     sampled[sampled < 0] = 256  # the invalid colour sits after the table
+    run = colormap.run
     lines: list[list[Segment]] = []
     for r in range(rows):
-        upper, lower = sampled[2 * r], sampled[2 * r + 1]
+        upper, lower = sampled[2 * r].tolist(), sampled[2 * r + 1].tolist()
         segments: list[Segment] = []
         run_start = 0
         for c in range(1, cols + 1):
             if c == cols or upper[c] != upper[run_start] or lower[c] != lower[run_start]:
-                style = colormap.style(int(upper[run_start]), int(lower[run_start]))
-                segments.append(Segment(UPPER_HALF * (c - run_start), style))
+                segments.append(run(upper[run_start], lower[run_start], c - run_start))
                 run_start = c
         lines.append(segments)
     return lines

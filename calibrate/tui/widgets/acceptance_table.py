@@ -38,6 +38,7 @@ class AcceptanceTable(Vertical):
         super().__init__(**kwargs)
         self.border_title = "Acceptance"
         self.checks: list[dict] = []  # the checks shown
+        self.showing = False  # a verdict (or a run's end) is shown
         self.verdict_line = Static("no verdict yet", id="verdict-line")
         self.table = Static("", id="checks")
         self.report_line = Static("", id="report-line")
@@ -49,6 +50,11 @@ class AcceptanceTable(Vertical):
         yield self.report_line
 
     def reset(self) -> None:
+        """Back to "no verdict yet" (nothing to redraw when nothing was shown: the start of a run
+        redraws no more than it changes)."""
+        if not self.showing:
+            return
+        self.showing = False
         self.checks = []
         self.verdict_line.update("no verdict yet")
         self.report_line.update("")
@@ -56,6 +62,7 @@ class AcceptanceTable(Vertical):
 
     def show(self, accepted: bool | None, checks: list[dict], report_path: str, note: str = "") -> None:
         """Show the checks; ``accepted`` None means the run ended without a verdict (``note`` says why)."""
+        self.showing = True
         if accepted is None:
             line = Text(f" NO VERDICT  {note}", style="bold black on yellow")
         elif accepted:

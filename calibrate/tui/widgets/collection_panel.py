@@ -34,6 +34,9 @@ class CollectionPanel(Static):
         return max(1, len(self.objects) * self.poses_per_object)
 
     def reset(self) -> None:
+        """Back to "waiting for collection" (no redraw when nothing was recorded yet)."""
+        if self.last is None and self.done == 0:
+            return
         self.last = None
         self.done = 0
         self.line = Text("waiting for collection", style="dim")

@@ -16,11 +16,11 @@ from calibrate.tui.halfblock import DEPTH, GREY, Colormap, Scaled, fit_cells, ha
 class HalfBlockImage(Widget):
     """One image scaled to fit the widget (square pixels, centred), redrawn when it changes.
 
-    It hands the compositor its cached lines as they are (``render_lines``), passed through the
-    app's line filters once per image instead of through textual's per-line styling on every frame:
-    the widget has no border, padding or text to style, and that pass over its ~30 segments per line
-    was most of the cost of a preview update, which a key press arriving with it had to wait for
-    (docs/tui.md "Responsiveness").
+    It hands the compositor its cached lines as they are (``render_lines``), its segments passed
+    through the app's line filters once each instead of through textual's per-line styling on every
+    frame: the widget has no border, padding or text to style, and that pass over its ~30 segments
+    per line was most of the cost of a preview update, which a key press arriving with it had to
+    wait for (docs/tui.md "Responsiveness").
     """
 
     DEFAULT_CSS = """
@@ -34,6 +34,8 @@ class HalfBlockImage(Widget):
         self._strips: list[Strip] = []
         self._strips_for: tuple[int, int] | None = None
         self._blank = Strip.blank(0)
+        self._filter_key: tuple | None = None  # (app line filters, background) of ``_filtered``
+        self._filtered: dict[Segment, list[Segment]] = {}  # segment -> it through those filters
 
     def set_image(self, scaled: Scaled | None) -> None:
         """Show an image mapped to colour indices (see ``halfblock.scale_image``)."""
@@ -44,24 +46,39 @@ class HalfBlockImage(Widget):
     def _build(self, size: Size) -> None:
         """Cache one strip per line for ``size`` (cells), through the app's line filters."""
         style = self.rich_style
-        background = self.background_colors[1]
-        filters = self.get_line_filters()
-
-        def filtered(strip: Strip) -> Strip:
-            for line_filter in filters:
-                strip = strip.apply_filter(line_filter, background)
-            return strip
-
+        filter_key = (tuple(self.get_line_filters()), self.background_colors[1])
+        if filter_key != self._filter_key:
+            self._filter_key, self._filtered = filter_key, {}
         self._strips = []
-        self._blank = filtered(Strip.blank(size.width, style))
+        self._blank = self._filtered_strip([Segment(" " * size.width, style)], size.width)
         self._strips_for = (size.width, size.height)
         if self.scaled is None:
             return
         cols, rows = fit_cells(self.scaled.index.shape, size.width, size.height)
-        pad = (size.width - cols) // 2
-        left = [Segment(" " * pad, style)] if pad else []
+        pad_left = (size.width - cols) // 2
+        pad_right = size.width - cols - pad_left
+        left = [Segment(" " * pad_left, style)] if pad_left else []
+        right = [Segment(" " * pad_right, style)] if pad_right else []
         for segments in halfblock_rows(self.scaled.index, cols, rows, self.colormap):
-            self._strips.append(filtered(Strip(left + segments, pad + cols).extend_cell_length(size.width, style)))
+            self._strips.append(self._filtered_strip(left + segments + right, size.width))
+
+    def _filtered_strip(self, segments: list[Segment], width: int) -> Strip:
+        """A strip of ``segments`` through the app's line filters. Each filter maps every segment on its
+        own (textual's all do), so each distinct segment (a run of equal cells) is filtered once."""
+        filters, background = self._filter_key
+        cache = self._filtered
+        out: list[Segment] = []
+        for segment in segments:
+            done = cache.get(segment)
+            if done is None:
+                done = [segment]
+                for line_filter in filters:
+                    done = line_filter.apply(done, background)
+                if len(cache) >= Colormap.MAX_CACHED_RUNS:
+                    cache.clear()
+                cache[segment] = done
+            out.extend(done)
+        return Strip(out, width)
 
     def render_lines(self, crop: Region) -> list[Strip]:
         """The cached lines in ``crop`` (widget coordinates)."""

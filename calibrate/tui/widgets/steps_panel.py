@@ -119,8 +119,11 @@ class StepsPanel(Static):
         return True
 
     def reset(self) -> None:
-        self.rows = {step: StepState(step) for step in STEPS}
-        self._redraw()
+        """Every step pending (no redraw when they all are)."""
+        pending = {step: StepState(step) for step in STEPS}
+        if pending != self.rows:
+            self.rows = pending
+            self._redraw()
 
     def interrupt(self, now: float) -> None:
         """The run ended (stop or fault): a running step is marked stopped."""

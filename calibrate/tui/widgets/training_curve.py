@@ -107,6 +107,9 @@ class TrainingCurve(Vertical):
         yield self.a1_plot
 
     def reset(self) -> None:
+        """Back to "waiting for fine-tuning" (no redraw when no point came yet)."""
+        if self.last is None:
+            return
         self.loss, self.a1, self.last = [], [], None
         self.line.update("waiting for fine-tuning", layout=False)
         self.loss_plot.set_values([])
