@@ -297,6 +297,43 @@ def test_a_new_run_starts_from_empty_panels(in_tmp):
     assert restarted == idle
 
 
+def test_a_refresh_draws_the_previews_and_the_panels_in_frames_of_their_own(in_tmp):
+    """A key press that arrives with a refresh waits for one part of it: the live preview, the large
+    sensor view and the panels (progress, bench, ETAs) each go out in a frame of their own."""
+    ir, depth = bench_images()
+    snapshot = BenchSnapshot(True, [0.412, -0.105, 0.187, 3.1416, 0.0, 0.0], [0.1, 0.2, -4.6, 0.0, 0.0, 0.0], 1067.3,
+                             ir, depth)
+
+    async def scenario():
+        flow = ScriptedFlow([StepStarted(Step.COLLECT, 40.0)])
+        app = BenchApp(make_config(), flow=flow, clock=FixedClock(), refresh_hz=0.01)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("2")
+            await pilot.pause()
+            shown = []  # per composed frame: (live preview drawn, sensor tab drawn, bench panel drawn)
+            display = app._display
+
+            def record(screen, update):
+                shown.append((app.live_sensor.ir_image.scaled is not None, app.sensor.ir_image.scaled is not None,
+                              app.bench_panel.snapshot is snapshot))
+                return display(screen, update)
+
+            app._display = record
+            app._on_flow_event(snapshot)
+            app._on_flow_event(CollectionProgress("mug", 3, 8, "press", 1234, 4.62, 1067.3))
+            app.refresh_live()
+            await wait_for(lambda: app.bench_panel.snapshot is snapshot, pilot)
+            await pilot.pause()
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+        return shown, app.collection.last
+
+    shown, progress = asyncio.run(scenario())
+    assert progress is not None and progress.frames == 1234
+    assert shown[:3] == [(True, False, False), (True, True, False), (True, True, True)]
+
+
 def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
     async def scenario():
         flow = ScriptedFlow(mid_run_events(), error=HardwareFault("camera-stall", "no frame for 1.0 s"))

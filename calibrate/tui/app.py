@@ -23,6 +23,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 from textual import on
@@ -373,24 +374,39 @@ class BenchApp(App):
         self.collection.complete()
 
     def refresh_live(self) -> None:
-        """Timer: show the queued progress, the latest bench snapshot and the ETAs (a few times per second)."""
-        self._drain_inbox()
-        now = self._clock()
+        """Timer (``refresh_hz``): the latest bench snapshot's images in the live preview, then in the
+        large sensor view when it is shown, then the queued progress, the bench panel and the ETAs, each
+        part in a frame of its own. A key press that arrives with the refresh then waits for one part
+        of it, not for all (docs/tui.md "Responsiveness")."""
         snapshot = self._inbox.take_snapshot()
+        parts = [partial(self._refresh_panels, snapshot)]
         if snapshot is not None:
             self._connected = True
-            self._last_snapshot_at = now
+            self._last_snapshot_at = self._clock()
             self._latest_images = (snapshot.ir, snapshot.depth_m)
-            self.live_sensor.show(*self._latest_images)
-            if self.tabs.active == "tab-sensor":
-                self.sensor.show(*self._latest_images)
+            parts[:0] = [partial(self.live_sensor.show, *self._latest_images), self._show_sensor_tab_images]
+        self._in_frames(parts)
+
+    def _in_frames(self, parts: list[Callable[[], object]]) -> None:
+        """Run ``parts[0]`` now, and each later part after the frame that shows the one before it."""
+        parts[0]()
+        if len(parts) > 1:
+            self.call_after_refresh(self._in_frames, parts[1:])
+
+    def _show_sensor_tab_images(self) -> None:
+        if self.tabs.active == "tab-sensor" and self._latest_images is not None:
+            self.sensor.show(*self._latest_images)
+
+    def _refresh_panels(self, snapshot) -> None:
+        """The last part of ``refresh_live``: queued progress, the bench panel (``snapshot``: the one
+        whose images were just shown, or None) and the ETAs."""
+        self._drain_inbox()
         self._update_bench_panel(snapshot)
-        self.steps.tick(now)
+        self.steps.tick(self._clock())
 
     @on(TabbedContent.TabActivated)
     def _tab_activated(self, event: TabbedContent.TabActivated) -> None:
-        if event.pane.id == "tab-sensor" and self._latest_images is not None:
-            self.sensor.show(*self._latest_images)
+        self._show_sensor_tab_images()
 
     def _update_bench_panel(self, snapshot) -> None:
         age = None if self._last_snapshot_at is None else self._clock() - self._last_snapshot_at
