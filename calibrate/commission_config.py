@@ -86,6 +86,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
     from calibrate.run_directory import SESSION_FILE
+    from collect.output_files import check_parent_dirs
     from collect.pose_planner import check_unique_names
     from collect.session_writer import check_free_space
     from hw_mocks.objects import load_object
@@ -94,6 +95,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     run_dir = Path(config.run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"run directory {run_dir} exists and is not a directory")
+    check_parent_dirs(run_dir / SESSION_FILE)
     check_free_space(run_dir / SESSION_FILE)  # the recorder's own refusal would come after the arm's first moves
     if not config.objects:
         raise InputError("no objects to press; give at least one")
@@ -118,6 +120,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     registry = Path(config.registry_dir) if config.registry_dir is not None else None
     if registry is not None and registry.exists() and not registry.is_dir():
         raise InputError(f"sensor registry {registry} is not a directory")
+    if registry is not None:
+        check_parent_dirs(registry / "profile.json")  # the run registers the sensor at its end
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 
 def register(subparsers) -> None:
@@ -28,7 +29,7 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     from calibrate.pose_check import run_pose_check
     from collect.errors import InputError
-    from collect.output_files import check_json_output
+    from collect.output_files import check_json_output, check_parent_dirs
     from trainer.cli import check_model_arg
 
     if not args.threshold_mm > 0 or args.points < 1 or args.seed < 0:
@@ -36,8 +37,10 @@ def _run(args) -> int:
     check_model_arg(args.model, "--model")
     if args.json:
         check_json_output(args.json)
-    if args.plots and os.path.exists(args.plots) and not os.path.isdir(args.plots):
-        raise InputError(f"--plots {args.plots} is a file, not a directory")
+    if args.plots:
+        if os.path.exists(args.plots) and not os.path.isdir(args.plots):
+            raise InputError(f"--plots {args.plots} is a file, not a directory")
+        check_parent_dirs(Path(args.plots) / "pose_errors.png")
     result = run_pose_check(args.model, args.data, args.object, threshold_m=1e-3 * args.threshold_mm,
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
     print(result.summary())

@@ -4,7 +4,7 @@ overwrites a recording, a model or any other file that is not an earlier result 
 from __future__ import annotations
 
 import json
-import os
+import tempfile
 from pathlib import Path
 
 from collect.errors import InputError
@@ -17,8 +17,7 @@ def check_json_output(path) -> None:
     parent = path.parent.resolve()
     if not parent.is_dir():
         raise InputError(f"cannot write {path}: directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"cannot write {path}: directory {parent} is not writable")
+    _check_can_create_in(parent, path)
     if path.is_dir():
         raise InputError(f"cannot write {path}: it is a directory")
     if path.exists() and not _holds_json(path):
@@ -27,13 +26,24 @@ def check_json_output(path) -> None:
 
 def check_parent_dirs(path) -> None:
     """Raise InputError when a folder on the way to ``path`` (folders are created when missing)
-    exists as a file."""
+    exists as a file, or the nearest existing one takes no new files."""
     path = Path(path)
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
                 raise InputError(f"cannot write {path}: {parent} is a file, not a directory")
+            _check_can_create_in(parent, path)
             return
+
+
+def _check_can_create_in(folder: Path, path: Path) -> None:
+    """Raise InputError unless a file can be created in ``folder`` (on the way to ``path``): tried with
+    a temporary file, since permission bits do not tell (root, read-only or virtual file systems)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise InputError(f"cannot write {path}: no file can be created in {folder} ({err.strerror})") from None
 
 
 def _holds_json(path: Path) -> bool:

@@ -44,6 +44,8 @@ def open_h5(path) -> h5py.File:
     if os.path.isdir(path):
         raise InputError(f"{path} is a directory, not a session file")
     if not os.path.isfile(path):
+        if os.path.exists(path):
+            raise InputError(f"{path} is not a regular file (a device, a pipe or a socket), not a session file")
         raise InputError(f"{path}: no such file")
     try:
         return h5py.File(path, "r")

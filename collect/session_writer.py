@@ -57,6 +57,7 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import HardwareFault, InputError
 from collect.json_files import plain_json
+from collect.output_files import check_parent_dirs
 from collect.session_reader import h5_error_text
 
 #: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
@@ -593,6 +594,7 @@ def check_output_path(path, resume: bool) -> None:
         raise InputError(f"cannot create {path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"cannot create {path}: directory {parent} is not writable")
+    check_parent_dirs(path)  # what permission bits do not tell (root on a read-only or virtual file system)
 
 
 def _create(path: str) -> h5py.File:

@@ -4,6 +4,7 @@ clear ``bubble: error:`` line and exit 2, and a resume with nothing left to do c
 from __future__ import annotations
 
 import json
+import os
 
 import h5py
 import numpy as np
@@ -50,6 +51,24 @@ def test_output_that_is_a_directory_or_under_a_file(tmp_path, places, capsys):
     assert list(tmp_path.glob("folder.*")) == []  # was: the preview written to folder.png, exit 0
     _refused(capsys, preview + [plain / "p.png"], f"{plain} is a file, not a directory")
     assert list(folder.iterdir()) == [] and plain.read_text() == "x"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc: a folder that takes no new file")
+def test_output_in_a_folder_that_takes_no_file_is_refused_before_any_work(tmp_path, synthetic_session, capsys):
+    """Permission bits do not tell whether a file can be created (root; a read-only or virtual file
+    system such as /proc): each command tries, before any work."""
+    cannot = "no file can be created in /proc"
+    for argv in (["train", "--data", synthetic_session, "--epochs", "0.01", "--out", "/proc/m"],  # was: a traceback
+                 # at the first checkpoint
+                 ["train", "--data", synthetic_session, "--epochs", "0.01", "--out", tmp_path / "m", "--json", "/proc/m.json"],
+                 ["pose", "--model", "base", "--data", synthetic_session, "--plots", "/proc/plots"],  # was: a
+                 # traceback after the whole run
+                 ["collect", "--sim", "--quiet", "--out", "/proc/s.h5"],  # was: "only 0 MB free on the disk"
+                 ["commission", "--sim", "--quiet", "--out", "/proc/run"],
+                 ["commission", "--sim", "--quiet", "--out", tmp_path / "run", "--registry", "/proc/registry"]):
+        _refused(capsys, argv, cannot)
+    assert not (tmp_path / "m").exists() and not (tmp_path / "run").exists()
+    _refused(capsys, ["info", "/dev/null"], "/dev/null is not a regular file")  # was: "no such file"
 
 
 def test_preview_never_overwrites_another_file(tmp_path, places, synthetic_session, capsys):
