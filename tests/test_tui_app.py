@@ -506,6 +506,23 @@ def test_the_app_does_not_animate_unless_the_user_asks(in_tmp, monkeypatch):
     assert BenchApp(make_config(), flow=ScriptedFlow([])).animation_level == constants.TEXTUAL_ANIMATIONS
 
 
+def test_the_resource_tracker_starts_with_the_app_when_runs_go_to_a_child_process(in_tmp, monkeypatch):
+    """Not in the instant of the first run's start, where its process start delayed the operator's key."""
+    import calibrate.tui.app as app_module
+
+    started = []
+    monkeypatch.setattr(app_module, "start_resource_tracker", lambda: started.append(True))
+
+    async def scenario(flow):
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await wait_for(lambda: app.started_up, pilot)
+        return len(started)
+
+    assert asyncio.run(scenario(None)) == 1  # bubble tui: runs in a child process
+    assert asyncio.run(scenario(ScriptedFlow([]))) == 1  # a flow in a thread needs no tracker
+
+
 def test_warm_up_draws_every_tab_once_and_ends_on_the_first(in_tmp):
     async def scenario(warm_up):
         app = BenchApp(make_config(), flow=ScriptedFlow([]), tune_gc=True, warm_up_tabs=warm_up)

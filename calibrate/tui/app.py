@@ -43,7 +43,8 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
-from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner
+from calibrate.tui.flow_runner import (BENCH_NICE, COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner,
+                                       start_resource_tracker)
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, FrameGapCollector
 from calibrate.tui.inbox import EventInbox
 from calibrate.tui.widgets.acceptance_table import AcceptanceTable
@@ -218,8 +219,12 @@ class BenchApp(App):
             self.call_after_refresh(self._finish_start_up)
 
     def _finish_start_up(self) -> None:
-        """After the first frames (their widgets are frozen too): collect garbage between frames, and
-        mark the start-up over (``started_up``: from now on a key press times only itself)."""
+        """After the first frames (their widgets are frozen too): start multiprocessing's resource
+        tracker when runs go to a child process (else the first run would start that Python process
+        in the instant of its start), collect garbage between frames, and mark the start-up over
+        (``started_up``: from now on a key press times only itself)."""
+        if self._flow is None:
+            start_resource_tracker()
         if self.gc_collector is not None:
             self.gc_collector.start()
             self.set_interval(CHECK_INTERVAL_S, self.gc_collector.tick)

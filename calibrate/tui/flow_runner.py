@@ -145,7 +145,7 @@ class ProcessFlowRunner(FlowRunner):
 
     def __init__(self, flow: Flow, bench_nice: int = BENCH_NICE, compute_nice: int = COMPUTE_NICE) -> None:
         super().__init__(flow, bench_nice, compute_nice)
-        _start_resource_tracker()
+        start_resource_tracker()
         self._context = multiprocessing.get_context("spawn")
         self._stop_event = self._context.Event()
 
@@ -190,8 +190,10 @@ class ProcessFlowRunner(FlowRunner):
             messages.close()
 
 
-def _start_resource_tracker() -> None:
-    """Start multiprocessing's resource tracker on the real stderr.
+def start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker on the real stderr (once per process; later calls
+    return at once). ``bubble tui`` calls it at start-up, so that the first run does not start it
+    (a Python process) in the instant the operator starts the run.
 
     The tracker inherits the descriptor of ``sys.stderr``; a running textual app has replaced
     ``sys.stderr`` with a capture object whose ``fileno()`` is -1, which makes the spawn fail.
