@@ -444,10 +444,9 @@ class SessionWriter:
                     self.stats.frames_flushed = self.n_frames_at_open + self.stats.frames_written
                     dirty = False
                     last_flush = time.monotonic()
-                    free = _free_bytes(self.path)
                     if _file_replaced(self._file.id.get_vfd_handle(), self.path):
                         self._error = self._restore_deleted_file()
-                    elif free < self.min_free_bytes:
+                    elif (free := _free_bytes(self.path)) < self.min_free_bytes:
                         self._error = _LowDiskSpace(
                             f"only {_mb(free)} left on its disk, recording stopped at frame "
                             f"{self.stats.frames_flushed} (it keeps {_mb(self.min_free_bytes)} free); "

@@ -399,6 +399,7 @@ class BenchApp(App):
             self.call_after_refresh(self._in_frames, parts[1:])
 
     def _show_sensor_tab_images(self) -> None:
+        """The latest snapshot's images in the large sensor view, when its tab is shown."""
         if self.tabs.active == "tab-sensor" and self._latest_images is not None:
             self.sensor.show(*self._latest_images)
 
