@@ -262,10 +262,10 @@ def test_a_resumed_segment_whose_clocks_restarted_continues_them(tmp_path):
 def test_flush_happens_while_recording_without_close(tmp_path):
     path = tmp_path / "live.h5"
     w = _writer(path)
-    for i in range(10):
-        w.append_frame(*_frame(i), i / 45, i / 45, i, 0, -1, 0, np.zeros(6))
+    for i in range(10):  # the frame last: once 10 frames are flushed, so are the samples queued before them
         w.append_arm(i / 45, np.zeros(6), np.ones(6))
         w.append_pressure(i / 45, 1065.0)
+        w.append_frame(*_frame(i), i / 45, i / 45, i, 0, -1, 0, np.zeros(6))
     deadline = time.monotonic() + 5
     while w.stats.frames_flushed < 10 and time.monotonic() < deadline:
         time.sleep(0.05)
