@@ -177,9 +177,10 @@ class Arm:
 
     # ------------------------------------------------------------------ monitoring
     def _read(self) -> ArmState:
+        t = self.clock()  # stamped next to the pose read: the wrench read after it may wait on a lock
         pose = np.asarray(self._rcv.getActualTCPPose(), dtype=np.float64)
         wrench = np.asarray(self._rcv.getActualTCPForce(), dtype=np.float64)
-        return ArmState(self.clock(), pose, wrench)
+        return ArmState(t, pose, wrench)
 
     def _monitor(self) -> None:
         try:

@@ -16,6 +16,7 @@ from collect.bench import BenchConfig, open_bench
 from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
+from collect.session_writer import SessionWriter
 from conftest import ctrl_c_once_recording
 
 
@@ -118,7 +119,9 @@ def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("bubble: fault: camera-stall") and err.count("\n") == 1
     with Session.open(out) as s:
-        assert s.closed_cleanly and 60 <= s.n_frames <= 2.5 * 45
+        # every frame up to the stall at simulated 2.0 s (the clock starts with the bench, so how
+        # many depends on how long the set-up took: 38-86 frames, fewer on a loaded machine)
+        assert s.closed_cleanly and 0 < s.n_frames <= 2.5 * 45 and 2.0 - 0.2 < s.t_host[-1] < 2.0
         assert s.t_device[-1] - s.t_device[0] < 2.1
         # safe stop: the arm ended clear of the box (above its top, 40 mm)
         assert s.arm().tcp_pose[-1, 2] > 0.04
@@ -147,28 +150,25 @@ def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes
         assert len(s.select(phase="hold")) > 0 and s.closed_cleanly
 
 
-def test_a_recording_deleted_mid_run_stops_the_arm_and_is_restored_for_resume(tmp_path, capsys):
+def test_a_recording_deleted_mid_run_stops_the_arm_and_is_restored_for_resume(tmp_path, capsys, monkeypatch):
     """Someone deletes the session file while the bench records: the run stops with one fault line
     (exit 3) saying where the frames went, the file is back at its path, and ``--resume`` completes it."""
     import os
-    import time
 
     out = tmp_path / "s.h5"
-    deleted = threading.Event()
+    append_frame = SessionWriter.append_frame
+    appended = []
 
-    def delete_once_recording():
-        deadline = time.monotonic() + 60
-        while not out.exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(1.5)
-        os.remove(out)
-        deleted.set()
+    def append_then_delete_at_the_60th(writer, *args, **kwargs):  # on the recording thread, mid-run
+        append_frame(writer, *args, **kwargs)
+        appended.append(1)
+        if len(appended) == 60:
+            os.remove(out)
 
-    deleter = threading.Thread(target=delete_once_recording, daemon=True)
-    deleter.start()
+    monkeypatch.setattr(SessionWriter, "append_frame", append_then_delete_at_the_60th)
     rc, _ = _collect(tmp_path)
-    deleter.join()
-    assert deleted.is_set() and rc == 3
+    monkeypatch.undo()
+    assert len(appended) >= 60 and not out.with_name("s.restored-1.h5").exists() and rc == 3
     err = capsys.readouterr().err
     assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
     assert f"restored to {out}: resume the recording from there" in err
@@ -190,11 +190,13 @@ def test_the_bench_motion_settings_set_the_speed_of_every_collection_motion(tmp_
     with Session.open(out) as s:
         assert s.collection_plan()["motion"]["approach_speed"] == 0.03
         arm = s.arm()
-    # TCP speed over 10 samples (80 ms; single samples carry the stream's timing jitter)
-    window = np.ones(10)
+    # TCP speed over 25 samples (200 ms: single samples carry the stream's timing jitter, and a
+    # sample stamped 25 ms late on a loaded machine must not decide the maximum)
+    window = np.ones(25)
     speed = (np.convolve(np.linalg.norm(np.diff(arm.tcp_pose[:, :3], axis=0), axis=1), window, "valid")
              / np.convolve(np.diff(arm.t), window, "valid"))
-    assert 0.08 < speed.max() < 0.13  # the bench's 0.1 m/s, where the default travel speed is 0.25 m/s
+    # the bench's 0.1 m/s; the default 0.25 m/s reaches 0.17 m/s over such windows on these short moves
+    assert 0.08 < speed.max() < 0.13
 
 
 def test_stop_event_then_resume_completes_the_plan(tmp_path):
@@ -253,12 +255,12 @@ def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
     out = tmp_path / "halted.h5"
     stop = threading.Event()
     at_stop = {}
-    with open_bench(BenchConfig.create("sim", objects=("box",), seed=1)) as bench:
+    slow_press = MotionSettings(press_speed=0.005)
+    with open_bench(BenchConfig.create("sim", objects=("box",), seed=1, motion=slow_press)) as bench:
 
         def progress(**fields):
             if fields["phase"] == "press" and not stop.is_set():
-                state = bench.arm.state()
-                at_stop.update(t=state.t, z=state.tcp_pose[2])
+                at_stop["t"] = bench.clock()
                 stop.set()
 
         plan = plan_bench_collection(bench, PlanSettings(poses_per_object=1, seed=1))
@@ -267,10 +269,12 @@ def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
     assert result.stopped and result.poses_done == []
     with Session.open(out) as s:
         arm = s.arm()
+    z_stop = np.interp(at_stop["t"], arm.t, arm.tcp_pose[:, 2])
     z_after = arm.tcp_pose[arm.t >= at_stop["t"], 2]
-    # halted within a state sample: < 0.15 mm further down in 6 seeds, where the rest of the press went 1.1-2.3 mm
-    assert at_stop["z"] - z_after.min() < 0.5e-3
-    assert z_after[-1] > at_stop["z"] + 1e-3  # then the safe stop retracted it
+    # halted at once: < 0.01 mm further down in seeds 1-6, where the press not stopped went 0.6-1.9 mm
+    # further (seed 1: 1.0 mm); at 5 mm/s, 0.5 mm leaves 100 ms for the stop to reach a loaded arm
+    assert z_stop - z_after.min() < 0.5e-3
+    assert z_after[-1] > z_stop + 1e-3  # then the safe stop retracted it
 
 
 def test_ctrl_c_exits_130_and_closes_the_file(tmp_path):

@@ -146,6 +146,14 @@ def test_a_contact_move_refuses_to_zero_a_sensor_that_already_feels_a_force():
         arm.close()
 
 
+def _until_the_monitor_reads(arm, force, timeout_s=5.0):
+    """Wait until the arm's latest state sample shows the scene's new ``force`` (3,) N."""
+    deadline = time.monotonic() + timeout_s
+    while not np.allclose(arm.state().tcp_wrench[:3], force):
+        assert time.monotonic() < deadline, "the arm monitor never read the new force"
+        time.sleep(0.005)
+
+
 def test_retract_without_a_remembered_pose_backs_off_along_the_contact_force():
     # e.g. a force fault while travelling: the bubble's side stopped against an object, no contact
     # move began, so there is no approach pose to go back to; back off from the push, never down
@@ -160,22 +168,22 @@ def test_retract_without_a_remembered_pose_backs_off_along_the_contact_force():
                              ([0.0, 0.0, 5.0], [0.0, 0.0, 1.0]),  # a press from above: straight up
                              ([3.0, 0.0, -4.0], [1.0, 0.0, 0.0])):  # pushed down and sideways: sideways only
             scene.force[:3] = wrench
-            time.sleep(0.05)  # the monitor's next samples read it
+            _until_the_monitor_reads(arm, wrench)
             before = arm.state().tcp_pose
             after = arm.retract().tcp_pose
             np.testing.assert_allclose(after[:3] - before[:3], MOTION.retract_m * np.array(away), atol=5e-4)
             np.testing.assert_allclose(after[3:], before[3:], atol=1e-6)
         scene.force[:3] = 0.0
-        time.sleep(0.05)
+        _until_the_monitor_reads(arm, [0.0, 0.0, 0.0])
         near_wall = np.array([LIMITS.workspace_max[0] - 0.01, 0.0, 0.2, *DOWN])
         arm.move_to(near_wall)
         scene.force[:3] = [5.0, 0.0, 0.0]  # pushed toward the workspace wall 10 mm away: only 10 mm
-        time.sleep(0.05)
+        _until_the_monitor_reads(arm, [5.0, 0.0, 0.0])
         np.testing.assert_allclose(arm.retract().tcp_pose[:3], [LIMITS.workspace_max[0], 0.0, 0.2], atol=5e-4)
         moves = control.moves
         for wrench in ([0.3, 0.0, 0.0], [0.0, 0.0, -5.0]):  # below contact_force_n; only pulled down
             scene.force[:3] = wrench
-            time.sleep(0.05)
+            _until_the_monitor_reads(arm, wrench)
             arm.retract()
         assert control.moves == moves
     finally:
@@ -235,7 +243,9 @@ def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
         arm.start()
         assert controller.move_linear([0.4, 0.0, 0.3, *DOWN], 0.05, 0.5)  # a long move, sent around the driver
         receive.fail = True
-        time.sleep(0.3)
+        deadline = time.monotonic() + 5.0
+        while (arm.fault is None or np.linalg.norm(controller.tcp_speed()[:3]) > 0.0) and time.monotonic() < deadline:
+            time.sleep(0.005)  # the monitor records the fault, then stops the arm
         assert arm.fault is not None and arm.fault.kind == "arm-monitor"
         # stopped at once: at rest a few mm up, where the move would have gone on for 2 s
         assert np.linalg.norm(controller.tcp_speed()[:3]) == 0.0 and controller.tcp_pose()[2] < 0.21
