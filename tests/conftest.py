@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -135,3 +136,15 @@ def ctrl_c_once_recording(argv: list[str], recording: Path, timeout_s: float = 1
     os.kill(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     return proc.returncode, err
+
+
+def wait_until(predicate, timeout_s: float = 2.0) -> bool:
+    """Poll ``predicate()`` every millisecond until it holds (True) or ``timeout_s`` s pass (False):
+    for tests that wait on another thread instead of sleeping a guessed time."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.001)
+    return True
+

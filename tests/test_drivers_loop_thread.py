@@ -3,6 +3,7 @@ import threading
 import time
 
 from collect.loop_thread import LoopThread
+from conftest import wait_until
 
 
 def counting_loop():
@@ -17,15 +18,6 @@ def counting_loop():
 
     thread = LoopThread(loop, "test-loop")
     return thread, passes, names
-
-
-def wait_until(predicate, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.001)
-    return True
 
 
 def test_runs_until_stopped_then_stays_stopped():

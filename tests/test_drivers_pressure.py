@@ -12,6 +12,7 @@ import pytest
 
 from collect.errors import HardwareFault
 from collect.pressure_board import MAX_CORRUPT_RUN, PressureBoard, checksum, decode_line, encode_line
+from conftest import wait_until
 
 
 @pytest.fixture
@@ -29,15 +30,6 @@ def pty_board():
             os.close(fd)
         except OSError:
             pass
-
-
-def _wait(predicate, timeout_s=2.0):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return False
 
 
 def test_line_encoding_round_trip_and_checksum():
@@ -67,7 +59,7 @@ def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_boar
         os.write(master, encode_line(f"P,{seq},{1060 + seq * 0.01:.2f}"))
         sent += 1
         time.sleep(0.0005)
-    assert _wait(lambda: board.latest() is not None and board.latest().seq == 199)
+    assert wait_until(lambda: board.latest() is not None and board.latest().seq == 199)
     readings = board.drain()
     board.check()  # no fault: garbage is recoverable
     good = [r for r in readings if r.hpa > 1000]
@@ -83,15 +75,15 @@ def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_boar
 def test_a_run_of_corrupt_lines_is_a_serial_garbage_fault(pty_board):
     board, master = pty_board
     os.write(master, encode_line("P,1,1060.00"))
-    assert _wait(lambda: board.latest() is not None)
+    assert wait_until(lambda: board.latest() is not None)
     for _ in range(MAX_CORRUPT_RUN - 1):
         os.write(master, b"P,999,1000.00*00\r\n")
     os.write(master, encode_line("P,2,1060.00"))
-    assert _wait(lambda: board.latest().seq == 2)
+    assert wait_until(lambda: board.latest().seq == 2)
     board.check()  # nine in a row: a glitch
     for _ in range(MAX_CORRUPT_RUN):
         os.write(master, b"P,999,1000.00*00\r\n")
-    assert _wait(lambda: board.stats["bad_checksum"] == 2 * MAX_CORRUPT_RUN - 1)
+    assert wait_until(lambda: board.stats["bad_checksum"] == 2 * MAX_CORRUPT_RUN - 1)
     with pytest.raises(HardwareFault) as err:
         board.check()
     assert err.value.kind == "serial-garbage"
@@ -131,7 +123,7 @@ def test_command_replies_errors_and_timeouts(pty_board):
 def test_silence_is_a_timeout_fault(pty_board):
     board, master = pty_board
     os.write(master, encode_line("P,0,1000.00"))
-    assert _wait(lambda: board.latest() is not None)
+    assert wait_until(lambda: board.latest() is not None)
     board.check()
     time.sleep(0.4)
     with pytest.raises(HardwareFault) as err:
@@ -142,7 +134,7 @@ def test_silence_is_a_timeout_fault(pty_board):
 def test_unplug_is_detected(pty_board):
     board, master = pty_board
     os.write(master, encode_line("P,0,1000.00"))
-    assert _wait(lambda: board.latest() is not None)
+    assert wait_until(lambda: board.latest() is not None)
     os.close(master)
     t0 = time.monotonic()
     with pytest.raises(HardwareFault) as err:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -15,6 +14,7 @@ from collect.safety import SafetyLimits, SafetyViolation, tilt_deg
 from collect.transforms import rotation_between_rad
 from hw_mocks.fake_rtde import FakeRTDEControl, FakeRTDEReceive, SimURController
 from hw_mocks.sim_bench import SimClock
+from conftest import wait_until
 
 DOWN = [np.pi, 0.0, 0.0]
 LIMITS = SafetyLimits(workspace_min=(0.2, -0.3, 0.05), workspace_max=(0.7, 0.3, 0.4), max_speed_m_s=0.1,
@@ -146,12 +146,9 @@ def test_a_contact_move_refuses_to_zero_a_sensor_that_already_feels_a_force():
         arm.close()
 
 
-def _until_the_monitor_reads(arm, force, timeout_s=5.0):
+def _until_the_monitor_reads(arm, force) -> None:
     """Wait until the arm's latest state sample shows the scene's new ``force`` (3,) N."""
-    deadline = time.monotonic() + timeout_s
-    while not np.allclose(arm.state().tcp_wrench[:3], force):
-        assert time.monotonic() < deadline, "the arm monitor never read the new force"
-        time.sleep(0.005)
+    assert wait_until(lambda: np.allclose(arm.state().tcp_wrench[:3], force), 5.0), "the arm monitor never read the new force"
 
 
 def test_retract_without_a_remembered_pose_backs_off_along_the_contact_force():
@@ -243,9 +240,8 @@ def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
         arm.start()
         assert controller.move_linear([0.4, 0.0, 0.3, *DOWN], 0.05, 0.5)  # a long move, sent around the driver
         receive.fail = True
-        deadline = time.monotonic() + 5.0
-        while (arm.fault is None or np.linalg.norm(controller.tcp_speed()[:3]) > 0.0) and time.monotonic() < deadline:
-            time.sleep(0.005)  # the monitor records the fault, then stops the arm
+        # the monitor records the fault, then stops the arm
+        wait_until(lambda: arm.fault is not None and np.linalg.norm(controller.tcp_speed()[:3]) == 0.0, 5.0)
         assert arm.fault is not None and arm.fault.kind == "arm-monitor"
         # stopped at once: at rest a few mm up, where the move would have gone on for 2 s
         assert np.linalg.norm(controller.tcp_speed()[:3]) == 0.0 and controller.tcp_pose()[2] < 0.21

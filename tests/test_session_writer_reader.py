@@ -145,6 +145,20 @@ def test_sigkill_keeps_every_flushed_frame_and_resume_continues(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["crash.h5"]
 
 
+def _assert_every_flushed_frame_kept_and_resumable(path, stopped_writer, appended: list, **resume_options):
+    """The file a stopped writer left at ``path`` is closed cleanly and holds exactly the frames it
+    flushed, the first of ``appended`` (the flush that stopped it may have come before or after the
+    last frames were queued); a resumed writer then adds to it."""
+    with Session.open(path) as s:
+        assert s.closed_cleanly and 0 < s.n_frames == stopped_writer.stats.frames_flushed <= len(appended)
+        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(appended[: s.n_frames]))
+        n_kept = s.n_frames
+    with SessionWriter(path, **_metadata("S1"), resume=True, **resume_options) as w:
+        w.append_frame(*_frame(1), 999.0, 999.0, 10**6, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    with Session.open(path) as s:
+        assert s.n_frames == n_kept + 1 and s.closed_cleanly
+
+
 def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_path):
     """A disk that fills up mid-write leaves HDF5 metadata half written; the writer stops while
     ``min_free_bytes`` are left instead: every flushed frame readable, the file closed cleanly and
@@ -167,15 +181,7 @@ def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_pa
     assert stopped.value.kind == "recorder" and len(str(stopped.value).splitlines()) == 1
     with pytest.raises(HardwareFault, match="left on its disk"):
         w.close()
-    with Session.open(path) as s:
-        assert s.closed_cleanly and 0 < s.n_frames == w.stats.frames_flushed <= len(written)
-        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(written[: s.n_frames]))
-        n_kept = s.n_frames
-    w = SessionWriter(path, **_metadata("S1"), resume=True, min_free_bytes=0)
-    with w:
-        w.append_frame(*_frame(1), 999.0, 999.0, 10**6, 0, -1, sf.PHASE_FREE, np.zeros(6))
-    with Session.open(path) as s:
-        assert s.n_frames == n_kept + 1 and s.closed_cleanly
+    _assert_every_flushed_frame_kept_and_resumable(path, w, written, min_free_bytes=0)
 
 
 def _record_until_fault(writer, frames: list, on_frame=lambda i: None):
@@ -203,15 +209,7 @@ def test_a_recording_deleted_with_its_folder_is_restored_and_resumable(tmp_path)
     assert "deleted during the recording" in str(fault) and f"restored to {path}: resume the recording from there" in str(fault)
     with pytest.raises(HardwareFault, match="restored to"):
         w.close()
-    with Session.open(path) as s:
-        # the flush that noticed may have come before or after the frames queued since the deletion
-        assert s.closed_cleanly and 0 < s.n_frames == w.stats.frames_flushed <= len(frames)
-        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(frames[: s.n_frames]))
-        n_kept = s.n_frames
-    with SessionWriter(path, **_metadata("S1"), resume=True) as w:
-        w.append_frame(*_frame(1), 999.0, 999.0, 10**6, 0, -1, sf.PHASE_FREE, np.zeros(6))
-    with Session.open(path) as s:
-        assert s.n_frames == n_kept + 1 and s.closed_cleanly
+    _assert_every_flushed_frame_kept_and_resumable(path, w, frames)
 
 
 def test_a_recording_replaced_by_another_file_is_restored_beside_it(tmp_path):
