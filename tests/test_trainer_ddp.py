@@ -5,6 +5,8 @@ import socket
 import subprocess
 import sys
 
+import pytest
+
 from conftest import make_synthetic_session
 from trainer.model_dir import load_metadata
 
@@ -18,7 +20,7 @@ def _free_port() -> int:
 def test_torchrun_two_gloo_processes_train_one_model(tmp_path):
     session = make_synthetic_session(tmp_path / "s.h5", height=48, width=64, poses_per_object=2)
     out = tmp_path / "model"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}  # CPU processes, also on a GPU machine
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
            "--master_port", str(_free_port()), "-m", "calibrate.cli", "train", "--data", str(session),
            "--out", str(out), "--width", "0.125", "--epochs", "1", "--batch-size", "2", "--no-onnx"]
@@ -28,3 +30,22 @@ def test_torchrun_two_gloo_processes_train_one_model(tmp_path):
     assert meta.training["world_size"] == 2 and meta.training["batch_size"] == 4
     n_train = meta.training["n_train_frames"]
     assert meta.training["steps"] == -(-(n_train // 2) // 2)  # each rank: half the frames, batches of 2
+
+
+def test_more_processes_than_gpus_is_bad_input(monkeypatch):
+    """torchrun --nproc_per_node 2 on a one-GPU machine: one clear error before joining the group
+    (found on an H100 machine, where rank 1 failed in ``torch.cuda.set_device(1)``)."""
+    import torch
+
+    from collect.errors import InputError
+    from trainer.distributed import DistContext
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")
+    with pytest.raises(InputError, match="2 processes per machine but 1 GPU"):
+        DistContext.from_env()
+    assert not torch.distributed.is_initialized()

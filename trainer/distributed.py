@@ -3,6 +3,8 @@
 ``torchrun --nproc_per_node 2 -m calibrate.cli train --data ... --out MODEL_DIR`` runs the same
 ``bubble train`` entry in every process; ``DistContext.from_env()`` sees torchrun's environment
 (``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``, ``LOCAL_WORLD_SIZE``) and joins the process group.
+With a GPU, each process takes the GPU of its local rank, so ``--nproc_per_node`` may not exceed the
+machine's GPUs (bad input otherwise); ``CUDA_VISIBLE_DEVICES=`` trains on the CPU instead.
 Rank 0 validates, checkpoints and writes the model directory; every rank trains on its own
 shard of each epoch's shuffled frames, and gradients are averaged by DDP.
 """
@@ -14,6 +16,8 @@ from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
+
+from collect.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,10 @@ class DistContext:
         rank = int(os.environ["RANK"])
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+        if cuda and local_world > torch.cuda.device_count():  # set_device(local_rank) would fail in some ranks
+            raise InputError(f"{local_world} processes per machine but {torch.cuda.device_count()} GPU(s): run torchrun "
+                             f"with --nproc_per_node {torch.cuda.device_count()}, or hide the GPUs "
+                             "(CUDA_VISIBLE_DEVICES=) to train on the CPU")
         if not dist.is_initialized():
             dist.init_process_group(backend="nccl" if cuda else "gloo")
         if cuda:
