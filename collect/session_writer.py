@@ -22,17 +22,21 @@ where each segment starts is listed in the root attr ``resumed_at_frames``.
 Disk space: a disk that fills up mid-write leaves HDF5 metadata half written (datasets that
 cannot be read back), so the writer stops before that happens, like a ROS bag recorder's
 ``min_space``: it refuses to start with less than ``MIN_FREE_BYTES`` free on the file's disk and,
-checking after every flush, stops writing once the free space falls below it. The file is then
-complete up to that flush and closed cleanly; the producer gets ``HardwareFault("recorder")``
+checking after every flush, stops writing once the free space falls below it (see "Stopping" below).
+The file is then closed cleanly; the producer gets ``HardwareFault("recorder")``
 (the run stops the arm and retracts; once space is freed, ``bubble collect --resume``, or
 ``bubble commission`` run again, continues the file).
 
 Deleted file: a recording file deleted (or replaced) while it is written would take every frame
 with it when the writer closes it. After every flush the writer checks that its open file is still
-the one at its path; if not, it stops writing and at once copies the open file, complete up to
-that flush, back to its path (its folder recreated if that was deleted too; next to it as
-``<name>.restored-<n>.h5`` when another file took its place). The producer gets
-``HardwareFault("recorder")`` saying where the frames are.
+the one at its path; if not, it stops writing (see "Stopping") and at once copies the open file back
+to its path (its folder recreated if that was deleted too; next to it as ``<name>.restored-<n>.h5``
+when another file took its place). The producer gets ``HardwareFault("recorder")``; ``close()``'s
+says where the frames are.
+
+Stopping (low disk space, deleted file): the writer first stops accepting items, so that the next
+``append_*`` call raises, then writes every item already accepted and flushes: the file holds every
+frame and sample whose ``append_*`` call returned.
 
 Compression: the byte-shuffle + deflate (level 1) HDF5 filters, applied by the writer itself in
 parallel threads and stored with direct chunk writes (see ``IMAGE_COMPRESSION``,
@@ -81,7 +85,7 @@ LIBVER = ("v108", "v108")
 _STR = h5py.string_dtype("utf-8")
 
 #: Free space (bytes) the writer keeps on the file's disk: it will not start with less, and stops
-#: writing (the file complete up to its last flush) when less is left. 200 MiB is ~20 s of a
+#: writing (the file complete with every accepted frame) when less is left. 200 MiB is ~20 s of a
 #: simulated recording (~10 MB/s with the true depth), 40 times what one flush interval adds.
 MIN_FREE_BYTES = 200 * 2**20
 
@@ -90,23 +94,38 @@ RESUME_GAP_S = 1.0
 
 
 class _StoppedWriting(Exception):
-    """The writer stopped writing on purpose: the file is complete up to its last flush."""
+    """The writer stopped writing on purpose; once ``frames`` is set, every frame it accepted is in
+    the file and the file is complete."""
+
+    def __init__(self):
+        super().__init__()
+        self.frames: int | None = None
 
 
 class _LowDiskSpace(_StoppedWriting):
-    """The disk is about to fill up."""
+    """The disk is about to fill up: ``free`` bytes left, the writer keeps ``keep`` free."""
+
+    def __init__(self, free: int, keep: int):
+        super().__init__()
+        self.free, self.keep = free, keep
+
+    def __str__(self) -> str:
+        at = "" if self.frames is None else f" at frame {self.frames}"
+        return (f"only {_mb(self.free)} left on its disk, recording stopped{at} (it keeps {_mb(self.keep)} free); "
+                "free some space, then resume the recording")
 
 
 class _FileDeleted(_StoppedWriting):
     """The open file is no longer the one at its path; the writer copied it back (``restored_to``)."""
 
-    def __init__(self, frames: int):
-        super().__init__(frames)
-        self.frames = frames  # frames in the file (complete up to the last flush)
+    def __init__(self):
+        super().__init__()
         self.restored_to: str | None = None
         self.restore_error: str | None = None  # why the copy failed
 
     def __str__(self) -> str:
+        if self.restored_to is None and self.restore_error is None:
+            return "the file was deleted during the recording; recording stopped, its frames are being restored"
         stopped = f"the file was deleted during the recording; recording stopped at frame {self.frames}"
         if self.restored_to is None:
             return f"{stopped}, and its frames could not be restored: {self.restore_error}"
@@ -268,6 +287,8 @@ class SessionWriter:
         self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_ITEMS)
         self._error: BaseException | None = None
         self._closed = False
+        #: held while an item is queued; the writer thread takes it to stop accepting items
+        self._accepting = threading.Lock()
         plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
         check_free_space(self.path, self.min_free_bytes)
         if resume:
@@ -382,12 +403,13 @@ class SessionWriter:
         """
         if self._closed:
             return
-        self._closed = True
-        self._queue.put(None)
+        with self._accepting:
+            self._closed = True
+            self._queue.put(None)
         self._thread.join()
         self._pool.shutdown()
         try:
-            if self._error is None or isinstance(self._error, _StoppedWriting):  # complete up to the last flush
+            if self._error is None or isinstance(self._error, _StoppedWriting):  # every accepted item written
                 self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
         finally:
             try:
@@ -409,10 +431,11 @@ class SessionWriter:
 
     # ------------------------------------------------------------------ writer thread
     def _put(self, item) -> None:
-        if self._closed:
-            raise RuntimeError("SessionWriter is closed")
-        self._raise_if_failed()
-        self._queue.put(item)
+        with self._accepting:
+            if self._closed:
+                raise RuntimeError("SessionWriter is closed")
+            self._raise_if_failed()
+            self._queue.put(item)
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
@@ -439,33 +462,52 @@ class SessionWriter:
                 if not dirty:
                     last_flush = time.monotonic()
                 elif done or time.monotonic() - last_flush >= self.flush_interval_s:
-                    self._file.flush()
-                    self.stats.flushes += 1
-                    self.stats.frames_flushed = self.n_frames_at_open + self.stats.frames_written
+                    self._flush()
                     dirty = False
                     last_flush = time.monotonic()
                     if _file_replaced(self._file.id.get_vfd_handle(), self.path):
-                        self._error = self._restore_deleted_file()
+                        deleted = _FileDeleted()
+                        done = self._stop_writing(deleted) or done
+                        self._restore_deleted_file(deleted)
                     elif (free := _free_bytes(self.path)) < self.min_free_bytes:
-                        self._error = _LowDiskSpace(
-                            f"only {_mb(free)} left on its disk, recording stopped at frame "
-                            f"{self.stats.frames_flushed} (it keeps {_mb(self.min_free_bytes)} free); "
-                            "free some space, then resume the recording")
+                        done = self._stop_writing(_LowDiskSpace(free, self.min_free_bytes)) or done
                 self.stats.write_s += time.perf_counter() - t0
             except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
                 self._error = err
 
-    def _restore_deleted_file(self) -> "_FileDeleted":
-        """The file was deleted (or replaced) since the last flush: mark it closed cleanly (it is
-        complete up to that flush) and copy it back to its path, before anything else is lost."""
-        deleted = _FileDeleted(self.stats.frames_flushed)
+    def _flush(self) -> None:
+        self._file.flush()
+        self.stats.flushes += 1
+        self.stats.frames_flushed = self.n_frames_at_open + self.stats.frames_written
+
+    def _stop_writing(self, reason: _StoppedWriting) -> bool:
+        """Stop accepting items (the next ``append_*`` raises ``reason``), then write and flush every
+        item accepted before that. Returns whether ``close()`` was among them (its sentinel)."""
+        accepted = []
+        while not self._accepting.acquire(timeout=0.01):
+            accepted += self._next_batch(0.0)  # room for a producer waiting on a full queue
+        try:
+            self._error = reason
+            accepted += self._next_batch(0.0)
+        finally:
+            self._accepting.release()
+        closed = None in accepted
+        items = [item for item in accepted if item is not None]
+        if items:
+            self._write_batch(items)
+        self._flush()
+        reason.frames = self.stats.frames_flushed
+        return closed
+
+    def _restore_deleted_file(self, deleted: _FileDeleted) -> None:
+        """The file was deleted (or replaced) and every accepted frame is in it: mark it closed
+        cleanly and copy it back to its path (``deleted.restored_to``), before anything is lost."""
         try:
             self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
             self._file.flush()
             deleted.restored_to = _restore(self._file.id.get_vfd_handle(), self.path)
         except OSError as err:
             deleted.restore_error = h5_error_text(err)
-        return deleted
 
     def _next_batch(self, timeout: float) -> list:
         """Items waiting in the queue (waiting up to ``timeout`` s for the first), up to the ``None``

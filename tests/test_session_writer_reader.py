@@ -145,13 +145,13 @@ def test_sigkill_keeps_every_flushed_frame_and_resume_continues(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["crash.h5"]
 
 
-def _assert_every_flushed_frame_kept_and_resumable(path, stopped_writer, appended: list, **resume_options):
-    """The file a stopped writer left at ``path`` is closed cleanly and holds exactly the frames it
-    flushed, the first of ``appended`` (the flush that stopped it may have come before or after the
-    last frames were queued); a resumed writer then adds to it."""
+def _assert_every_appended_frame_kept_and_resumable(path, stopped_writer, appended: list, **resume_options):
+    """The file a stopped writer left at ``path`` is closed cleanly and holds every frame in
+    ``appended`` (those whose ``append_frame`` returned, including any still queued when the writer
+    stopped); a resumed writer then adds to it."""
     with Session.open(path) as s:
-        assert s.closed_cleanly and 0 < s.n_frames == stopped_writer.stats.frames_flushed <= len(appended)
-        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(appended[: s.n_frames]))
+        assert s.closed_cleanly and 0 < s.n_frames == stopped_writer.stats.frames_flushed == len(appended)
+        np.testing.assert_array_equal(s.ir(slice(None)), np.stack(appended))
         n_kept = s.n_frames
     with SessionWriter(path, **_metadata("S1"), resume=True, **resume_options) as w:
         w.append_frame(*_frame(1), 999.0, 999.0, 10**6, 0, -1, sf.PHASE_FREE, np.zeros(6))
@@ -181,7 +181,7 @@ def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_pa
     assert stopped.value.kind == "recorder" and len(str(stopped.value).splitlines()) == 1
     with pytest.raises(HardwareFault, match="left on its disk"):
         w.close()
-    _assert_every_flushed_frame_kept_and_resumable(path, w, written, min_free_bytes=0)
+    _assert_every_appended_frame_kept_and_resumable(path, w, written, min_free_bytes=0)
 
 
 def _record_until_fault(writer, frames: list, on_frame=lambda i: None):
@@ -205,11 +205,12 @@ def test_a_recording_deleted_with_its_folder_is_restored_and_resumable(tmp_path)
     w = SessionWriter(path, **_metadata("S1"), flush_interval_s=0.05)
     frames: list = []
     fault = _record_until_fault(w, frames, lambda i: i == 60 and shutil.rmtree(path.parent))
-    assert fault.kind == "recorder" and len(str(fault).splitlines()) == 1
-    assert "deleted during the recording" in str(fault) and f"restored to {path}: resume the recording from there" in str(fault)
-    with pytest.raises(HardwareFault, match="restored to"):
+    assert fault.kind == "recorder" and len(str(fault).splitlines()) == 1 and "deleted during the recording" in str(fault)
+    with pytest.raises(HardwareFault) as closed:
         w.close()
-    _assert_every_flushed_frame_kept_and_resumable(path, w, frames)
+    assert f"stopped at frame {len(frames)}, and those frames were restored to {path}: resume the recording from there" \
+        in str(closed.value)
+    _assert_every_appended_frame_kept_and_resumable(path, w, frames)
 
 
 def test_a_recording_replaced_by_another_file_is_restored_beside_it(tmp_path):
@@ -221,14 +222,14 @@ def test_a_recording_replaced_by_another_file_is_restored_beside_it(tmp_path):
             path.unlink()
             path.write_bytes(b"someone else's file")
 
-    fault = _record_until_fault(w, [], replace)
+    frames: list = []
+    _record_until_fault(w, frames, replace)
     restored = tmp_path / "s.restored-1.h5"
-    assert f"restored to {restored}:" in str(fault)
-    with pytest.raises(HardwareFault):
+    with pytest.raises(HardwareFault, match=f"restored to {restored}:"):
         w.close()
     assert path.read_bytes() == b"someone else's file"
     with Session.open(restored) as s:
-        assert s.closed_cleanly and s.n_frames == w.stats.frames_flushed > 0
+        assert s.closed_cleanly and s.n_frames == w.stats.frames_flushed == len(frames)
 
 
 def test_a_resumed_segment_whose_clocks_restarted_continues_them(tmp_path):
