@@ -16,30 +16,60 @@ from collect.json_files import write_json
 PAPER_COLUMNS = (("abs_rel", "Abs.Rel"), ("rmse", "RMSE [m]"), ("rmse_log", "RMSE_log"), ("silog", "SILog"), ("a1", "δ<1.05"))
 
 
+def add_training_options(parser: argparse.ArgumentParser, *, init_help: str, minutes_help: str,
+                         minutes: float | None, frame_stride: int) -> None:
+    """The options ``bubble train`` and ``python -m trainer.pretrain train`` share, each a
+    ``TrainConfig`` field (``training_options`` turns them into its keywords). ``minutes`` and
+    ``frame_stride`` are their defaults (``minutes`` None: the trainer's ``DEFAULT_MINUTES``)."""
+    parser.add_argument("--arch", choices=("resnet", "packnet", "bts"), help="network (default: resnet, or the init model's)")
+    parser.add_argument("--width", type=float, help="channel width multiplier (default: per architecture)")
+    parser.add_argument("--init", metavar="MODEL_DIR", help=init_help)
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--epochs", type=float, help="training budget in epochs")
+    budget.add_argument("--minutes", type=float, default=minutes, help=minutes_help)
+    parser.add_argument("--frame-stride", type=int, default=frame_stride, metavar="K",
+                        help=f"keep every K-th contact frame (default {frame_stride})")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resume", action="store_true", help="continue from the checkpoint of the training run")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--lr", type=float, default=2e-4)
+    parser.add_argument("--contact-weight", type=float, metavar="W",
+                        help="extra L1 weight of the contact patches, pixels pushed in > 0.5 mm from the "
+                             "no-contact reference (default 10; 0 = plain L1 as in the paper)")
+
+
+def training_options(args: argparse.Namespace) -> dict:
+    """``TrainConfig`` keywords from the options of ``add_training_options`` (a budget in epochs
+    replaces the default one in minutes; the trainer's contact weight unless given)."""
+    check_model_arg(args.init, "--init")
+    return dict(
+        arch=args.arch,
+        width=args.width,
+        init=args.init,
+        epochs=args.epochs,
+        minutes=args.minutes if args.epochs is None else None,
+        frame_stride=args.frame_stride,
+        seed=args.seed,
+        resume=args.resume,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        **({} if args.contact_weight is None else {"contact_weight": args.contact_weight}),
+    )
+
+
 def register(subparsers) -> None:
     train = subparsers.add_parser("train", help="train or fine-tune a depth network on session files")
     train.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5", help="training session files")
     train.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
-    train.add_argument("--arch", choices=("resnet", "packnet", "bts"), help="network (default: resnet, or the init model's)")
-    train.add_argument("--width", type=float, help="channel width multiplier (default: per architecture)")
-    train.add_argument("--init", metavar="MODEL_DIR", help="fine-tune from this model directory ('base' = the shipped base model)")
-    budget = train.add_mutually_exclusive_group()
-    budget.add_argument("--epochs", type=float, help="training budget in epochs")
-    budget.add_argument("--minutes", type=float, help="training budget in minutes of training time (default 3)")
+    add_training_options(train, init_help="fine-tune from this model directory ('base' = the shipped base model)",
+                         minutes_help="training budget in minutes of training time (default 3)", minutes=None,
+                         frame_stride=1)
     train.add_argument("--holdout-object", metavar="NAME", help="leave this object out for validation")
     train.add_argument("--split", choices=("poses", "frames"), default="poses",
                        help="in-class 70/30 split of contact poses (default) or of frames (the paper's)")
     train.add_argument("--val-data", nargs="+", default=[], metavar="SESSION.h5", help="validate on these sessions instead of a split")
     train.add_argument("--objects", help="comma-separated objects to train on (default: all)")
-    train.add_argument("--frame-stride", type=int, default=1, metavar="K", help="keep every K-th contact frame (default 1)")
-    train.add_argument("--seed", type=int, default=0)
-    train.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
-    train.add_argument("--batch-size", type=int, default=8)
-    train.add_argument("--lr", type=float, default=2e-4)
     train.add_argument("--inverse-depth-loss", action="store_true", help="L1 on inverse depth instead of depth")
-    train.add_argument("--contact-weight", type=float, metavar="W",
-                       help="extra L1 weight of the contact patches, pixels pushed in > 0.5 mm from the "
-                            "no-contact reference (default 10; 0 = plain L1 as in the paper)")
     train.add_argument("--no-augment", action="store_true", help="no IR augmentation")
     train.add_argument("--no-onnx", action="store_true", help="skip the ONNX export (torch inference)")
     train.add_argument("--threads", type=int, help="torch CPU threads")
@@ -103,7 +133,7 @@ def run_train(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file, not a model directory")
     check_parent_dirs(out)
-    check_model_arg(args.init, "--init")
+    options = training_options(args)
     if args.holdout_object is not None and not args.holdout_object.strip():
         raise InputError("--holdout-object is empty: name the object to leave out, or drop the option")
     if not args.resume and (out / WEIGHTS_FILE).exists():
@@ -113,25 +143,15 @@ def run_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         data=args.data,
         out=args.out,
-        arch=args.arch,
-        width=args.width,
-        init=args.init,
-        epochs=args.epochs,
-        minutes=args.minutes,
-        seed=args.seed,
-        resume=args.resume,
         split=args.split,
         holdout_object=args.holdout_object,
         val_data=args.val_data,
         objects=_objects(args.objects),
-        frame_stride=args.frame_stride,
-        batch_size=args.batch_size,
-        lr=args.lr,
         inverse_depth_loss=args.inverse_depth_loss,
-        **({} if args.contact_weight is None else {"contact_weight": args.contact_weight}),
         augment=not args.no_augment,
         export_onnx=not args.no_onnx,
         threads=args.threads,
+        **options,
     )
     console = Console(stderr=True)
     columns = (

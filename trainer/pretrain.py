@@ -26,6 +26,7 @@ from pathlib import Path
 
 from collect.errors import EXIT_BAD_INPUT, InputError
 from trainer.augmentation import PRETRAIN_NOISE_STD
+from trainer.cli import add_training_options, training_options
 from trainer.doc_sections import update_section
 from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE, load_metadata
 
@@ -146,19 +147,9 @@ def run_train(args: argparse.Namespace) -> int:
         data=[str(p) for p in train],
         val_data=[str(p) for p in val],
         out=str(work / TRAIN_DIR),
-        arch=args.arch,
-        width=args.width,
-        init=args.init,
-        **({} if args.contact_weight is None else {"contact_weight": args.contact_weight}),
-        epochs=args.epochs,
-        minutes=args.minutes if args.epochs is None else None,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        frame_stride=args.frame_stride,
-        seed=args.seed,
-        resume=args.resume,
         eval_interval_s=args.eval_interval,
         ir_noise_std=PRETRAIN_NOISE_STD,
+        **training_options(args),
     )
 
     def show(p) -> None:
@@ -193,17 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--work", required=True)
     t.add_argument("--out", default=str(BASE_MODEL_DIR))
     t.add_argument("--val-sensors", type=int, default=2, help="last sessions held out for validation")
-    t.add_argument("--arch", help="network (default: resnet, or the --init model's)")
-    t.add_argument("--width", type=float)
-    t.add_argument("--init", metavar="MODEL_DIR", help="continue from this model directory ('base' = the shipped base model)")
-    t.add_argument("--contact-weight", type=float, help="extra L1 weight of the contact patches (default: the trainer's)")
-    t.add_argument("--epochs", type=float)
-    t.add_argument("--minutes", type=float, default=30.0)
-    t.add_argument("--batch-size", type=int, default=8)
-    t.add_argument("--lr", type=float, default=2e-4)
-    t.add_argument("--frame-stride", type=int, default=3)
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--resume", action="store_true")
+    add_training_options(t, init_help="continue from this model directory ('base' = the shipped base model)",
+                         minutes_help="training budget in minutes of training time (default 30)", minutes=30.0,
+                         frame_stride=3)
     t.add_argument("--eval-interval", type=float, default=60.0, help="seconds between validations/checkpoints")
     t.add_argument("--model-card", default=str(MODEL_CARD) if MODEL_CARD.parent.is_dir() else "",
                    help="model card whose pretraining section to rewrite ('' = none)")
