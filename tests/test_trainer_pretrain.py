@@ -1,8 +1,9 @@
 """Pretraining step 2 (train + package the base model) on synthetic sessions of several sensors."""
 
+import pytest
 from conftest import make_synthetic_session
 from trainer.model_dir import WEIGHTS_FILE, load_metadata
-from trainer.pretrain import main
+from trainer.pretrain import TRAIN_DIR, main
 
 
 def _sensor_sessions(work, n):
@@ -45,3 +46,22 @@ def test_pretrain_refuses_to_package_into_its_own_training_directory(tmp_path, c
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "checkpoint" in err[0]
     assert not (work / "model").exists()  # refused before training
+
+
+def test_pretrain_checks_its_training_options_like_bubble_train(tmp_path, capsys):
+    """The options shared with ``bubble train``: one budget, a known network, an --init that is a
+    model directory; each refused (exit 2) before any training."""
+    work = _sensor_sessions(tmp_path / "work", 2)
+    common = ["train", "--work", str(work), "--out", str(tmp_path / "base"), "--val-sensors", "1", "--model-card", ""]
+    for bad, says in ((["--epochs", "1", "--minutes", "2"], "not allowed with argument"),
+                      (["--arch", "unet"], "invalid choice")):
+        with pytest.raises(SystemExit) as refused:
+            main([*common, *bad])
+        assert refused.value.code == 2 and says in capsys.readouterr().err
+    weights_file = tmp_path / WEIGHTS_FILE
+    weights_file.write_bytes(b"")
+    for init, says in ((weights_file, "is a file, not a model directory"), (tmp_path / "missing", "not found")):
+        assert main([*common, "--init", str(init)]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and says in err[0] and str(init) in err[0]
+    assert not (work / TRAIN_DIR).exists()
