@@ -48,10 +48,10 @@ class DistContext:
         rank = int(os.environ["RANK"])
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
-        if cuda and local_world > torch.cuda.device_count():  # set_device(local_rank) would fail in some ranks
-            raise InputError(f"{local_world} processes per machine but {torch.cuda.device_count()} GPU(s): run torchrun "
-                             f"with --nproc_per_node {torch.cuda.device_count()}, or hide the GPUs "
-                             "(CUDA_VISIBLE_DEVICES=) to train on the CPU")
+        gpus = torch.cuda.device_count() if cuda else 0
+        if cuda and local_world > gpus:  # set_device(local_rank) would fail in some ranks
+            raise InputError(f"{local_world} processes per machine but {gpus} GPU(s): run torchrun with "
+                             f"--nproc_per_node {gpus}, or hide the GPUs (CUDA_VISIBLE_DEVICES=) to train on the CPU")
         if not dist.is_initialized():
             dist.init_process_group(backend="nccl" if cuda else "gloo")
         if cuda:
