@@ -52,8 +52,8 @@ from trainer.cli import PAPER_COLUMNS  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
 from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
+from trainer.training_defaults import ARCH_NAMES  # noqa: E402
 
-ARCHS = ("resnet", "packnet", "bts")
 #: Longest a ``bubble`` command may run (a 4 x 8 session takes ~1-3 min; a hung one is killed and resumed).
 COMMAND_TIMEOUT_S = 600.0
 #: Seconds of training between live validations: only the final validation enters the tables.
@@ -279,7 +279,7 @@ def markdown(res: dict) -> str:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny budgets (~5 min) to validate the script; overrides budgets")
-    p.add_argument("--archs", default=",".join(ARCHS), help="comma-separated architectures")
+    p.add_argument("--archs", default=",".join(ARCH_NAMES), help="comma-separated architectures")
     p.add_argument("--minutes", type=float, default=1.0, help="CPU training minutes per from-scratch run (sections 1-2)")
     p.add_argument("--splits", default="frames", help="in-class splits: frames (the paper's), poses, or both")
     p.add_argument("--holdouts", default=",".join(BUILTIN_OBJECTS), help="objects to leave out, one run each")

@@ -34,7 +34,7 @@ from trainer.model_dir import ModelMetadata, save_model  # noqa: E402
 from trainer.networks import build_network  # noqa: E402
 from trainer.onnx_export import export_and_select_runtime  # noqa: E402
 from trainer.preprocessing import InputGeometry, IRNormalization  # noqa: E402
-from trainer.training import DEFAULT_ARCH, DEFAULT_MAX_DEPTH, DEFAULT_MIN_DEPTH, DEFAULT_WIDTHS  # noqa: E402
+from trainer.training_defaults import ARCH_NAMES, DEFAULT_ARCH, DEFAULT_MAX_DEPTH, DEFAULT_MIN_DEPTH, DEFAULT_WIDTHS  # noqa: E402
 
 TARGET_MS = 1000.0 / 60.0
 
@@ -67,7 +67,7 @@ def main() -> int:
     rows = []
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
-        for arch in ("resnet", "packnet", "bts"):
+        for arch in ARCH_NAMES:
             for width in sorted(set(args.widths) | {DEFAULT_WIDTHS[arch]}):
                 row = measure(arch, width, args.repeats, Path(tmp))
                 rows.append(row)

@@ -8,6 +8,7 @@ from collect.errors import InputError
 from trainer.networks import ARCHITECTURES, build_network
 from trainer.networks.depth_head import BoundedInverseDepth
 from trainer.onnx_export import export_onnx
+from trainer.training_defaults import ARCH_NAMES, DEFAULT_ARCH, DEFAULT_WIDTHS
 from trainer.inference import ort_session
 
 
@@ -19,6 +20,12 @@ def test_depth_head_formula_and_bounds():
     assert depth[1] == pytest.approx(1.0 / (1 / 0.12 + (1 / 0.04 - 1 / 0.12) * 0.5))
     assert depth[2] == pytest.approx(0.04, rel=1e-4)
     assert float(head(torch.tensor(head.logit(0.093)))) == pytest.approx(0.093)
+
+
+def test_the_command_line_offers_every_network_with_a_default_width():
+    # the options come from the torch-free trainer.training_defaults, the classes from trainer.networks
+    assert ARCH_NAMES == tuple(ARCHITECTURES)
+    assert DEFAULT_ARCH in ARCH_NAMES and set(DEFAULT_WIDTHS) == set(ARCH_NAMES)
 
 
 @pytest.mark.parametrize("arch", sorted(ARCHITECTURES))

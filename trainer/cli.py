@@ -11,36 +11,46 @@ import math
 from pathlib import Path
 
 from collect.json_files import write_json
+from trainer.training_defaults import (
+    ARCH_NAMES,
+    DEFAULT_ARCH,
+    DEFAULT_BATCH_SIZE,
+    DEFAULT_CONTACT_WEIGHT,
+    DEFAULT_LR,
+    DEFAULT_MINUTES,
+)
 
 #: Columns of the paper's tables: (metric key, header).
 PAPER_COLUMNS = (("abs_rel", "Abs.Rel"), ("rmse", "RMSE [m]"), ("rmse_log", "RMSE_log"), ("silog", "SILog"), ("a1", "δ<1.05"))
 
 
-def add_training_options(parser: argparse.ArgumentParser, *, init_help: str, minutes_help: str,
-                         minutes: float | None, frame_stride: int) -> None:
+def add_training_options(parser: argparse.ArgumentParser, *, init_help: str, minutes: float, frame_stride: int) -> None:
     """The options ``bubble train`` and ``python -m trainer.pretrain train`` share, each a
     ``TrainConfig`` field (``training_options`` turns them into its keywords). ``minutes`` and
-    ``frame_stride`` are their defaults (``minutes`` None: the trainer's ``DEFAULT_MINUTES``)."""
-    parser.add_argument("--arch", choices=("resnet", "packnet", "bts"), help="network (default: resnet, or the init model's)")
+    ``frame_stride`` are their defaults; the others are the trainer's (``trainer.training_defaults``)."""
+    parser.add_argument("--arch", choices=ARCH_NAMES, help=f"network (default: {DEFAULT_ARCH}, or the init model's)")
     parser.add_argument("--width", type=float, help="channel width multiplier (default: per architecture)")
     parser.add_argument("--init", metavar="MODEL_DIR", help=init_help)
     budget = parser.add_mutually_exclusive_group()
     budget.add_argument("--epochs", type=float, help="training budget in epochs")
-    budget.add_argument("--minutes", type=float, default=minutes, help=minutes_help)
+    budget.add_argument("--minutes", type=float, default=minutes,
+                        help=f"training budget in minutes of training time (default {minutes:g})")
     parser.add_argument("--frame-stride", type=int, default=frame_stride, metavar="K",
                         help=f"keep every K-th contact frame (default {frame_stride})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint of the training run")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--lr", type=float, default=2e-4)
-    parser.add_argument("--contact-weight", type=float, metavar="W",
+    parser.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
+                        help=f"frames per optimizer step (default {DEFAULT_BATCH_SIZE})")
+    parser.add_argument("--lr", type=float, default=DEFAULT_LR,
+                        help=f"Adam's learning rate at the start, halved during the run (default {DEFAULT_LR:g})")
+    parser.add_argument("--contact-weight", type=float, default=DEFAULT_CONTACT_WEIGHT, metavar="W",
                         help="extra L1 weight of the contact patches, pixels pushed in > 0.5 mm from the "
-                             "no-contact reference (default 10; 0 = plain L1 as in the paper)")
+                             f"no-contact reference (default {DEFAULT_CONTACT_WEIGHT:g}; 0 = plain L1 as in the paper)")
 
 
 def training_options(args: argparse.Namespace) -> dict:
     """``TrainConfig`` keywords from the options of ``add_training_options`` (a budget in epochs
-    replaces the default one in minutes; the trainer's contact weight unless given)."""
+    replaces the default one in minutes)."""
     check_model_arg(args.init, "--init")
     return dict(
         arch=args.arch,
@@ -53,7 +63,7 @@ def training_options(args: argparse.Namespace) -> dict:
         resume=args.resume,
         batch_size=args.batch_size,
         lr=args.lr,
-        **({} if args.contact_weight is None else {"contact_weight": args.contact_weight}),
+        contact_weight=args.contact_weight,
     )
 
 
@@ -62,8 +72,7 @@ def register(subparsers) -> None:
     train.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5", help="training session files")
     train.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
     add_training_options(train, init_help="fine-tune from this model directory ('base' = the shipped base model)",
-                         minutes_help="training budget in minutes of training time (default 3)", minutes=None,
-                         frame_stride=1)
+                         minutes=DEFAULT_MINUTES, frame_stride=1)
     train.add_argument("--holdout-object", metavar="NAME", help="leave this object out for validation")
     train.add_argument("--split", choices=("poses", "frames"), default="poses",
                        help="in-class 70/30 split of contact poses (default) or of frames (the paper's)")

@@ -185,8 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--out", default=str(BASE_MODEL_DIR))
     t.add_argument("--val-sensors", type=int, default=2, help="last sessions held out for validation")
     add_training_options(t, init_help="continue from this model directory ('base' = the shipped base model)",
-                         minutes_help="training budget in minutes of training time (default 30)", minutes=30.0,
-                         frame_stride=3)
+                         minutes=30.0, frame_stride=3)
     t.add_argument("--eval-interval", type=float, default=60.0, help="seconds between validations/checkpoints")
     t.add_argument("--model-card", default=str(MODEL_CARD) if MODEL_CARD.parent.is_dir() else "",
                    help="model card whose pretraining section to rewrite ('' = none)")

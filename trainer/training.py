@@ -40,18 +40,17 @@ from trainer.model_dir import ModelMetadata, load_metadata, load_network, resolv
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
 from trainer.splits import TRAIN_FRACTION, split_holdout_object, split_in_class
+from trainer.training_defaults import (
+    DEFAULT_ARCH,
+    DEFAULT_BATCH_SIZE,
+    DEFAULT_CONTACT_WEIGHT,
+    DEFAULT_LR,
+    DEFAULT_MAX_DEPTH,
+    DEFAULT_MIN_DEPTH,
+    DEFAULT_MINUTES,
+    DEFAULT_WIDTHS,
+)
 
-#: Default width multiplier per architecture: the widest whose deployed inference keeps >= 60 fps
-#: batch 1 at 224 x 224 on a 2-core CPU for ``resnet`` (see docs/bench_trainer.md).
-DEFAULT_WIDTHS = {"resnet": 0.375, "packnet": 0.25, "bts": 0.25}
-DEFAULT_ARCH = "resnet"
-#: Bubble depth range (m): the membrane lies 55-100 mm from the camera.
-DEFAULT_MIN_DEPTH = 0.04
-DEFAULT_MAX_DEPTH = 0.12
-#: Budget when neither epochs nor minutes are given (the product's fine-tuning promise).
-DEFAULT_MINUTES = 3.0
-#: Extra L1 weight of the contact-patch pixels (``trainer.losses.contact_weights``).
-DEFAULT_CONTACT_WEIGHT = 10.0
 #: The learning rate halves after every this fraction of the budget (paper: every 40 of 100 epochs).
 LR_HALVING_FRACTION = 0.4
 
@@ -84,8 +83,8 @@ class TrainConfig:
     val_data: list[str] = field(default_factory=list)  # validate on these sessions instead of a split
     objects: list[str] | None = None  # restrict training data to these objects
     frame_stride: int = 1  # keep every n-th contact frame of each session (memory bound for pretraining)
-    batch_size: int = 8
-    lr: float = 2e-4
+    batch_size: int = DEFAULT_BATCH_SIZE
+    lr: float = DEFAULT_LR
     inverse_depth_loss: bool = False
     contact_weight: float = DEFAULT_CONTACT_WEIGHT  # extra loss weight of the contact patches (0 = plain L1)
     augment: bool = True
