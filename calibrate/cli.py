@@ -69,6 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so that exit's flush does not fail
         return 1
     except OSError as err:
+        if err.errno == errno.ENAMETOOLONG:  # a path given to the command, read before any recording
+            print(f"bubble: error: {err.filename}: a name in this path is longer than the file system's "
+                  "limit", file=sys.stderr)
+            return EXIT_BAD_INPUT
         if err.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
         print(f"bubble: error: cannot write {err.filename or 'the output'}: {err.strerror}; free some space "

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
+from collect.output_files import output_path
 
 
 def register(subparsers) -> None:
@@ -26,7 +27,7 @@ def register(subparsers) -> None:
         "2 bad input. Re-running with the same --out resumes from the last completed step.",
     )
     p.add_argument("--bench", type=Path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
-    p.add_argument("--out", type=Path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
+    p.add_argument("--out", type=lambda text: Path(output_path(text)), required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
     add_run_options(p)
     p.add_argument("--quiet", action="store_true", help="print only the verdict")
     p.set_defaults(func=run_commission)

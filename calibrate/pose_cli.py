@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from collect.output_files import check_json_output, check_parent_dirs, output_path, write_json_result
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -18,8 +20,8 @@ def register(subparsers) -> None:
     p.add_argument("--model", required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
     p.add_argument("--data", required=True, metavar="S.h5", help="session file")
     p.add_argument("--object", default="mug", help="object to estimate (default: mug)")
-    p.add_argument("--json", metavar="OUT.json", help="write the results (e_x_mm, e_theta, hz, per frame) here")
-    p.add_argument("--plots", metavar="DIR", help="write error histograms (PNG) here")
+    p.add_argument("--json", type=output_path, metavar="OUT.json", help="write the results (e_x_mm, e_theta, hz, per frame) here")
+    p.add_argument("--plots", type=output_path, metavar="DIR", help="write error histograms (PNG) here")
     p.add_argument("--threshold-mm", type=float, default=1.5, help="contact: depth below the reference by more than this (mm)")
     p.add_argument("--points", type=int, default=1500, help="points per contact patch (default 1500)")
     p.add_argument("--seed", type=int, default=0, help="seed of the prior's perturbation")
@@ -29,14 +31,13 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     from calibrate.pose_check import run_pose_check
     from collect.errors import InputError
-    from collect.output_files import check_json_output, check_parent_dirs
     from trainer.cli import check_model_arg
 
     if not args.threshold_mm > 0 or args.points < 1 or args.seed < 0:
         raise InputError("--threshold-mm must be > 0, --points >= 1 and --seed >= 0")
     check_model_arg(args.model, "--model")
-    if args.json:
-        check_json_output(args.json)
+    if args.json is not None:
+        check_json_output(args.json, "bubble pose")
     if args.plots:
         if os.path.exists(args.plots) and not os.path.isdir(args.plots):
             raise InputError(f"--plots {args.plots} is a file, not a directory")
@@ -44,6 +45,6 @@ def _run(args) -> int:
     result = run_pose_check(args.model, args.data, args.object, threshold_m=1e-3 * args.threshold_mm,
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
     print(result.summary())
-    if args.json:
-        result.write_json(args.json)
+    if args.json is not None:
+        write_json_result(args.json, "bubble pose", result.to_dict())
     return 0

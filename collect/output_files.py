@@ -3,37 +3,70 @@ overwrites a recording, a model or any other file that is not an earlier result 
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import tempfile
 from pathlib import Path
 
 from collect.errors import InputError
+from collect.json_files import write_json
+
+#: Longest file name (one path component) in bytes; 255 on the usual Linux file systems.
+_NAME_MAX = os.pathconf("/", "PC_NAME_MAX")
+#: Top-level key of every ``--json`` result: the command that wrote it (``"bubble pose"``). A later run
+#: of that command may replace the file; no other file, JSON or not, is ever overwritten by one.
+WRITTEN_BY = "written_by"
 
 
-def check_json_output(path) -> None:
-    """Raise InputError unless ``path`` (a ``--json`` result) can be written: its directory exists
-    and is writable, and the path is new or holds an earlier JSON result (which is replaced)."""
+def output_path(text: str) -> str:
+    """argparse ``type`` of an option that names a file or folder to write: refuses an empty name,
+    which would otherwise write into the current folder or nowhere."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("is empty: name a file or folder")
+    return text
+
+
+def check_json_output(path, command: str) -> None:
+    """Raise InputError unless ``path`` (a ``--json`` result of ``command``) can be written: it names
+    a file, its directory exists and is writable, and the path is new or holds an earlier result of
+    the same command (which is replaced)."""
     path = Path(path)
+    _check_name_lengths(path)
     parent = path.parent.resolve()
     if not parent.is_dir():
         raise InputError(f"cannot write {path}: directory {parent} does not exist")
     _check_can_create_in(parent, path)
     if path.is_dir():
         raise InputError(f"cannot write {path}: it is a directory")
-    if path.exists() and not _holds_json(path):
-        raise InputError(f"{path} exists and is not a JSON result; refusing to overwrite it")
+    if path.exists() and _written_by(path) != command:
+        raise InputError(f"{path} exists and is not an earlier `{command} --json` result; refusing to overwrite it")
+
+
+def write_json_result(path, command: str, values: dict) -> None:
+    """Write ``values`` (JSON data, see ``plain_json``) as ``command``'s ``--json`` result, marked
+    with ``WRITTEN_BY`` first (``check_json_output`` checked ``path`` before the work)."""
+    write_json(path, {WRITTEN_BY: command, **values})
 
 
 def check_parent_dirs(path) -> None:
     """Raise InputError when a folder on the way to ``path`` (folders are created when missing)
     exists as a file, or the nearest existing one takes no new files."""
     path = Path(path)
+    _check_name_lengths(path)
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
                 raise InputError(f"cannot write {path}: {parent} is a file, not a directory")
             _check_can_create_in(parent, path)
             return
+
+
+def _check_name_lengths(path: Path) -> None:
+    """Raise InputError when a name in ``path`` is longer than the file system takes (checked
+    before the work, which would otherwise fail only when its result is written)."""
+    if any(len(os.fsencode(part)) > _NAME_MAX for part in path.parts):
+        raise InputError(f"cannot write {path}: a name in this path is longer than the file system's {_NAME_MAX} bytes")
 
 
 def _check_can_create_in(folder: Path, path: Path) -> None:
@@ -46,13 +79,14 @@ def _check_can_create_in(folder: Path, path: Path) -> None:
         raise InputError(f"cannot write {path}: no file can be created in {folder} ({err.strerror})") from None
 
 
-def _holds_json(path: Path) -> bool:
-    """Whether ``path`` holds a JSON document (a recording is rejected by its first bytes, unread)."""
+def _written_by(path: Path) -> str | None:
+    """The ``WRITTEN_BY`` command of the JSON result in ``path``; None for any other file (a recording
+    is rejected by its first bytes, unread)."""
     try:
         with path.open("rb") as f:
-            if f.read(64).lstrip()[:1] not in (b"{", b"["):
-                return False
-        json.loads(path.read_text())
+            if f.read(64).lstrip()[:1] != b"{":
+                return None
+        document = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError):
-        return False
-    return True
+        return None
+    return document.get(WRITTEN_BY)

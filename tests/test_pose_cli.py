@@ -26,7 +26,7 @@ def test_pose_command_writes_json_and_plots(tmp_path, monkeypatch, capsys):
                      "--json", str(out), "--plots", str(tmp_path / "plots")])
     assert code == 0
     doc = json.loads(out.read_text())
-    assert doc["n_used"] == 4 and doc["object_name"] == "mug"
+    assert doc["written_by"] == "bubble pose" and doc["n_used"] == 4 and doc["object_name"] == "mug"
     for key in ("e_x_mm", "e_theta"):
         assert set(doc[key]) == {"median", "mean", "variance"}
     assert doc["hz"] > 0 and set(doc["vs_true"]) == {"predicted", "measured", "true"}
@@ -60,4 +60,4 @@ def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 4 and all(line.startswith("bubble: error: ") for line in err)
     assert "no object 'cup'" in err[1] and "no usable hold frame" in err[2]
-    assert "not a JSON result; refusing to overwrite" in err[3] and session.read_bytes() == recorded
+    assert "not an earlier `bubble pose --json` result; refusing to overwrite" in err[3] and session.read_bytes() == recorded

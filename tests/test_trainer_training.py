@@ -19,7 +19,7 @@ from trainer.checkpoint import has_checkpoint
 from trainer.distributed import DistContext
 from trainer.inference import DepthEstimator
 from trainer.metrics import METRIC_KEYS
-from trainer.model_dir import WEIGHTS_FILE, load_metadata
+from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, load_metadata
 from trainer.training import TrainConfig, train_model
 
 SMALL = {"height": 48, "width": 64, "poses_per_object": 3}
@@ -48,7 +48,14 @@ def trained(session, tmp_path_factory):
 def bubble(monkeypatch):
     """``bubble`` with only the trainer's commands registered (isolated from other packages)."""
     monkeypatch.setattr(calibrate.cli, "COMMAND_MODULES", ("trainer.cli",))
-    return lambda *argv: calibrate.cli.main([str(a) for a in argv])
+
+    def run(*argv) -> int:
+        try:
+            return calibrate.cli.main([str(a) for a in argv])
+        except SystemExit as usage_error:  # argparse's, one line on stderr
+            return usage_error.code
+
+    return run
 
 
 def test_training_writes_model_dir_and_learns(trained, session):
@@ -159,8 +166,11 @@ def test_fine_tune_from_init_model_keeps_its_architecture(trained, session, tmp_
 
 def test_evaluate_command_writes_metrics_latency_and_truth_comparison(bubble, trained, session, tmp_path, capsys):
     out = tmp_path / "eval.json"
-    assert bubble("evaluate", "--model", trained[0].model_dir, "--data", session, "--objects", "mug", "--json", out) == 0
+    for _ in range(2):  # the second run replaces the first one's result
+        assert bubble("evaluate", "--model", trained[0].model_dir, "--data", session, "--objects", "mug", "--json",
+                      out) == 0
     data = json.loads(out.read_text())
+    assert data["written_by"] == "bubble evaluate"
     assert set(METRIC_KEYS) <= set(data) and data["latency_ms"] > 0
     assert list(data["per_object"]) == ["mug"]
     vs = data["vs_true"]
@@ -227,11 +237,19 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         ("train", "--data", session, "--out", tmp_path / "y", "--epochs", "1", "--json", session),
         ("evaluate", "--model", model, "--data", session, "--json", session),  # a recording is no JSON result
         ("evaluate", "--model", model, "--data", session, "--json", tmp_path / "no_dir" / "e.json"),
+        ("evaluate", "--model", model, "--data", session, "--json", model / METADATA_FILE),  # JSON, not a result
+        ("evaluate", "--model", model, "--data", session, "--json", ""),
+        ("evaluate", "--model", model, "--data", session, "--json", tmp_path / ("e" * 300 + ".json")),
+        ("evaluate", "--model", tmp_path / ("m" * 300), "--data", session),
+        ("train", "--data", session, "--out", "", "--epochs", "1"),
+        ("train", "--data", session, "--out", tmp_path / ("m" * 300) / "x", "--epochs", "1"),
     ]
-    recorded, weights = session.read_bytes(), (model / WEIGHTS_FILE).read_bytes()
+    recorded, weights, metadata = (session.read_bytes(), (model / WEIGHTS_FILE).read_bytes(),
+                                   (model / METADATA_FILE).read_bytes())
     for argv in cases:
         capsys.readouterr()
         assert bubble(*argv) == 2, argv
         err = capsys.readouterr().err.splitlines()  # not stripped: a blank line before the error counts
         assert len(err) == 1 and err[0].startswith("bubble: error:"), (argv, err)
     assert session.read_bytes() == recorded and (model / WEIGHTS_FILE).read_bytes() == weights
+    assert (model / METADATA_FILE).read_bytes() == metadata

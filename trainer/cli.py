@@ -10,7 +10,7 @@ import argparse
 import math
 from pathlib import Path
 
-from collect.json_files import write_json
+from collect.output_files import check_json_output, check_parent_dirs, output_path, write_json_result
 from trainer.training_defaults import (
     ARCH_NAMES,
     DEFAULT_ARCH,
@@ -70,7 +70,7 @@ def training_options(args: argparse.Namespace) -> dict:
 def register(subparsers) -> None:
     train = subparsers.add_parser("train", help="train or fine-tune a depth network on session files")
     train.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5", help="training session files")
-    train.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
+    train.add_argument("--out", type=output_path, required=True, metavar="MODEL_DIR", help="model directory to write")
     add_training_options(train, init_help="fine-tune from this model directory ('base' = the shipped base model)",
                          minutes=DEFAULT_MINUTES, frame_stride=1)
     train.add_argument("--holdout-object", metavar="NAME", help="leave this object out for validation")
@@ -82,7 +82,7 @@ def register(subparsers) -> None:
     train.add_argument("--no-augment", action="store_true", help="no IR augmentation")
     train.add_argument("--no-onnx", action="store_true", help="skip the ONNX export (torch inference)")
     train.add_argument("--threads", type=int, help="torch CPU threads")
-    train.add_argument("--json", metavar="OUT.json", help="also write the final validation metrics here")
+    train.add_argument("--json", type=output_path, metavar="OUT.json", help="also write the final validation metrics here")
     train.set_defaults(func=run_train)
 
     evaluate = subparsers.add_parser("evaluate", help="the paper's metrics of a model on session files")
@@ -90,7 +90,7 @@ def register(subparsers) -> None:
     evaluate.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5")
     evaluate.add_argument("--objects", help="comma-separated objects to evaluate on (default: all)")
     evaluate.add_argument("--runtime", choices=("onnx", "torch"), help="inference runtime (default: the model's)")
-    evaluate.add_argument("--json", metavar="OUT.json", help="write the metrics (keys at top level) here")
+    evaluate.add_argument("--json", type=output_path, metavar="OUT.json", help="write the metrics (keys at top level) here")
     evaluate.set_defaults(func=run_evaluate)
 
 
@@ -134,7 +134,6 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from collect.errors import InputError
-    from collect.output_files import check_json_output, check_parent_dirs
     from trainer.model_dir import WEIGHTS_FILE
     from trainer.training import TrainConfig, train_model
 
@@ -147,8 +146,8 @@ def run_train(args: argparse.Namespace) -> int:
         raise InputError("--holdout-object is empty: name the object to leave out, or drop the option")
     if not args.resume and (out / WEIGHTS_FILE).exists():
         raise InputError(f"{out} already holds a model; use --resume to continue its training or choose another --out")
-    if args.json:
-        check_json_output(args.json)
+    if args.json is not None:
+        check_json_output(args.json, "bubble train")
     config = TrainConfig(
         data=args.data,
         out=args.out,
@@ -196,20 +195,19 @@ def run_train(args: argparse.Namespace) -> int:
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))
     console.print(f"model written to {result.model_dir} ({result.steps} steps, {result.train_s / 60:.1f} min training, "
                   f"peak RSS {result.peak_rss_mb:.0f} MB)")
-    if args.json:
-        write_json(args.json, result.metrics)
+    if args.json is not None:
+        write_json_result(args.json, "bubble train", result.metrics)
     return 0
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from collect.output_files import check_json_output
     from trainer.evaluation import evaluate_model
 
     check_model_arg(args.model, "--model")
-    if args.json:
-        check_json_output(args.json)
+    if args.json is not None:
+        check_json_output(args.json, "bubble evaluate")
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
     console = Console()
     rows = {**result["per_object"], "all (vs ToF)": result}
@@ -222,6 +220,6 @@ def run_evaluate(args: argparse.Namespace) -> int:
             rows["model vs true, dropouts"] = vs["model_on_tof_dropout"]
     console.print(metrics_table(f"{result['arch']} on {len(args.data)} session(s)", rows))
     console.print(f"latency {result['latency_ms']:.2f} ms per frame (batch 1, {result['runtime']})")
-    if args.json:
-        write_json(args.json, result)
+    if args.json is not None:
+        write_json_result(args.json, "bubble evaluate", result)
     return 0
