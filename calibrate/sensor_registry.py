@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -30,10 +29,10 @@ import numpy as np
 
 from collect.errors import InputError
 from collect.json_files import write_json
+from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
 ENV_VAR = "BUBBLE_REGISTRY"
 PROFILE = "profile.json"
-_SERIAL_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
 
 def default_registry_dir() -> Path:
@@ -95,7 +94,7 @@ _HISTORY_FIELDS = {
     "reason": _TEXT,
     **{key: _OPTIONAL_NUMBER for key in _METRIC_KEYS},
 }
-_REQUIRED_HISTORY_FIELDS = ("time", "accepted")
+_REQUIRED_HISTORY_FIELDS = ("time", "run_dir", "accepted")
 
 
 def check_profile(profile, path: Path) -> None:
@@ -143,8 +142,8 @@ class SensorRegistry:
             raise InputError(f"sensor registry {self.root} is not a directory")
 
     def _sensor_dir(self, serial: str) -> Path:
-        if not _SERIAL_RE.match(serial or ""):
-            raise InputError(f"sensor serial {serial!r} is not a valid registry name (letters, digits, . _ -)")
+        if not SENSOR_SERIAL_RE.fullmatch(serial or ""):
+            raise InputError(f"sensor serial {serial!r} is not a valid registry name ({SENSOR_SERIAL_RULE})")
         return self.root / serial
 
     def register(

@@ -24,6 +24,7 @@ bench clock.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +41,9 @@ BAUDRATE = 115200
 MAX_LINE_BYTES = 96
 SEQ_MODULO = 65536
 STALE_TIMEOUT_S = 1.0
+#: A sensor serial: the board's answer to ``ID?``, the sensor's registry folder name; it fits a line.
+SENSOR_SERIAL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+SENSOR_SERIAL_RULE = "1-64 letters, digits, '.', '_' or '-', the first a letter or digit"
 #: Corrupt lines in a row that make a ``serial-garbage`` fault (0.1 s of the 100 Hz stream).
 MAX_CORRUPT_RUN = 10
 
@@ -258,8 +262,13 @@ class PressureBoard:
         raise HardwareFault("serial-timeout", f"pressure board: no reply to '{text}' within {timeout_s:.1f} s")
 
     def identify(self) -> str:
-        """Serial number of the bubble sensor the board is built into (``ID?``)."""
-        return ",".join(self.command("ID?", "ID")[1:])
+        """Serial number of the bubble sensor the board is built into (``ID?``); a serial that breaks
+        ``SENSOR_SERIAL_RULE`` (a badly flashed board) raises ``HardwareFault('serial-protocol')``."""
+        serial_number = ",".join(self.command("ID?", "ID")[1:])
+        if not SENSOR_SERIAL_RE.fullmatch(serial_number):
+            raise HardwareFault("serial-protocol", f"pressure board: its sensor serial {serial_number!r} is not "
+                                                   f"{SENSOR_SERIAL_RULE}; flash a valid one")
+        return serial_number
 
     def firmware_version(self) -> str:
         """Firmware version string (``VER?``)."""

@@ -25,9 +25,15 @@ from pathlib import Path
 import numpy as np
 
 from collect.errors import InputError
+from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
 #: Defects ``draw_sensor`` can give a sensor; commissioning must reject each.
 DEFECTS = ("leak", "dead-pixels", "no-dots")
+#: Largest ``draw_sensor`` seed (its serial stays short).
+MAX_SEED = 2**32 - 1
+#: How far the camera may sit off the bubble's axis (m) and turn away from it (rad) in a spec.
+CAMERA_OFFSET_MAX_M = 0.02
+CAMERA_TURN_MAX_RAD = math.radians(20.0)
 
 ATMOSPHERE_PA = 101325.0
 
@@ -185,12 +191,19 @@ class SensorSpec:
             value = getattr(self, name)
             if not (math.isfinite(value) and lo <= value <= hi):
                 raise InputError(f"{source}: field '{name}' = {value} is outside [{lo}, {hi}]")
-        if not self.serial or not isinstance(self.serial, str):
-            raise InputError(f"{source}: field 'serial' must be a non-empty string")
+        if not (isinstance(self.serial, str) and SENSOR_SERIAL_RE.fullmatch(self.serial)):
+            raise InputError(f"{source}: field 'serial' must be {SENSOR_SERIAL_RULE}")
         if len(self.camera_in_tcp) != 6 or not all(math.isfinite(v) for v in self.camera_in_tcp):
             raise InputError(f"{source}: field 'camera_in_tcp' must be 6 finite numbers [x,y,z,rx,ry,rz]")
-        if not (-0.2 <= self.camera_in_tcp[2] <= -0.03):
-            raise InputError(f"{source}: field 'camera_in_tcp' z = {self.camera_in_tcp[2]} m is outside [-0.2, -0.03]")
+        x, y, z, *rotation = self.camera_in_tcp
+        if not (-0.2 <= z <= -0.03):
+            raise InputError(f"{source}: field 'camera_in_tcp' z = {z} m is outside [-0.2, -0.03]")
+        if max(abs(x), abs(y)) > CAMERA_OFFSET_MAX_M:
+            raise InputError(f"{source}: field 'camera_in_tcp' x, y = {x}, {y} m: the camera is more than "
+                             f"{CAMERA_OFFSET_MAX_M} m off the bubble's axis")
+        if math.hypot(*rotation) > CAMERA_TURN_MAX_RAD:
+            raise InputError(f"{source}: field 'camera_in_tcp' rotation of {math.hypot(*rotation):.3g} rad turns the "
+                             f"camera more than {CAMERA_TURN_MAX_RAD:.3g} rad away from the dome")
         if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
             raise InputError(f"{source}: field 'cx'/'cy' principal point lies outside the image")
         for rc in self.dead_pixels:
@@ -274,8 +287,8 @@ def draw_sensor(seed: int, defect: str | None = None) -> SensorSpec:
     """
     if defect is not None and defect not in DEFECTS:
         raise InputError(f"unknown defect {defect!r}; choose one of {', '.join(DEFECTS)}")
-    if int(seed) < 0:
-        raise InputError(f"sensor seed must be >= 0, got {seed}")
+    if not 0 <= int(seed) <= MAX_SEED:
+        raise InputError(f"sensor seed must be within 0..{MAX_SEED}, got {seed}")
     rng = np.random.default_rng([int(seed), 0xB0BB1E])
 
     def vary(nominal: float, rel: float) -> float:

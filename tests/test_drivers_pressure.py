@@ -109,6 +109,12 @@ def test_command_replies_errors_and_timeouts(pty_board):
     th.start()
     assert board.identify() == "BB-0042"
     th.join()
+    th = threading.Thread(target=answer, args=(encode_line("ID,BB 00/42"), b"ID?\n"))  # it names a folder
+    th.start()
+    with pytest.raises(HardwareFault, match="sensor serial 'BB 00/42' is not 1-64 letters") as err:
+        board.identify()
+    th.join()
+    assert err.value.kind == "serial-protocol"
     th = threading.Thread(target=answer, args=(encode_line("ERR,unknown command LED 7"), b"LED 1\n"))
     th.start()
     with pytest.raises(HardwareFault) as err:

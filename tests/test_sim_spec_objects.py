@@ -32,6 +32,9 @@ def test_draw_sensor_is_deterministic_and_varied():
     assert draw_sensor(3, "no-dots").dot_coverage == 0.0
     with pytest.raises(InputError):
         draw_sensor(3, "melted")
+    for seed in (-1, 10**100):  # the huge one's serial would not fit the pressure board's ID line
+        with pytest.raises(InputError, match="sensor seed must be within 0..4294967295"):
+            draw_sensor(seed)
 
 
 @pytest.mark.parametrize(
@@ -41,6 +44,12 @@ def test_draw_sensor_is_deterministic_and_varied():
         (lambda d: d.update(fx=-5.0), "fx"),
         (lambda d: d.update(gas_volume_m3="lots"), "gas_volume_m3"),
         (lambda d: d.update(camera_in_tcp=[0, 0]), "camera_in_tcp"),
+        (lambda d: d.update(camera_in_tcp=[0, 0, -0.093, 1e300, 0, 0]), "camera_in_tcp' rotation"),
+        (lambda d: d.update(camera_in_tcp=[0, 0, -0.093, 3.1416, 0, 0]), "camera_in_tcp' rotation"),
+        (lambda d: d.update(camera_in_tcp=[1.0, 0, -0.093, 0, 0, 0]), "camera_in_tcp' x, y"),
+        (lambda d: d.update(serial="SB-1\nX"), "serial"),
+        (lambda d: d.update(serial="SB-é"), "serial"),
+        (lambda d: d.update(serial="S" * 65), "serial"),
         (lambda d: d.update(dead_pixels=[[500, 3]]), "dead_pixels"),
         (lambda d: d.update(colour="red"), "colour"),
     ],

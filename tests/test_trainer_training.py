@@ -242,6 +242,9 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         ("evaluate", "--model", model, "--data", session, "--json", tmp_path / ("e" * 300 + ".json")),
         ("evaluate", "--model", tmp_path / ("m" * 300), "--data", session),
         ("train", "--data", session, "--out", "", "--epochs", "1"),
+        ("train", "--data", session, "--out", tmp_path / "x", "--epochs", "1", "--seed=-1"),
+        ("train", "--data", session, "--out", tmp_path / "x", "--epochs", "1", "--width", "inf"),
+        ("train", "--data", session, "--out", tmp_path / "x", "--epochs", "1", "--width", "1e9"),
         ("train", "--data", session, "--out", tmp_path / ("m" * 300) / "x", "--epochs", "1"),
     ]
     recorded, weights, metadata = (session.read_bytes(), (model / WEIGHTS_FILE).read_bytes(),

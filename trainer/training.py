@@ -37,7 +37,7 @@ from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
 from trainer.model_dir import ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model
-from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, set_initial_depth
+from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, check_width, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
 from trainer.splits import TRAIN_FRACTION, split_holdout_object, split_in_class
 from trainer.training_defaults import (
@@ -186,6 +186,10 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
     if config.batch_size < 1:
         raise InputError(f"batch size must be at least 1, got {config.batch_size}")
+    if config.seed < 0:
+        raise InputError(f"seed must be 0 or more, got {config.seed}")
+    if config.width is not None:
+        check_width(config.width)
     # a session given twice would weigh double, or be validated on after training on it
     check_each_session_once({"--data": config.data, "--val-data": config.val_data})
     h, w = config.input_size

@@ -7,6 +7,8 @@ Every network maps normalized IR ``(N,1,H,W) float32`` (H, W multiples of 32) to
 
 from __future__ import annotations
 
+import math
+
 from torch import nn
 
 from collect.errors import InputError
@@ -25,12 +27,21 @@ ARCHITECTURES: dict[str, type[nn.Module]] = {
 INPUT_MULTIPLE = 32
 
 
+#: Widest channel width multiplier accepted (the defaults are 0.25-0.375; 4 is ~100x their weights).
+MAX_WIDTH = 4.0
+
+
+def check_width(width: float) -> None:
+    """Raise ``InputError`` unless ``width`` is a channel width multiplier in (0, ``MAX_WIDTH``]."""
+    if not (math.isfinite(width) and 0 < width <= MAX_WIDTH):
+        raise InputError(f"network width must be a number in (0, {MAX_WIDTH:g}], got {width}")
+
+
 def build_network(arch: str, width: float, min_depth: float, max_depth: float) -> nn.Module:
     """A freshly initialized network of architecture ``arch`` (one of ``ARCHITECTURES``)."""
     if arch not in ARCHITECTURES:
         raise InputError(f"unknown architecture {arch!r}; choose one of {', '.join(ARCHITECTURES)}")
-    if not width > 0:
-        raise InputError(f"network width must be positive, got {width}")
+    check_width(width)
     return ARCHITECTURES[arch](width, min_depth, max_depth)
 
 
