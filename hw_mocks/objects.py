@@ -274,6 +274,9 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         raise InputError(f"mesh file not found: {path}")
     try:
         mesh = trimesh.load(path, force="mesh")
+    except ImportError:  # a file that is no binary mesh is read as text, whose encoding needs an optional package
+        raise InputError(f"cannot read mesh {path}: it is neither a binary {path.suffix.lower()[1:].upper()} "
+                         "file nor UTF-8 text (truncated or corrupt?)") from None
     except Exception as err:  # trimesh raises many types for corrupt files
         raise InputError(f"cannot read mesh {path}: {type(err).__name__}: {err}".splitlines()[0]) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:

@@ -100,6 +100,10 @@ def test_mesh_files(tmp_path):
     open_box.export(tmp_path / "open.stl")
     with pytest.raises(InputError, match="not watertight"):
         load_object(tmp_path / "open.stl")
+    stl = (tmp_path / "brick.stl").read_bytes()
+    (tmp_path / "half.stl").write_bytes(stl[: len(stl) // 2])  # was: "ModuleNotFoundError: … charset_normalizer"
+    with pytest.raises(InputError, match="half.stl: it is neither a binary STL file nor UTF-8 text"):
+        load_object(tmp_path / "half.stl")
     (tmp_path / "junk.ply").write_bytes(b"\x00garbage\xff" * 10)
     with pytest.raises(InputError):
         load_object(tmp_path / "junk.ply")
