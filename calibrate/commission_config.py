@@ -90,6 +90,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     from collect.pose_planner import check_unique_names
     from collect.session_writer import check_free_space
     from hw_mocks.objects import load_object
+    from trainer.cli import check_model_arg
     from trainer.model_dir import load_weights, load_metadata
 
     run_dir = Path(config.run_dir)
@@ -112,9 +113,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         raise InputError(f"total minutes must be positive, got {config.total_minutes}")
     if not (math.isfinite(config.leak_hold_s) and config.leak_hold_s > 0):
         raise InputError(f"leak-test hold must be positive, got {config.leak_hold_s} s")
-    if config.base_model is not None and not Path(config.base_model).is_dir():
-        raise InputError(f"base model directory {config.base_model} does not exist")
     if config.base_model is not None:
+        check_model_arg(str(config.base_model), "--base-model")
         load_metadata(config.base_model)
         load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
     registry = Path(config.registry_dir) if config.registry_dir is not None else None

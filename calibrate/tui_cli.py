@@ -25,12 +25,13 @@ def register(subparsers) -> None:
 
 def run_tui(args) -> int:
     from calibrate.commission_config import validate_config
+    from hw_mocks.sensor_spec import SensorSpec
 
     if not args.sim:
         raise InputError("the terminal UI drives the simulated bench only: add --sim (on real hardware, "
                          "commission with bubble commission --bench BENCH.yaml)")
-    if args.sensor is not None and not args.sensor.is_file():
-        raise InputError(f"sensor spec {args.sensor} does not exist")
+    if args.sensor is not None:  # the flow loads it in its own process: its errors before the UI starts
+        SensorSpec.from_yaml(args.sensor)
     config = run_config(args, args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S"))
     validate_config(config)  # every setting `bubble commission` checks, before the UI starts
     if not (sys.stdin.isatty() and sys.stdout.isatty()):

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from collect.errors import InputError
@@ -64,7 +65,7 @@ def _preview(args: argparse.Namespace) -> int:
         raise InputError(f"--press-mm must be within [0, {MAX_PREVIEW_PRESS_MM:g}], got {args.press_mm:g}")
     out = Path(args.out)
     _check_preview_output(out)
-    if args.object not in BUILTIN_OBJECTS and Path(args.object).is_dir():
+    if args.object not in BUILTIN_OBJECTS and os.path.isdir(args.object):  # not Path: Path("") is "."
         raise InputError(f"--object {args.object} is a directory, not a mesh file (.stl, .obj, .ply)")
     spec = SensorSpec.from_yaml(args.sensor)
     summary = render_preview(spec, args.object, args.press_mm / 1000.0, out)

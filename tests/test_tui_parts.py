@@ -186,7 +186,8 @@ def test_step_lines_are_fixed_width_columns():
     [
         (["--sim", "--poses-per-object", "1"], "poses per object must be at least 2"),
         (["--sim", "--total-minutes", "-1"], "total minutes must be positive"),
-        (["--sim", "--sensor", "missing.yaml"], "sensor spec missing.yaml does not exist"),
+        (["--sim", "--sensor", "missing.yaml"], "cannot read sensor spec missing.yaml: No such file or directory"),
+        (["--sim", "--sensor", "."], "cannot read sensor spec .: Is a directory"),
         (["--sim-fault", "camera-stall@3"], "drives the simulated bench only: add --sim"),
         (["--sim", "--objects", " , "], "no objects to press"),
         (["--sim", "--sim-speed", "0"], "simulation speed 0.0 must be within 0.1..100"),
