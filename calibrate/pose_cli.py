@@ -7,6 +7,9 @@ from pathlib import Path
 
 from collect.output_files import check_json_output, check_parent_dirs, output_path, write_json_result
 
+#: Largest contact threshold (mm): presses dent the bubble by about 10 mm at most.
+MAX_THRESHOLD_MM = 20.0
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -33,8 +36,8 @@ def _run(args) -> int:
     from collect.errors import InputError
     from trainer.cli import check_model_arg
 
-    if not args.threshold_mm > 0 or args.points < 1 or args.seed < 0:
-        raise InputError("--threshold-mm must be > 0, --points >= 1 and --seed >= 0")
+    if not 0 < args.threshold_mm <= MAX_THRESHOLD_MM or args.points < 1 or args.seed < 0:
+        raise InputError(f"--threshold-mm must be within (0, {MAX_THRESHOLD_MM:g}], --points >= 1 and --seed >= 0")
     check_model_arg(args.model, "--model")
     if args.json is not None:
         check_json_output(args.json, "bubble pose")

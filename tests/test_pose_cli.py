@@ -61,3 +61,9 @@ def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert len(err) == 4 and all(line.startswith("bubble: error: ") for line in err)
     assert "no object 'cup'" in err[1] and "no usable hold frame" in err[2]
     assert "not an earlier `bubble pose --json` result; refusing to overwrite" in err[3] and session.read_bytes() == recorded
+    # 1e308 mm overflowed the patch threshold: warnings before the error line
+    for option, value in (("--threshold-mm", "0"), ("--threshold-mm", "nan"), ("--threshold-mm", "1e308"),
+                          ("--points", "0")):
+        assert cli.main(["pose", "--model", str(model), "--data", str(session), option, value]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert err == ["bubble: error: --threshold-mm must be within (0, 20], --points >= 1 and --seed >= 0"]
