@@ -16,7 +16,7 @@ import importlib
 import os
 import sys
 
-from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, HardwareFault, InputError
+from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, HardwareFault, InputError, OneLineParser
 
 #: Modules providing ``register(subparsers)``, in the order their commands are listed.
 COMMAND_MODULES = (
@@ -29,15 +29,8 @@ COMMAND_MODULES = (
 )
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse that reports usage errors as one line and exit code 2 (its default code)."""
-
-    def error(self, message: str):  # noqa: D401 - argparse API
-        self.exit(EXIT_BAD_INPUT, f"bubble: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="bubble", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="bubble", description=__doc__.splitlines()[0])
     from importlib.metadata import PackageNotFoundError, version
 
     try:
@@ -45,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     except PackageNotFoundError:
         ver = "unknown"
     parser.add_argument("--version", action="version", version=f"bubble {ver}")
-    subparsers = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    subparsers = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
     return parser

@@ -9,6 +9,8 @@
   ``EXIT_FAULT`` (3); ``bubble commission`` turns it into a rejected run (exit 1).
 """
 
+import argparse
+
 EXIT_OK = 0
 EXIT_REJECTED = 1
 EXIT_BAD_INPUT = 2
@@ -34,3 +36,13 @@ class HardwareFault(Exception):
 
 class StopRequested(Exception):
     """The operator's stop (``Arm.stop_on`` event, or a run's stop event between steps)."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports a usage error as one line, ``<tool>: error: <message>``, with exit code
+    ``EXIT_BAD_INPUT`` (argparse's own code; it would print the usage text first)."""
+
+    tool = "bubble"
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        self.exit(EXIT_BAD_INPUT, f"{self.tool}: error: {message}\n")

@@ -57,7 +57,8 @@ def test_pretrain_checks_its_training_options_like_bubble_train(tmp_path, capsys
                       (["--arch", "unet"], "invalid choice")):
         with pytest.raises(SystemExit) as refused:
             main([*common, *bad])
-        assert refused.value.code == 2 and says in capsys.readouterr().err
+        err = capsys.readouterr().err.splitlines()  # was: argparse's usage text, then the error
+        assert refused.value.code == 2 and len(err) == 1 and err[0].startswith("pretrain: error: ") and says in err[0]
     weights_file = tmp_path / WEIGHTS_FILE
     weights_file.write_bytes(b"")
     for init, says in ((weights_file, "is a file, not a model directory"), (tmp_path / "missing", "not found")):
@@ -65,3 +66,17 @@ def test_pretrain_checks_its_training_options_like_bubble_train(tmp_path, capsys
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and says in err[0] and str(init) in err[0]
     assert not (work / TRAIN_DIR).exists()
+
+
+def test_pretrain_collect_refuses_bad_options_before_recording(tmp_path, capsys):
+    """Was: tracebacks (``--jobs 0``, a file as ``--work``), or exit 0 after recording nothing."""
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for argv, says in ((["--jobs", "0"], "must be at least 1"), (["--sensors", "-1"], "must be at least 1"),
+                       (["--objects", " , "], "--objects names no object"), (["--work", str(afile)], "is a file")):
+        assert main(["collect", "--work", str(tmp_path / "w"), *argv]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and says in err[0], err
+    assert not (tmp_path / "w").exists()
+    assert main(["train", "--work", str(tmp_path / "missing")]) == 2
+    assert "is not a directory of sessions" in capsys.readouterr().err

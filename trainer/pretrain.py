@@ -24,7 +24,8 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from collect.errors import EXIT_BAD_INPUT, InputError
+from collect.errors import EXIT_BAD_INPUT, InputError, OneLineParser
+from collect.output_files import check_parent_dirs
 from trainer.augmentation import PRETRAIN_NOISE_STD
 from trainer.cli import add_training_options, training_options
 from trainer.doc_sections import update_section
@@ -76,7 +77,14 @@ def collect_one(work: Path, seed: int, objects: str | None, poses: int, sim_spee
 
 
 def run_collect(args: argparse.Namespace) -> int:
+    if args.sensors < 1 or args.jobs < 1 or args.first_seed < 0 or args.poses_per_object < 1:
+        raise InputError("--sensors, --jobs and --poses-per-object must be at least 1, --first-seed at least 0")
+    if args.objects is not None and not args.objects.strip(" ,"):
+        raise InputError("--objects names no object: name some, or drop the option for every object")
     work = Path(args.work)
+    if work.exists() and not work.is_dir():
+        raise InputError(f"--work {work} is a file, not a directory")
+    check_parent_dirs(work / "sensor.h5")
     work.mkdir(parents=True, exist_ok=True)
     seeds = range(args.first_seed, args.first_seed + args.sensors)
     failed = 0
@@ -88,7 +96,7 @@ def run_collect(args: argparse.Namespace) -> int:
                 print(f"sensor seed {seed}: {future.result()}", flush=True)
             except RuntimeError as err:  # one bad simulated sensor does not stop the others
                 failed += 1
-                print(f"sensor seed {seed}: {err}", flush=True)
+                print(f"sensor seed {seed}: {err}", file=sys.stderr, flush=True)
     print(f"{args.sensors - failed} of {args.sensors} sessions in {work}", flush=True)
     return 1 if failed else 0
 
@@ -136,12 +144,18 @@ def run_train(args: argparse.Namespace) -> int:
     from trainer.training import TrainConfig, train_model
 
     work = Path(args.work)
+    if not work.is_dir():
+        raise InputError(f"--work {work} is not a directory of sessions (python -m trainer.pretrain collect records them)")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file, not a model directory")
+    check_parent_dirs(out / WEIGHTS_FILE)
     sessions = sorted(work.glob("sensor_*.h5"))
     sessions = [p for p in sessions if not p.name.endswith(".partial.h5")]
     if len(sessions) <= args.val_sensors:
         raise InputError(f"{len(sessions)} sessions in {work}: need more than --val-sensors {args.val_sensors}")
     train, val = sessions[: -args.val_sensors], sessions[-args.val_sensors :]
-    if Path(args.out).resolve() == (work / TRAIN_DIR).resolve():
+    if out.resolve() == (work / TRAIN_DIR).resolve():
         raise InputError(f"--out {args.out} is where training keeps its checkpoint; package the base model elsewhere")
     config = TrainConfig(
         data=[str(p) for p in train],
@@ -161,16 +175,20 @@ def run_train(args: argparse.Namespace) -> int:
     result = train_model(config, progress_callback=show)
     if result is None:  # a non-zero torchrun rank
         return 0
-    out = package_base_model(result.model_dir, Path(args.out))
+    out = package_base_model(result.model_dir, out)
     if args.model_card:
         write_model_card_section(out, Path(args.model_card), "python -m trainer.pretrain " + " ".join(sys.argv[1:]))
     print(f"base model -> {out}: held-out sensors a1 {result.metrics['a1']:.3f}, abs_rel {result.metrics['abs_rel']:.4f}")
     return 0
 
 
+class _PretrainParser(OneLineParser):
+    tool = "pretrain"
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m trainer.pretrain", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="step", required=True)
+    parser = _PretrainParser(prog="python -m trainer.pretrain", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="step", required=True, parser_class=_PretrainParser)
     c = sub.add_parser("collect", help="record one simulated session per sensor")
     c.add_argument("--sensors", type=int, default=16)
     c.add_argument("--first-seed", type=int, default=1000)
