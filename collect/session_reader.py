@@ -13,6 +13,7 @@ hold every frame up to the writer's last flush. Bad files raise ``InputError`` w
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -75,8 +76,10 @@ def check_session_attrs(f: h5py.File) -> None:
                          f"'{sf.ATTR_FORMAT}' attribute)")
     if fmt != sf.FORMAT_NAME:
         raise InputError(f"{f.filename}: not a {sf.FORMAT_NAME} file (its '{sf.ATTR_FORMAT}' attribute is {fmt!r})")
-    version = f.attrs.get(sf.ATTR_FORMAT_VERSION)
-    if version is None or int(version) != sf.FORMAT_VERSION:
+    version = _root_attr(f, sf.ATTR_FORMAT_VERSION)
+    if not isinstance(version, (int, np.integer)):
+        raise _bad(f.filename, f"root attr '{sf.ATTR_FORMAT_VERSION}'", "an integer", version)
+    if int(version) != sf.FORMAT_VERSION:
         raise InputError(
             f"{f.filename}: format version {version} is not supported (this software reads version "
             f"{sf.FORMAT_VERSION})"
@@ -120,11 +123,19 @@ class Session:
         self._f = f
         self.path = f.filename
         attrs = f.attrs
+        self.sensor_spec = _root_json(f, sf.ATTR_SENSOR_SPEC, "a JSON object", _is_object)
+        #: camera intrinsics in px: fx, fy > 0, cx, cy, width, height (+ ``distortion``, a list, when known)
+        self.intrinsics = _root_json(f, sf.ATTR_INTRINSICS, "a JSON object with fx, fy, cx, cy, width, height",
+                                     lambda v: _is_object(v) and set(_INTRINSICS_FIELDS) <= set(v))
+        _check_intrinsics(self.path, self.intrinsics)
+        #: (6,) float64 camera frame in the TCP frame [x,y,z m, rotation vector rad]
+        self.camera_in_tcp = np.asarray(_root_json(
+            f, sf.ATTR_CAMERA_IN_TCP, "a JSON list of 6 finite numbers (x, y, z in m, rotation vector in rad)",
+            lambda v: isinstance(v, list) and len(v) == 6 and all(map(_finite_number, v))), dtype=np.float64)
+        plan = _text(attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
+        self._collection_plan = _root_json(f, sf.ATTR_COLLECTION_PLAN, "a JSON object", _is_object) if plan else None
         try:
             self.sensor_serial = _text(attrs[sf.ATTR_SENSOR_SERIAL])
-            self.sensor_spec = json.loads(_text(attrs[sf.ATTR_SENSOR_SPEC]))
-            self.intrinsics = json.loads(_text(attrs[sf.ATTR_INTRINSICS]))
-            self.camera_in_tcp = np.asarray(json.loads(_text(attrs[sf.ATTR_CAMERA_IN_TCP])), dtype=np.float64)
             self.simulated = bool(attrs[sf.ATTR_SIMULATED])
             self.created = _text(attrs.get(sf.ATTR_CREATED, ""))
             self.software_version = _text(attrs.get(sf.ATTR_SOFTWARE_VERSION, ""))
@@ -137,13 +148,13 @@ class Session:
             missing.append(sf.SIM_TRUE_DEPTH)
         if missing:
             raise InputError(f"{self.path}: corrupt session, missing {', '.join(missing)}")
+        for name in (*_REQUIRED, sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH, sf.OBJECTS_PRIMITIVE):
+            if name in f and not isinstance(f[name], h5py.Dataset):
+                raise InputError(f"{self.path}: corrupt session, {name} is not a dataset")
         _, self.height, self.width = f[sf.FRAMES_IR].shape
         if f[sf.FRAMES_DEPTH].shape[1:] != (self.height, self.width):
             raise InputError(f"{self.path}: corrupt session, frames/ir and frames/depth differ in size")
-        if (int(self.intrinsics.get("height", -1)), int(self.intrinsics.get("width", -1))) != (
-            self.height,
-            self.width,
-        ):
+        if (self.intrinsics["height"], self.intrinsics["width"]) != (self.height, self.width):
             raise InputError(f"{self.path}: intrinsics size does not match the {self.width}x{self.height} frames")
         frame_sets = [sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.FRAMES_T_DEVICE, sf.FRAMES_T_HOST, sf.FRAMES_SEQ,
                       sf.FRAMES_OBJECT, sf.FRAMES_POSE_ID, sf.FRAMES_PHASE]
@@ -152,7 +163,11 @@ class Session:
         #: frames held by every per-frame dataset (a crash mid-flush can leave one batch uneven)
         self.n_frames = int(min(lengths))
         n = self.n_frames
-        self.depth_unit_m = float(f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_UNIT_M, sf.DEPTH_UNIT_M))
+        unit_m = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_UNIT_M, sf.DEPTH_UNIT_M)
+        if not _positive_number(unit_m):
+            raise _bad(self.path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_UNIT_M}'", "a finite number of metres > 0", unit_m)
+        #: metres per count of frames/depth
+        self.depth_unit_m = float(unit_m)
         #: (N,) per-frame metadata, loaded eagerly (small)
         self.t_device = f[sf.FRAMES_T_DEVICE][:n]
         self.t_host = f[sf.FRAMES_T_HOST][:n]
@@ -179,7 +194,9 @@ class Session:
     @classmethod
     def open(cls, path) -> "Session":
         """Open a session file read-only. Raises InputError for missing/corrupt/truncated files,
-        another format or format version, or NaN in the per-frame metadata."""
+        another format or format version, malformed root attributes (intrinsics, camera_in_tcp,
+        sensor_spec, collection_plan), a bad depth unit, repeated object names, or NaN in the
+        per-frame metadata."""
         f = open_h5(path)
         try:
             check_session_attrs(f)
@@ -324,8 +341,7 @@ class Session:
 
     def collection_plan(self) -> dict | None:
         """The pose-plan settings stored by ``bubble collect`` (None if the file has none)."""
-        text = _text(self._f.attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
-        return json.loads(text) if text else None
+        return self._collection_plan
 
     def _load(self, name: str, idx) -> np.ndarray:
         try:
@@ -361,6 +377,73 @@ def _text(value) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
+def _finite_number(value) -> bool:
+    """True for a finite real number (a Python or NumPy scalar, not a bool)."""
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+            and math.isfinite(value))
+
+
+def _positive_number(value) -> bool:
+    return _finite_number(value) and value > 0
+
+
+def _positive_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value > 0
+
+
+def _is_object(value) -> bool:
+    return isinstance(value, dict)
+
+
+def _bad(path: str, where: str, expected: str, value) -> InputError:
+    """The one-line error for an attribute of the wrong kind: ``where`` (e.g. ``root attr 'intrinsics'``)
+    must be ``expected``; the value found is shown, cut to 60 characters."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        value = value.tolist()
+    shown = repr(value)
+    return InputError(f"{path}: {where} must be {expected}, got {shown if len(shown) <= 60 else shown[:57] + '...'}")
+
+
+def _root_attr(f: h5py.File, name: str):
+    """Root attribute ``name`` of ``f`` as stored; InputError when it is missing."""
+    if name not in f.attrs:
+        raise InputError(f"{f.filename}: root attr '{name}' is missing")
+    return f.attrs[name]
+
+
+def _root_json(f: h5py.File, name: str, expected: str, valid):
+    """Root attribute ``name`` of ``f`` parsed as JSON; InputError naming it when it is missing, not
+    JSON, or not ``valid(value)`` (``expected`` says what it must be)."""
+    try:
+        value = json.loads(_text(_root_attr(f, name)))
+    except json.JSONDecodeError as err:
+        raise InputError(f"{f.filename}: root attr '{name}' is not valid JSON ({err.msg})") from None
+    if not valid(value):
+        raise _bad(f.filename, f"root attr '{name}'", expected, value)
+    return value
+
+
+#: Intrinsics fields every session holds: name -> (what it must be, test of its JSON value).
+_INTRINSICS_FIELDS = {
+    "fx": ("a finite number > 0 (px)", _positive_number),
+    "fy": ("a finite number > 0 (px)", _positive_number),
+    "cx": ("a finite number (px)", _finite_number),
+    "cy": ("a finite number (px)", _finite_number),
+    "width": ("a positive integer (px)", _positive_int),
+    "height": ("a positive integer (px)", _positive_int),
+}
+
+
+def _check_intrinsics(path: str, intrinsics: dict) -> None:
+    """InputError unless every field of ``intrinsics`` (a dict holding ``_INTRINSICS_FIELDS``) is valid."""
+    for name, (expected, valid) in _INTRINSICS_FIELDS.items():
+        if not valid(intrinsics[name]):
+            raise _bad(path, f"root attr '{sf.ATTR_INTRINSICS}' field '{name}'", expected, intrinsics[name])
+    distortion = intrinsics.get("distortion", [])
+    if not (isinstance(distortion, list) and all(map(_finite_number, distortion))):
+        raise _bad(path, f"root attr '{sf.ATTR_INTRINSICS}' field 'distortion'", "a list of finite numbers", distortion)
+
+
 def _check_finite(path: str, name: str, values) -> None:
     if values is None or values.dtype.kind != "f":
         return
@@ -377,6 +460,9 @@ def _read_objects(f: h5py.File) -> list[SessionObject]:
     prims = [_text(p) for p in f[sf.OBJECTS_PRIMITIVE][()]] if sf.OBJECTS_PRIMITIVE in f else [""] * len(names)
     if not (len(names) == len(poses) == len(shas) == len(prims)):
         raise InputError(f"{f.filename}: corrupt session, objects/* datasets differ in length")
+    repeated = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    if repeated is not None:
+        raise InputError(f"{f.filename}: corrupt session, object {repeated!r} is listed twice in {sf.OBJECTS_NAME}")
     _check_finite(f.filename, sf.OBJECTS_FIXTURE_POSE, poses)
     objects = []
     for i, name in enumerate(names):

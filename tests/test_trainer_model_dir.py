@@ -1,4 +1,5 @@
-"""Model directory: safetensors + metadata round trip, refusal of pickle and mismatched weights."""
+"""Model directory: safetensors + metadata round trip, refusal of pickle and mismatched weights, and of
+metadata.json values that are missing, of the wrong type or out of range."""
 
 import json
 
@@ -6,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from calibrate.cli import main
 from collect.errors import InputError
 from trainer.inference import DepthEstimator
-from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, ModelMetadata, load_network, save_model
+from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, ModelMetadata, load_metadata, load_network, save_model
 from trainer.networks import build_network
 from trainer.onnx_export import export_and_select_runtime
 from trainer.preprocessing import InputGeometry, IRNormalization
@@ -73,3 +75,68 @@ def test_missing_mismatched_or_garbage_weights(model_dir, tmp_path):
     (model_dir / METADATA_FILE).write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
         load_network(model_dir)
+
+
+#: (field of metadata.json, bad value; ``None``: the field removed) as a fuzzer wrote them.
+BAD_METADATA = [
+    ("geometry.native_height", 0),  # was: ZeroDivisionError while composing the refusal
+    ("geometry.native_width", 10**6),
+    ("geometry.native_width", None),
+    ("geometry.input_height", 223),  # was: ONNX Runtime INVALID_ARGUMENT / torch size mismatch
+    ("geometry.input_width", 100),
+    ("geometry.input_height", 10**9),  # was: an allocation failure
+    ("geometry.input_width", "64"),
+    ("geometry.input_width", 64.5),
+    ("geometry", [48, 64, 64, 64]),
+    ("width", 1e9),
+    ("width", "wide"),
+    ("width", True),
+    ("arch", "vgg"),
+    ("arch", None),
+    ("min_depth", 0.0),
+    ("min_depth", float("nan")),
+    ("max_depth", 0.03),  # below min_depth
+    ("max_depth", float("inf")),
+    ("normalization.mean", 1e308),  # was: exit 0, overflow warnings and all-NaN depth
+    ("normalization.mean", float("nan")),
+    ("normalization.std", 0.0),
+    ("normalization.std", -1.5),
+    ("normalization.std", float("inf")),
+    ("normalization.std", None),
+    ("normalization.kind", "zscore"),
+    ("normalization", None),
+    ("training", "none"),
+]
+
+
+def _edit_metadata(model_dir, field, value):
+    """Set ``field`` (dotted, e.g. ``"geometry.input_height"``) of ``model_dir``'s metadata.json to
+    ``value``, or remove it when ``value`` is None."""
+    meta = json.loads((model_dir / METADATA_FILE).read_text())
+    *path, key = field.split(".")
+    holder = meta
+    for part in path:
+        holder = holder[part]
+    if value is None:
+        del holder[key]
+    else:
+        holder[key] = value
+    (model_dir / METADATA_FILE).write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("field,value", BAD_METADATA, ids=[f"{f}={v!r}" for f, v in BAD_METADATA])
+def test_bad_metadata_values_are_refused_naming_the_field(model_dir, field, value):
+    _edit_metadata(model_dir, field, value)
+    with pytest.raises(InputError) as refused:
+        load_metadata(model_dir)
+    message = str(refused.value)
+    assert message.startswith(f"model {model_dir}: metadata.json ") and f"'{field}'" in message, message
+    assert "\n" not in message
+
+
+def test_bad_metadata_is_one_line_and_exit_2_on_the_command_line(model_dir, synthetic_session, capsys):
+    _edit_metadata(model_dir, "geometry.native_height", 0)
+    assert main(["evaluate", "--model", str(model_dir), "--data", str(synthetic_session)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"bubble: error: model {model_dir}: metadata.json field "
+                                                   "'geometry.native_height' = 0 must be "), err

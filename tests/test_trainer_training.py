@@ -217,6 +217,10 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
     shutil.copy(session, with_nan)
     with h5py.File(with_nan, "r+") as f:
         f["sim/true_depth"][12, 5, 5] = np.nan
+    no_depth = tmp_path / "no_depth.h5"  # every ToF pixel invalid: was exit 0 with a table of NaN
+    shutil.copy(session, no_depth)
+    with h5py.File(no_depth, "r+") as f:
+        f["frames/depth"][...] = 0
     pickled = tmp_path / "pickled"
     shutil.copytree(model, pickled)
     torch.save({"w": torch.zeros(2)}, pickled / WEIGHTS_FILE)
@@ -226,6 +230,7 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         ("evaluate", "--model", model, "--data", truncated),
         ("evaluate", "--model", model, "--data", other_size),
         ("evaluate", "--model", model, "--data", with_nan),
+        ("evaluate", "--model", model, "--data", no_depth),
         ("evaluate", "--model", model, "--data", session, "--objects", "teapot"),
         ("evaluate", "--model", model, "--data", session, session),  # its frames would count twice
         ("evaluate", "--model", pickled, "--data", session),

@@ -89,6 +89,9 @@ def evaluate_model(
     pred = predict_frames(estimator, frames.ir)
     kw = {"min_depth": meta.min_depth, "max_depth": meta.max_depth}
     result: dict = dict(depth_metrics(pred, frames.depth, **kw))
+    if result["n_images"] == 0:
+        raise InputError(f"no contact frame of {', '.join(map(str, paths))} has ToF depth within the model's range "
+                         f"{meta.min_depth:g}-{meta.max_depth:g} m: nothing to compare the model with")
     result["latency_ms"] = estimator.latency_ms(ir=frames.ir[0], repeats=latency_repeats)
     result["runtime"] = estimator.runtime
     result["model"] = str(model_dir)

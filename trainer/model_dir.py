@@ -8,15 +8,15 @@ Layout of ``MODEL_DIR``:
 * ``model.onnx`` (optional): the exported network, see ``trainer.onnx_export``.
 * ``checkpoint.*`` (while training): see ``trainer.checkpoint``.
 
-``load_network`` refuses pickle files and weights that are missing, unreadable or do not match
-the architecture in the metadata with ``InputError``.
+``load_metadata`` refuses a ``metadata.json`` with a value missing, of the wrong type or out of
+range (``check_metadata``); ``load_network`` refuses pickle files and weights that are missing,
+unreadable or do not match the architecture in the metadata. Both raise ``InputError``.
 """
 
 from __future__ import annotations
 
 import errno
 import json
-import math
 import os
 import re
 from dataclasses import asdict, dataclass, field
@@ -29,8 +29,8 @@ from torch import nn
 
 from collect.errors import InputError
 from collect.json_files import write_json
-from trainer.networks import build_network
-from trainer.preprocessing import InputGeometry, IRNormalization
+from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, MAX_WIDTH, build_network
+from trainer.preprocessing import MAX_LOG_IR, MIN_IR_STD, InputGeometry, IRNormalization
 
 WEIGHTS_FILE = "model.safetensors"
 METADATA_FILE = "metadata.json"
@@ -40,6 +40,13 @@ METADATA_VERSION = 1
 
 #: Directory of the committed base model, pretrained on many simulated sensors (``--init base``).
 BASE_MODEL_DIR = Path(__file__).resolve().parent / "base_model"
+
+#: Limits of ``metadata.json`` values (``check_metadata``), wide around the default model (0.04-0.12 m,
+#: 224 x 172 px frames in a 224 x 224 px input): depths in m, sizes in pixels.
+MIN_DEPTH_M = 1e-3
+MAX_DEPTH_M = 10.0
+MAX_NATIVE_SIZE = 4096
+MAX_INPUT_SIZE = 2048
 
 #: File endings of pickle-based weight files, which are refused.
 PICKLE_SUFFIXES = (".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin")
@@ -66,33 +73,74 @@ class ModelMetadata:
         return {"format": METADATA_FORMAT, "format_version": METADATA_VERSION, **data}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "ModelMetadata":
+    def from_dict(cls, data: dict, model_dir: str | Path) -> "ModelMetadata":
+        """The metadata in ``data`` (the parsed ``metadata.json`` of ``model_dir``), checked by
+        ``check_metadata`` before anything is built from it."""
         if data.get("format") != METADATA_FORMAT:
             raise InputError(f"not a bubble depth model metadata file (format {data.get('format')!r})")
         if data.get("format_version") != METADATA_VERSION:
             raise InputError(f"unsupported model metadata version {data.get('format_version')!r}")
-        try:
-            meta = cls(
-                arch=str(data["arch"]),
-                width=float(data["width"]),
-                min_depth=float(data["min_depth"]),
-                max_depth=float(data["max_depth"]),
-                geometry=InputGeometry.from_dict(data["geometry"]),
-                normalization=IRNormalization.from_dict(data["normalization"]),
-                training=dict(data.get("training", {})),
-                metrics=dict(data.get("metrics", {})),
-                inference=dict(data.get("inference", {})),
-            )
-        except (KeyError, TypeError, ValueError) as err:
-            raise InputError(f"model metadata is incomplete or malformed: {err!r}") from None
-        g, n = meta.geometry, meta.normalization
-        if not (0 < meta.min_depth < meta.max_depth and math.isfinite(meta.max_depth)):
-            raise InputError(f"model metadata: bad depth range {meta.min_depth}..{meta.max_depth} m")
-        if min(g.native_height, g.native_width, g.input_height, g.input_width) < 1:
-            raise InputError(f"model metadata: bad geometry {g.to_dict()}")
-        if not (math.isfinite(n.mean) and math.isfinite(n.std) and n.std > 0):
-            raise InputError(f"model metadata: bad IR normalization mean {n.mean}, std {n.std}")
-        return meta
+        check_metadata(data, model_dir)
+        return cls(
+            arch=data["arch"],
+            width=float(data["width"]),
+            min_depth=float(data["min_depth"]),
+            max_depth=float(data["max_depth"]),
+            geometry=InputGeometry.from_dict(data["geometry"]),
+            normalization=IRNormalization.from_dict(data["normalization"]),
+            training=data.get("training", {}),
+            metrics=data.get("metrics", {}),
+            inference=data.get("inference", {}),
+        )
+
+
+def _field(data: dict, name: str, where: str, kind: type | tuple[type, ...], rule: str, ok=lambda value: True):
+    """The value of field ``name`` (dotted: ``"geometry.input_height"``) from ``data``, the JSON object
+    that holds it; ``InputError`` naming ``where`` and ``name`` when it is missing, not of ``kind``
+    (``bool`` is no number) or ``ok(value)`` is false (``rule`` says what it must be)."""
+    key = name.rsplit(".", 1)[-1]
+    if key not in data:
+        raise InputError(f"{where}: metadata.json has no field '{name}'")
+    value = data[key]
+    if not (isinstance(value, kind) and not isinstance(value, bool) and ok(value)):
+        shown = json.dumps(value)  # the value as the file holds it, on one line
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
+        raise InputError(f"{where}: metadata.json field '{name}' = {shown} must be {rule}")
+    return value
+
+
+def check_metadata(data: dict, model_dir: str | Path) -> None:
+    """Raise ``InputError`` (one line naming ``model_dir`` and the field) unless every value of
+    ``data``, a parsed ``metadata.json``, is present, of its JSON type and in range: a known
+    ``arch``, a width in (0, ``MAX_WIDTH``], depths (m) with ``MIN_DEPTH_M`` <= min < max <=
+    ``MAX_DEPTH_M``, native sizes (px) in [1, ``MAX_NATIVE_SIZE``], input sizes (px) positive
+    multiples of ``INPUT_MULTIPLE`` up to ``MAX_INPUT_SIZE``, a normalization mean in
+    [0, ``MAX_LOG_IR``] and std in [``MIN_IR_STD``, ``MAX_LOG_IR``] (ln-amplitude units). Composing
+    the message cannot fail: the value is shown as the file holds it, cut to 40 characters."""
+    where = f"model {model_dir}"
+    number = (int, float)
+    _field(data, "arch", where, str, f"one of {', '.join(ARCHITECTURES)}", lambda v: v in ARCHITECTURES)
+    _field(data, "width", where, number, f"a number in (0, {MAX_WIDTH:g}]", lambda v: 0 < v <= MAX_WIDTH)
+    min_depth = _field(data, "min_depth", where, number, f"a depth in [{MIN_DEPTH_M:g}, {MAX_DEPTH_M:g}) m",
+                       lambda v: MIN_DEPTH_M <= v < MAX_DEPTH_M)
+    _field(data, "max_depth", where, number, f"a depth above min_depth {min_depth:g} m, at most {MAX_DEPTH_M:g} m",
+           lambda v: min_depth < v <= MAX_DEPTH_M)
+    geometry = _field(data, "geometry", where, dict, "a JSON object")
+    for side in ("height", "width"):
+        _field(geometry, f"geometry.native_{side}", where, int, f"a number of pixels in [1, {MAX_NATIVE_SIZE}]",
+               lambda v: 1 <= v <= MAX_NATIVE_SIZE)
+        _field(geometry, f"geometry.input_{side}", where, int,
+               f"a positive multiple of {INPUT_MULTIPLE} up to {MAX_INPUT_SIZE} (pixels)",
+               lambda v: 0 < v <= MAX_INPUT_SIZE and v % INPUT_MULTIPLE == 0)
+    normalization = _field(data, "normalization", where, dict, "a JSON object")
+    _field(normalization, "normalization.kind", where, str, f'"{IRNormalization.KIND}"', lambda v: v == IRNormalization.KIND)
+    _field(normalization, "normalization.mean", where, number, f"a number in [0, {MAX_LOG_IR:.2f}] (ln amplitude)",
+           lambda v: 0 <= v <= MAX_LOG_IR)
+    _field(normalization, "normalization.std", where, number,
+           f"a number in [{MIN_IR_STD:g}, {MAX_LOG_IR:.2f}] (ln amplitude)", lambda v: MIN_IR_STD <= v <= MAX_LOG_IR)
+    for name in ("training", "metrics", "inference"):  # optional
+        if name in data:
+            _field(data, name, where, dict, "a JSON object")
 
 
 def resolve_model_dir(name: str | Path) -> Path:
@@ -140,11 +188,11 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
         raise InputError(f"model directory {model_dir} has no {METADATA_FILE}")
     try:
         data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+    except (ValueError, RecursionError) as err:  # also a 5000-digit number, 100000 nested brackets
         raise InputError(f"{path} is not valid JSON: {err}") from None
     if not isinstance(data, dict):
         raise InputError(f"{path} does not hold a JSON object")
-    return ModelMetadata.from_dict(data)
+    return ModelMetadata.from_dict(data, model_dir)
 
 
 def _looks_like_pickle(path: Path) -> bool:

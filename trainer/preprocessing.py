@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -20,11 +21,20 @@ from collect.errors import InputError
 
 #: Default network input (height, width), as in the paper.
 DEFAULT_INPUT_SIZE = (224, 224)
+#: ln(1 + 65535): ln(1 + ir) of a uint16 amplitude, hence an ``IRNormalization`` mean, lies in
+#: [0, this], and its std is at most this (ln-amplitude units).
+MAX_LOG_IR = math.log1p(65535)
+#: Smallest ``IRNormalization`` std (ln-amplitude units): ``fit`` clamps to it, so that frames
+#: of one flat level do not divide by ~0.
+MIN_IR_STD = 1e-3
 
 
 @dataclass(frozen=True)
 class IRNormalization:
     """``x = (ln(1 + ir) - mean) / std``; ``mean`` and ``std`` are in ln-amplitude units."""
+
+    #: Its name in a model's metadata (``to_dict``'s ``kind``).
+    KIND = "log1p-standardize"
 
     mean: float
     std: float
@@ -35,19 +45,18 @@ class IRNormalization:
         flat = np.asarray(ir).reshape(-1)
         step = max(1, flat.size // 2_000_000)
         logs = np.log1p(flat[::step].astype(np.float64))
-        return cls(mean=float(logs.mean()), std=float(max(logs.std(), 1e-3)))
+        return cls(mean=float(logs.mean()), std=float(max(logs.std(), MIN_IR_STD)))
 
     def apply(self, ir: np.ndarray) -> np.ndarray:
         """``ir`` ``(...,H,W) uint16`` -> ``(...,H,W) float32`` normalized."""
         return ((np.log1p(np.asarray(ir, dtype=np.float32)) - self.mean) / self.std).astype(np.float32)
 
     def to_dict(self) -> dict:
-        return {"kind": "log1p-standardize", **asdict(self)}
+        return {"kind": self.KIND, **asdict(self)}
 
     @classmethod
     def from_dict(cls, data: dict) -> "IRNormalization":
-        if data.get("kind") != "log1p-standardize":
-            raise InputError(f"unknown IR normalization {data.get('kind')!r} in model metadata")
+        """From ``to_dict``'s output, as checked by ``trainer.model_dir.check_metadata``."""
         return cls(mean=float(data["mean"]), std=float(data["std"]))
 
 
@@ -121,6 +130,7 @@ class InputGeometry:
 
     @classmethod
     def from_dict(cls, data: dict) -> "InputGeometry":
+        """From ``to_dict``'s output, as checked by ``trainer.model_dir.check_metadata``."""
         return cls(
             native_height=int(data["native_height"]),
             native_width=int(data["native_width"]),

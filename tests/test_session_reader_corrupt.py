@@ -1,0 +1,89 @@
+"""Sessions with damaged attributes or datasets (as a fuzzer made them) are refused when opened:
+``bubble info`` prints one ``bubble: error:`` line naming what is wrong, exits 2 and leaves the file
+as it was (was: tracebacks, or a silent wrong result later)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from calibrate.cli import main
+from collect import session_format as sf
+from conftest import make_synthetic_session
+
+
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory):
+    """A valid simulated session: objects 'mug', 'box', 1 pose each, 32x24 px (32 frames)."""
+    return make_synthetic_session(tmp_path_factory.mktemp("good") / "good.h5", poses_per_object=1, height=24, width=32)
+
+
+def _set_attr(name, value):
+    return lambda f: f.attrs.__setitem__(name, value)
+
+
+def _intrinsics(**changes):
+    """An edit that changes fields of the root attr 'intrinsics' (JSON)."""
+    return lambda f: f.attrs.__setitem__(sf.ATTR_INTRINSICS, json.dumps({**json.loads(f.attrs[sf.ATTR_INTRINSICS]),
+                                                                         **changes}))
+
+
+def _depth_group(f):
+    del f[sf.FRAMES_DEPTH]
+    f.create_group(sf.FRAMES_DEPTH)
+
+
+CASES = {
+    "intrinsics-a-list": (_set_attr(sf.ATTR_INTRINSICS, "[1,2]"),
+                          "root attr 'intrinsics' must be a JSON object with fx, fy, cx, cy, width, height, got [1, 2]"),
+    "intrinsics-not-json": (_set_attr(sf.ATTR_INTRINSICS, "{"), "root attr 'intrinsics' is not valid JSON"),
+    "intrinsics-without-cy": (lambda f: f.attrs.__setitem__(sf.ATTR_INTRINSICS, '{"fx": 1, "fy": 1, "cx": 1}'),
+                              "root attr 'intrinsics' must be a JSON object with fx, fy, cx, cy, width, height"),
+    "fx-text": (_intrinsics(fx="a"), "root attr 'intrinsics' field 'fx' must be a finite number > 0 (px), got 'a'"),
+    "fx-fy-zero": (_intrinsics(fx=0, fy=0), "root attr 'intrinsics' field 'fx' must be a finite number > 0"),
+    "fy-nan": (_intrinsics(fy=float("nan")), "root attr 'intrinsics' field 'fy' must be a finite number > 0 (px), got nan"),
+    "cx-inf": (_intrinsics(cx=float("inf")), "root attr 'intrinsics' field 'cx' must be a finite number (px), got inf"),
+    "width-float": (_intrinsics(width=32.0), "root attr 'intrinsics' field 'width' must be a positive integer (px)"),
+    "distortion-text": (_intrinsics(distortion=[0.1, "x"]),
+                        "root attr 'intrinsics' field 'distortion' must be a list of finite numbers"),
+    "format-version-array": (_set_attr(sf.ATTR_FORMAT_VERSION, np.array([1, 1])),
+                             "root attr 'format_version' must be an integer, got [1, 1]"),
+    "format-version-1.5": (_set_attr(sf.ATTR_FORMAT_VERSION, 1.5), "root attr 'format_version' must be an integer, got 1.5"),
+    "format-version-missing": (lambda f: f.attrs.__delitem__(sf.ATTR_FORMAT_VERSION),
+                               "root attr 'format_version' is missing"),
+    "camera-in-tcp-short": (_set_attr(sf.ATTR_CAMERA_IN_TCP, "[1, 2]"),
+                            "root attr 'camera_in_tcp' must be a JSON list of 6 finite numbers"),
+    "camera-in-tcp-nan": (_set_attr(sf.ATTR_CAMERA_IN_TCP, "[0, 0, NaN, 0, 0, 0]"),
+                          "root attr 'camera_in_tcp' must be a JSON list of 6 finite numbers"),
+    "collection-plan-not-json": (_set_attr(sf.ATTR_COLLECTION_PLAN, "{"), "root attr 'collection_plan' is not valid JSON"),
+    "collection-plan-a-list": (_set_attr(sf.ATTR_COLLECTION_PLAN, "[1]"),
+                               "root attr 'collection_plan' must be a JSON object, got [1]"),
+    "sensor-spec-not-json": (_set_attr(sf.ATTR_SENSOR_SPEC, "nope"), "root attr 'sensor_spec' is not valid JSON"),
+    "sensor-spec-a-number": (_set_attr(sf.ATTR_SENSOR_SPEC, "7"), "root attr 'sensor_spec' must be a JSON object, got 7"),
+    "depth-a-group": (_depth_group, "corrupt session, frames/depth is not a dataset"),
+    "depth-unit-nan": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT_M, np.nan),
+                       "frames/depth attr 'unit_m' must be a finite number of metres > 0, got nan"),
+    "depth-unit-zero": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT_M, 0.0),
+                        "frames/depth attr 'unit_m' must be a finite number of metres > 0, got 0.0"),
+    "object-names-repeated": (lambda f: f[sf.OBJECTS_NAME].__setitem__(1, f[sf.OBJECTS_NAME][0]),
+                              "corrupt session, object 'mug' is listed twice in objects/name"),
+}
+
+
+@pytest.mark.parametrize("edit, needle", list(CASES.values()), ids=list(CASES))
+def test_info_refuses_a_damaged_session_with_one_line(tmp_path, small_session, capsys, edit, needle):
+    path = tmp_path / "bad.h5"
+    shutil.copyfile(small_session, path)
+    with h5py.File(path, "a") as f:
+        edit(f)
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bubble: error: {path}: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert needle in err, err
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == digest
