@@ -115,6 +115,8 @@ def check_profile(profile, path: Path) -> None:
     for field, (ok, what) in _PROFILE_FIELDS.items():
         if field in profile and not ok(profile[field]):
             raise bad(field, what, profile[field])
+    if profile.get("serial", path.parent.name) != path.parent.name:
+        raise bad("serial", f"its folder's name {path.parent.name!r}", profile["serial"])
     for key in _METRIC_KEYS:
         value = (profile.get("accepted_metrics") or {}).get(key)
         if not _OPTIONAL_NUMBER[0](value):
@@ -228,7 +230,8 @@ class SensorRegistry:
         if not self.root.is_dir():
             return []
         out = []
-        for sdir in sorted(p for p in self.root.iterdir() if (p / PROFILE).is_file()):
+        for sdir in sorted(p for p in self.root.iterdir()  # other folders are not sensors
+                           if SENSOR_SERIAL_RE.fullmatch(p.name) and (p / PROFILE).is_file()):
             out.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
         return out
 

@@ -37,6 +37,27 @@ _REQUIRED = (
 )
 
 _PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
+#: Layout each dataset must have: (what it is, its dimensions, numpy dtype kinds, its row width or
+#: None); images are (N,H,W), poses and wrenches (N,6).
+_LAYOUT = {
+    sf.FRAMES_IR: ("(N,H,W) unsigned integers", 3, "u", None),
+    sf.FRAMES_DEPTH: ("(N,H,W) unsigned integers", 3, "u", None),
+    sf.SIM_TRUE_DEPTH: ("(N,H,W) floats", 3, "f", None),
+    sf.FRAMES_T_DEVICE: ("(N,) floats", 1, "f", None),
+    sf.FRAMES_T_HOST: ("(N,) floats", 1, "f", None),
+    sf.FRAMES_SEQ: ("(N,) integers", 1, "iu", None),
+    sf.FRAMES_OBJECT: ("(N,) integers", 1, "iu", None),
+    sf.FRAMES_POSE_ID: ("(N,) integers", 1, "iu", None),
+    sf.FRAMES_PHASE: ("(N,) unsigned integers", 1, "u", None),
+    sf.FRAMES_TCP_POSE: ("(N,6) floats", 2, "f", 6),
+    sf.ARM_T: ("(M,) floats", 1, "f", None),
+    sf.ARM_TCP_POSE: ("(M,6) floats", 2, "f", 6),
+    sf.ARM_TCP_WRENCH: ("(M,6) floats", 2, "f", 6),
+    sf.PRESSURE_T: ("(K,) floats", 1, "f", None),
+    sf.PRESSURE_HPA: ("(K,) floats", 1, "f", None),
+}
+#: Largest depth unit accepted (m per count): 1 cm, 100 times the recorder's.
+MAX_DEPTH_UNIT_M = 0.01
 
 
 def open_h5(path) -> h5py.File:
@@ -151,6 +172,12 @@ class Session:
         for name in (*_REQUIRED, sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH, sf.OBJECTS_PRIMITIVE):
             if name in f and not isinstance(f[name], h5py.Dataset):
                 raise InputError(f"{self.path}: corrupt session, {name} is not a dataset")
+        for name, (what, ndim, kinds, row) in _LAYOUT.items():
+            if name not in f:  # optional (the required ones are checked above)
+                continue
+            shape, dtype = f[name].shape, f[name].dtype
+            if shape is None or len(shape) != ndim or dtype.kind not in kinds or (row and shape[1] != row):
+                raise InputError(f"{self.path}: corrupt session, {name} must hold {what}, got shape {shape} of {dtype}")
         _, self.height, self.width = f[sf.FRAMES_IR].shape
         if f[sf.FRAMES_DEPTH].shape[1:] != (self.height, self.width):
             raise InputError(f"{self.path}: corrupt session, frames/ir and frames/depth differ in size")
@@ -164,8 +191,9 @@ class Session:
         self.n_frames = int(min(lengths))
         n = self.n_frames
         unit_m = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_UNIT_M, sf.DEPTH_UNIT_M)
-        if not _positive_number(unit_m):
-            raise _bad(self.path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_UNIT_M}'", "a finite number of metres > 0", unit_m)
+        if not (_positive_number(unit_m) and unit_m <= MAX_DEPTH_UNIT_M):
+            raise _bad(self.path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_UNIT_M}'",
+                       f"a number of metres in (0, {MAX_DEPTH_UNIT_M:g}]", unit_m)
         #: metres per count of frames/depth
         self.depth_unit_m = float(unit_m)
         #: (N,) per-frame metadata, loaded eagerly (small)

@@ -205,6 +205,7 @@ def test_a_resumed_segment_is_listed_only_when_it_records_a_frame(tmp_path):
         (lambda d: d.__setitem__("simulated", "no"), "'simulated' must be true or false"),
         (lambda d: d["history"][0].pop("time"), "'history[0]' has no 'time'"),
         (lambda d: d["history"][0].pop("run_dir"), "'history[0]' has no 'run_dir'"),
+        (lambda d: d.__setitem__("serial", "SB-B"), "'serial' must be its folder's name 'SB-A', got \"SB-B\""),
         (lambda d: d.pop("history"), "it has no 'history' of commissionings"),
     ],
 )

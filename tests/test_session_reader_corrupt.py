@@ -38,6 +38,15 @@ def _depth_group(f):
     f.create_group(sf.FRAMES_DEPTH)
 
 
+def _replace(name, values):
+    """An edit that replaces dataset ``name`` by ``values(old)`` (numpy data, or an ``h5py.Empty``)."""
+    def edit(f):
+        old = f[name][()]
+        del f[name]
+        f.create_dataset(name, data=values(old))
+    return edit
+
+
 CASES = {
     "intrinsics-a-list": (_set_attr(sf.ATTR_INTRINSICS, "[1,2]"),
                           "root attr 'intrinsics' must be a JSON object with fx, fy, cx, cy, width, height, got [1, 2]"),
@@ -67,9 +76,19 @@ CASES = {
     "sensor-spec-a-number": (_set_attr(sf.ATTR_SENSOR_SPEC, "7"), "root attr 'sensor_spec' must be a JSON object, got 7"),
     "depth-a-group": (_depth_group, "corrupt session, frames/depth is not a dataset"),
     "depth-unit-nan": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT_M, np.nan),
-                       "frames/depth attr 'unit_m' must be a finite number of metres > 0, got nan"),
+                       "frames/depth attr 'unit_m' must be a number of metres in (0, 0.01], got nan"),
     "depth-unit-zero": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT_M, 0.0),
-                        "frames/depth attr 'unit_m' must be a finite number of metres > 0, got 0.0"),
+                        "frames/depth attr 'unit_m' must be a number of metres in (0, 0.01], got 0.0"),
+    "depth-unit-huge": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT_M, 1e300),
+                        "frames/depth attr 'unit_m' must be a number of metres in (0, 0.01], got 1e+300"),
+    "depth-empty": (_replace(sf.FRAMES_DEPTH, lambda old: h5py.Empty("<u2")),
+                    "corrupt session, frames/depth must hold (N,H,W) unsigned integers, got shape None"),
+    "depth-floats": (_replace(sf.FRAMES_DEPTH, lambda old: old.astype(np.float32)),
+                     "corrupt session, frames/depth must hold (N,H,W) unsigned integers"),
+    "seq-text": (_replace(sf.FRAMES_SEQ, lambda old: np.array([b"x"] * len(old))),
+                 "corrupt session, frames/seq must hold (N,) integers"),
+    "tcp-pose-5-columns": (_replace(sf.FRAMES_TCP_POSE, lambda old: old[:, :5]),
+                           "corrupt session, frames/tcp_pose must hold (N,6) floats, got shape (32, 5)"),
     "object-names-repeated": (lambda f: f[sf.OBJECTS_NAME].__setitem__(1, f[sf.OBJECTS_NAME][0]),
                               "corrupt session, object 'mug' is listed twice in objects/name"),
 }
