@@ -36,6 +36,17 @@ def plain_json(value):
     raise TypeError(f"not JSON serializable: {type(value).__name__}")
 
 
+def _new_file_mode() -> int:
+    """The permissions ``open()`` gives a new file under this process's umask (read once, at import)."""
+    umask = os.umask(0o022)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+#: Permissions of a written JSON file: those of any new file (``mkstemp`` alone would give 0600).
+_FILE_MODE = _new_file_mode()
+
+
 def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
     """Write ``plain_json(value)`` to ``path`` (indent 2, trailing newline) atomically: a temporary
     file in the same directory, flushed to disk, then renamed over ``path``."""
@@ -43,6 +54,7 @@ def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
     text = json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n"
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:
+        os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, "w") as f:
             f.write(text)
             f.flush()

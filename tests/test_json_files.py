@@ -34,3 +34,10 @@ def test_write_json_replaces_the_file_whole_or_leaves_it_untouched(tmp_path):
         write_json(path, {"a": object()})
     assert json.loads(path.read_text()) == {"a": 1.5, "b": 2}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]  # no temporary file left
+
+
+def test_written_files_get_the_permissions_of_any_new_file(tmp_path):
+    """Was 0600 (the temporary file's): a result or profile other users of the bench could not read."""
+    write_json(tmp_path / "result.json", {"a": 1})
+    (tmp_path / "plain.txt").write_text("x")
+    assert (tmp_path / "result.json").stat().st_mode & 0o777 == (tmp_path / "plain.txt").stat().st_mode & 0o777
