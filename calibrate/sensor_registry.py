@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from collect.errors import InputError
-from collect.json_files import write_json
+from collect.json_files import shown_json, write_json
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
 ENV_VAR = "BUBBLE_REGISTRY"
@@ -101,15 +101,11 @@ def check_profile(profile, path: Path) -> None:
     """Raise InputError naming ``path`` (a ``profile.json``) and the first field of ``profile`` that
     is missing or of the wrong type (what ``bubble sensors`` and ``register`` read)."""
 
-    def shown(value) -> str:
-        text = json.dumps(value)
-        return text if len(text) <= 40 else text[:37] + "..."
-
     def bad(field: str, what: str, value) -> InputError:
-        return InputError(f"sensor registry profile {path} is corrupt: '{field}' must be {what}, got {shown(value)}")
+        return InputError(f"sensor registry profile {path} is corrupt: '{field}' must be {what}, got {shown_json(value)}")
 
     if not isinstance(profile, dict):
-        raise InputError(f"sensor registry profile {path} is corrupt: it must hold a JSON object, got {shown(profile)}")
+        raise InputError(f"sensor registry profile {path} is corrupt: it must hold a JSON object, got {shown_json(profile)}")
     if "history" not in profile:
         raise InputError(f"sensor registry profile {path} is corrupt: it has no 'history' of commissionings")
     for field, (ok, what) in _PROFILE_FIELDS.items():

@@ -36,6 +36,13 @@ def plain_json(value):
     raise TypeError(f"not JSON serializable: {type(value).__name__}")
 
 
+def shown_json(value, limit: int = 40) -> str:
+    """``value`` (JSON data) as a JSON file holds it, on one line, cut to ``limit`` characters: for
+    error messages about a file's field."""
+    text = json.dumps(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _new_file_mode() -> int:
     """The permissions ``open()`` gives a new file under this process's umask (read once, at import)."""
     umask = os.umask(0o022)

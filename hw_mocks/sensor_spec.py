@@ -201,8 +201,8 @@ class SensorSpec:
         if max(abs(x), abs(y)) > CAMERA_OFFSET_MAX_M:
             raise InputError(f"{source}: field 'camera_in_tcp' x, y = {x}, {y} m: the camera is more than "
                              f"{CAMERA_OFFSET_MAX_M} m off the bubble's axis")
-        if math.hypot(*rotation) > CAMERA_TURN_MAX_RAD:
-            raise InputError(f"{source}: field 'camera_in_tcp' rotation of {math.hypot(*rotation):.3g} rad turns the "
+        if (turn := math.hypot(*rotation)) > CAMERA_TURN_MAX_RAD:
+            raise InputError(f"{source}: field 'camera_in_tcp' rotation of {turn:.3g} rad turns the "
                              f"camera more than {CAMERA_TURN_MAX_RAD:.3g} rad away from the dome")
         if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
             raise InputError(f"{source}: field 'cx'/'cy' principal point lies outside the image")

@@ -28,7 +28,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from collect.errors import InputError
-from collect.json_files import write_json
+from collect.json_files import shown_json, write_json
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, MAX_WIDTH, build_network
 from trainer.preprocessing import MAX_LOG_IR, MIN_IR_STD, InputGeometry, IRNormalization
 
@@ -103,9 +103,7 @@ def _field(data: dict, name: str, where: str, kind: type | tuple[type, ...], rul
         raise InputError(f"{where}: metadata.json has no field '{name}'")
     value = data[key]
     if not (isinstance(value, kind) and not isinstance(value, bool) and ok(value)):
-        shown = json.dumps(value)  # the value as the file holds it, on one line
-        shown = shown if len(shown) <= 40 else shown[:37] + "..."
-        raise InputError(f"{where}: metadata.json field '{name}' = {shown} must be {rule}")
+        raise InputError(f"{where}: metadata.json field '{name}' = {shown_json(value)} must be {rule}")
     return value
 
 
