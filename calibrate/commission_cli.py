@@ -27,7 +27,7 @@ def register(subparsers) -> None:
         "2 bad input. Re-running with the same --out resumes from the last completed step.",
     )
     p.add_argument("--bench", type=Path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
-    p.add_argument("--out", type=lambda text: Path(output_path(text)), required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
+    p.add_argument("--out", type=output_path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
     add_run_options(p)
     p.add_argument("--quiet", action="store_true", help="print only the verdict")
     p.set_defaults(func=run_commission)
@@ -66,13 +66,13 @@ def add_run_options(p) -> None:
     p.add_argument("--sim-speed", type=float, default=CommissionConfig.sim_speed, help="simulated clock speed-up (simulated bench)")
 
 
-def run_config(args, run_dir: Path, bench=None):
+def run_config(args, run_dir: str | Path, bench=None):
     """The ``CommissionConfig`` of ``add_run_options``' options, for ``run_dir`` and ``bench`` (a real
     bench's ``BenchConfig``; None for the simulated one)."""
     from calibrate.commission_config import CommissionConfig
 
     return CommissionConfig(
-        run_dir=run_dir,
+        run_dir=Path(run_dir),
         simulated=args.sim,
         sensor_spec=args.sensor,
         bench=bench,

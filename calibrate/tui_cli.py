@@ -18,7 +18,7 @@ def register(subparsers) -> None:
         description="Terminal UI that drives the bench. Keys: c commission (asks first), s/space STOP the arm, "
         "1-4 tabs, r reload registry, q quit (stops the arm and closes the session first).",
     )
-    p.add_argument("--out", type=lambda text: Path(output_path(text)), metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
+    p.add_argument("--out", type=output_path, metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
     add_run_options(p)
     p.set_defaults(func=run_tui)
 
