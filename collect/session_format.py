@@ -56,10 +56,12 @@ FRAME_DATASETS = (FRAMES_IR, FRAMES_DEPTH, FRAMES_T_DEVICE, FRAMES_T_HOST, FRAME
 ARM_T = "arm/t"  # (M,) float64 s host clock
 ARM_TCP_POSE = "arm/tcp_pose"  # (M,6) float64 [x,y,z,rx,ry,rz] m + rotation vector, base frame
 ARM_TCP_WRENCH = "arm/tcp_wrench"  # (M,6) float64 [Fx,Fy,Fz,Tx,Ty,Tz] N, N m, base frame
+ARM_DATASETS = (ARM_T, ARM_TCP_POSE, ARM_TCP_WRENCH)
 
 # Pressure board stream (P samples).
 PRESSURE_T = "pressure/t"  # (P,) float64 s host clock
 PRESSURE_HPA = "pressure/hpa"  # (P,) float64 hPa absolute
+PRESSURE_DATASETS = (PRESSURE_T, PRESSURE_HPA)
 
 # Objects on the fixture plate (O objects).
 OBJECTS_NAME = "objects/name"  # (O,) str

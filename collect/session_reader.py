@@ -26,11 +26,8 @@ from collect.errors import InputError
 
 _REQUIRED = (
     *sf.FRAME_DATASETS,
-    sf.ARM_T,
-    sf.ARM_TCP_POSE,
-    sf.ARM_TCP_WRENCH,
-    sf.PRESSURE_T,
-    sf.PRESSURE_HPA,
+    *sf.ARM_DATASETS,
+    *sf.PRESSURE_DATASETS,
     sf.OBJECTS_NAME,
     sf.OBJECTS_FIXTURE_POSE,
     sf.OBJECTS_MESH_SHA256,
@@ -183,12 +180,12 @@ class Session:
             raise InputError(f"{self.path}: corrupt session, frames/ir and frames/depth differ in size")
         if (self.intrinsics["height"], self.intrinsics["width"]) != (self.height, self.width):
             raise InputError(f"{self.path}: intrinsics size does not match the {self.width}x{self.height} frames")
-        frame_sets = [sf.FRAMES_IR, sf.FRAMES_DEPTH, sf.FRAMES_T_DEVICE, sf.FRAMES_T_HOST, sf.FRAMES_SEQ,
-                      sf.FRAMES_OBJECT, sf.FRAMES_POSE_ID, sf.FRAMES_PHASE]
-        frame_sets += [name for name in (sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH) if name in f]
-        lengths = [f[name].shape[0] for name in frame_sets]
+        frame_sets = [*sf.FRAME_DATASETS, *(name for name in (sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH) if name in f)]
+        if self.closed_cleanly:  # only a crash mid-flush leaves a batch uneven; a clean close writes whole ones
+            for group in (frame_sets, sf.ARM_DATASETS, sf.PRESSURE_DATASETS):
+                _check_even_lengths(self.path, f, group)
         #: frames held by every per-frame dataset (a crash mid-flush can leave one batch uneven)
-        self.n_frames = int(min(lengths))
+        self.n_frames = int(min(f[name].shape[0] for name in frame_sets))
         n = self.n_frames
         unit_m = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_UNIT_M, sf.DEPTH_UNIT_M)
         if not (_positive_number(unit_m) and unit_m <= MAX_DEPTH_UNIT_M):
@@ -338,7 +335,7 @@ class Session:
     def arm(self) -> ArmStream:
         """The arm state stream (TCP pose and wrench samples on the host clock)."""
         f = self._f
-        n = min(f[name].shape[0] for name in (sf.ARM_T, sf.ARM_TCP_POSE, sf.ARM_TCP_WRENCH))
+        n = min(f[name].shape[0] for name in sf.ARM_DATASETS)
         stream = ArmStream(f[sf.ARM_T][:n], f[sf.ARM_TCP_POSE][:n], f[sf.ARM_TCP_WRENCH][:n])
         for name, values in ((sf.ARM_T, stream.t), (sf.ARM_TCP_POSE, stream.tcp_pose), (sf.ARM_TCP_WRENCH, stream.wrench)):
             _check_finite(self.path, name, values)
@@ -347,7 +344,7 @@ class Session:
     def pressure(self) -> PressureStream:
         """The bubble pressure stream (hPa absolute on the host clock)."""
         f = self._f
-        n = min(f[sf.PRESSURE_T].shape[0], f[sf.PRESSURE_HPA].shape[0])
+        n = min(f[name].shape[0] for name in sf.PRESSURE_DATASETS)
         stream = PressureStream(f[sf.PRESSURE_T][:n], f[sf.PRESSURE_HPA][:n])
         _check_finite(self.path, sf.PRESSURE_T, stream.t)
         _check_finite(self.path, sf.PRESSURE_HPA, stream.hpa)
@@ -470,6 +467,16 @@ def _check_intrinsics(path: str, intrinsics: dict) -> None:
     distortion = intrinsics.get("distortion", [])
     if not (isinstance(distortion, list) and all(map(_finite_number, distortion))):
         raise _bad(path, f"root attr '{sf.ATTR_INTRINSICS}' field 'distortion'", "a list of finite numbers", distortion)
+
+
+def _check_even_lengths(path: str, f: h5py.File, names) -> None:
+    """Raise InputError when the datasets ``names``, which the writer appends to together, hold
+    different numbers of rows (called for a cleanly closed session, where no crash explains it)."""
+    rows = {name: f[name].shape[0] for name in names}
+    shortest, longest = min(rows, key=rows.get), max(rows, key=rows.get)
+    if rows[shortest] != rows[longest]:
+        raise InputError(f"{path}: corrupt session, {shortest} holds {rows[shortest]} of the {rows[longest]} rows of "
+                         f"{longest} (they are written together)")
 
 
 def _check_finite(path: str, name: str, values) -> None:

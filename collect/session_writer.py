@@ -846,7 +846,7 @@ def _truncate_to_common_length(f: h5py.File) -> None:
 
 
 def _truncate_streams(f: h5py.File) -> None:
-    for group in ((sf.ARM_T, sf.ARM_TCP_POSE, sf.ARM_TCP_WRENCH), (sf.PRESSURE_T, sf.PRESSURE_HPA)):
+    for group in (sf.ARM_DATASETS, sf.PRESSURE_DATASETS):
         n = min(f[name].shape[0] for name in group)
         for name in group:
             if f[name].shape[0] != n:

@@ -89,6 +89,9 @@ CASES = {
                  "corrupt session, frames/seq must hold (N,) integers"),
     "tcp-pose-5-columns": (_replace(sf.FRAMES_TCP_POSE, lambda old: old[:, :5]),
                            "corrupt session, frames/tcp_pose must hold (N,6) floats, got shape (32, 5)"),
+    "ir-cut-short": (lambda f: f[sf.FRAMES_IR].resize(5, axis=0),
+                     "corrupt session, frames/ir holds 5 of the 32 rows of frames/depth (they are written together)"),
+    "pressure-cut-short": (lambda f: f[sf.PRESSURE_HPA].resize(1, axis=0), "corrupt session, pressure/hpa holds 1 of the"),
     "object-names-repeated": (lambda f: f[sf.OBJECTS_NAME].__setitem__(1, f[sf.OBJECTS_NAME][0]),
                               "corrupt session, object 'mug' is listed twice in objects/name"),
 }
