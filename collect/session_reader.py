@@ -153,8 +153,14 @@ class Session:
         plan = _text(attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
         self._collection_plan = _root_json(f, sf.ATTR_COLLECTION_PLAN, "a JSON object", _is_object) if plan else None
         try:
-            self.sensor_serial = _text(attrs[sf.ATTR_SENSOR_SERIAL])
-            self.simulated = bool(attrs[sf.ATTR_SIMULATED])
+            serial, simulated = attrs[sf.ATTR_SENSOR_SERIAL], attrs[sf.ATTR_SIMULATED]
+            if not isinstance(serial, (str, bytes)):
+                raise _bad(self.path, f"root attr '{sf.ATTR_SENSOR_SERIAL}'", "text", serial)
+            if not (isinstance(simulated, (bool, np.bool_))
+                    or isinstance(simulated, (int, np.integer)) and simulated in (0, 1)):
+                raise _bad(self.path, f"root attr '{sf.ATTR_SIMULATED}'", "a boolean", simulated)
+            self.sensor_serial = _text(serial)
+            self.simulated = bool(simulated)
             self.created = _text(attrs.get(sf.ATTR_CREATED, ""))
             self.software_version = _text(attrs.get(sf.ATTR_SOFTWARE_VERSION, ""))
             #: True when the last recording into the file was closed cleanly (False after a crash)
