@@ -19,6 +19,7 @@ or reference of an earlier accepted one.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from dataclasses import dataclass
@@ -65,18 +66,19 @@ class SensorProfile:
 
 
 def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    """A finite JSON number (the registry writes NaN / inf as null)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 _TEXT = (lambda v: isinstance(v, str), "a string")
-_OPTIONAL_NUMBER = (lambda v: v is None or _is_number(v), "a number or null")
+_OPTIONAL_NUMBER = (lambda v: v is None or _is_number(v), "a finite number or null")
 #: Fields of a profile (all optional but 'history') and of each history entry: (check, what it must be).
 _PROFILE_FIELDS = {
     "serial": _TEXT,
     "status": (lambda v: v in ("accepted", "rejected"), "'accepted' or 'rejected'"),
     "intrinsics": (lambda v: v is None or isinstance(v, dict), "an object or null"),
     "camera_in_tcp": (lambda v: v is None or (isinstance(v, list) and len(v) == 6 and all(map(_is_number, v))),
-                      "6 numbers or null"),
+                      "6 finite numbers or null"),
     "simulated": (lambda v: isinstance(v, bool), "true or false"),
     "last_commissioned": _TEXT,
     "last_reason": _TEXT,
