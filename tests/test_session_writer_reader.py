@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from collect import session_format as sf
+from collect import session_writer
 from collect.errors import HardwareFault, InputError
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
@@ -159,17 +160,21 @@ def _assert_every_appended_frame_kept_and_resumable(path, stopped_writer, append
         assert s.n_frames == n_kept + 1 and s.closed_cleanly
 
 
-def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_path):
+def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_path, monkeypatch):
     """A disk that fills up mid-write leaves HDF5 metadata half written; the writer stops while
     ``min_free_bytes`` are left instead: every flushed frame readable, the file closed cleanly and
-    resumable. Here the real disk with the limit 256 kB under its free space (~85 noisy frames)."""
+    resumable. Refused at the start on the real disk; then a disk whose free space only this file
+    uses up (other programs writing to the real one would move the stop), stopping 256 kB in
+    (~85 noisy frames)."""
     path = tmp_path / "full.h5"
     rng = np.random.default_rng(0)
     free = shutil.disk_usage(tmp_path).free
     with pytest.raises(InputError, match="free on the disk") as refused:
         SessionWriter(path, **_metadata("S1"), min_free_bytes=free + 2**40)
     assert not path.exists() and len(str(refused.value).splitlines()) == 1
-    w = SessionWriter(path, **_metadata("S1"), min_free_bytes=free - 2**18, flush_interval_s=0.05)
+    disk = 2**30
+    monkeypatch.setattr(session_writer, "_free_bytes", lambda p: disk - (path.stat().st_size if path.exists() else 0))
+    w = SessionWriter(path, **_metadata("S1"), min_free_bytes=disk - 2**18, flush_interval_s=0.05)
     written = []
     with pytest.raises(HardwareFault, match="left on its disk.*free some space, then resume the recording") as stopped:
         for i in range(20000):
