@@ -45,6 +45,9 @@ class Threshold:
 
 @dataclass(frozen=True)
 class Thresholds:
+    """The acceptance thresholds in force, by check name: the packaged file's, with those of
+    ``--thresholds`` in place of the checks it names."""
+
     version: int
     checks: dict[str, Threshold]
     source: str  # the file(s) they were read from

@@ -102,6 +102,9 @@ BENCH_STEPS = (Step.CONNECT, Step.LEAK_TEST, Step.CAMERA_HEALTH, Step.REFERENCE,
 
 @dataclass
 class CommissionResult:
+    """What ``run_commissioning`` returns: the verdict, every acceptance check, and where the run's
+    files and report are."""
+
     accepted: bool
     checks: list[dict]  # {name, value, threshold, op, unit, passed, verdict, reason}
     run_dir: Path

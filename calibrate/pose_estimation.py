@@ -399,6 +399,8 @@ def point_residuals(theta: np.ndarray, points: np.ndarray, shape: Shape,
 
 @dataclass(frozen=True)
 class FitResult:
+    """One pose fit: the pose found and how well the contact points sit on the surface there."""
+
     pose: Pose
     rms_m: float  # root mean square signed distance of the points kept, at the solution
     n_points: int  # points kept

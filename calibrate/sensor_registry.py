@@ -48,6 +48,8 @@ def default_registry_dir() -> Path:
 
 @dataclass
 class SensorProfile:
+    """One sensor's registry entry: its folder and its ``profile.json`` (checked by ``check_profile``)."""
+
     serial: str
     path: Path  # the sensor's directory
     data: dict  # profile.json

@@ -116,6 +116,8 @@ class TrainProgress:
 
 @dataclass
 class TrainResult:
+    """What ``train_model`` returns: where the model went, its final metrics and how the run went."""
+
     model_dir: Path
     metrics: dict  # final validation metrics on the whole validation split
     history: list[dict]  # periodic validation: train_s, epoch, step, loss, metric keys
