@@ -2,12 +2,15 @@
 PY ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
+# Where pip takes torch from: empty = pip's configured index. From PyPI, Linux gets the multi-GB CUDA
+# build; TORCH_INDEX=https://download.pytorch.org/whl/cpu takes the CPU build the tool needs.
+TORCH_INDEX ?=
 
 .PHONY: setup demo test bench chromium
 
 $(BIN)/bubble: pyproject.toml
 	$(PY) -m venv $(VENV)
-	$(BIN)/pip install -q --disable-pip-version-check torch==2.13.0
+	$(BIN)/pip install -q --disable-pip-version-check $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) torch==2.13.0
 	$(BIN)/pip install -q --disable-pip-version-check -e '.[dev]'
 	touch $@
 

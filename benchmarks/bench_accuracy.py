@@ -198,7 +198,7 @@ def markdown(res: dict) -> str:
                   "end. These are not benchmark results; rerun without `--quick`.", ""]
     lines += [
         "Every number comes from the product's own path: `bubble sim new-sensor`, `bubble collect --sim`, "
-        "`train_model` (= `bubble train`), `evaluate_model` (= `bubble evaluate --json`). Metrics as in DESIGN.md, "
+        "`train_model` (= `bubble train`), `evaluate_model` (= `bubble evaluate --json`). Metrics as in `trainer/metrics.py`, "
         "against the ToF depth (the sensor's own supervision) unless the table says *true depth*. "
         "Numbers from a busy machine are provisional.",
         "",
