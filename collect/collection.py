@@ -344,9 +344,10 @@ def press_target_n(contact, added_n: float, cap_n: float) -> float:
 
 
 def _safe_stop(bench, recorder: _Recorder) -> None:
-    """Stop and retract the arm (frames keep recording, as ``retract``); never raises."""
+    """Stop and retract the arm (frames keep recording, as ``retract`` of no contact pose: a pose
+    or a reference cut short is then not complete, and a resume records it again); never raises."""
     stamp = recorder.stamp
-    recorder.set_stamp(_Stamp(stamp.object_index, stamp.pose_id, sf.PHASE_RETRACT, stamp.pose_index), bench.clock())
+    recorder.set_stamp(_Stamp(stamp.object_index, -1, sf.PHASE_RETRACT, stamp.pose_index), bench.clock())
     try:
         bench.safe_stop()
     except (HardwareFault, InputError, OSError, RuntimeError) as err:

@@ -311,11 +311,11 @@ class SessionWriter:
             raise
         self._file.attrs[sf.ATTR_CLOSED] = ""
         self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
-        phase = self._file[sf.FRAMES_PHASE][()]
+        phase, pose_id = self._file[sf.FRAMES_PHASE][()], self._file[sf.FRAMES_POSE_ID][()]
         #: pose ids with hold and retract frames already in the file (resume skips them)
-        self.completed_pose_ids = frozenset(_completed_pose_ids(phase, self._file[sf.FRAMES_POSE_ID][()]))
-        #: object indices with no-contact reference frames already in the file
-        self.referenced_objects = frozenset(_referenced_objects(phase, self._file[sf.FRAMES_OBJECT][()]))
+        self.completed_pose_ids = frozenset(_completed_pose_ids(phase, pose_id))
+        #: object indices with a complete no-contact reference already in the file
+        self.referenced_objects = frozenset(_referenced_objects(phase, self._file[sf.FRAMES_OBJECT][()], pose_id))
         self.stats.frames_flushed = self.n_frames_at_open
         self._host_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_HOST, sf.ARM_T, sf.PRESSURE_T), RESUME_GAP_S)
         self._device_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_DEVICE), RESUME_GAP_S)
@@ -776,7 +776,7 @@ def resume_progress(path, *, sensor_serial: str, intrinsics: dict, simulated: bo
         names = session.object_names
         return ResumeProgress(
             completed_pose_ids=frozenset(_completed_pose_ids(session.phase, session.pose_id)),
-            referenced_objects=frozenset(names[i] for i in _referenced_objects(session.phase, session.object_index)
+            referenced_objects=frozenset(names[i] for i in _referenced_objects(session.phase, session.object_index, session.pose_id)
                                          if i < len(names)),
             closed_cleanly=session.closed_cleanly,
         )
@@ -827,12 +827,13 @@ def _completed_pose_ids(phase: np.ndarray, pose_id: np.ndarray) -> set[int]:
     return {int(p) for p in held & retracted if p >= 0}
 
 
-def _referenced_objects(phase: np.ndarray, obj: np.ndarray) -> set[int]:
+def _referenced_objects(phase: np.ndarray, obj: np.ndarray, pose_id: np.ndarray) -> set[int]:
     """Objects whose no-contact reference is complete: free frames followed by a contact pose's
-    frames (a reference cut short by a fault or a stop is recorded again on resume), from the
-    ``(N,)`` ``frames/phase`` and ``frames/object`` columns."""
+    frames (a reference cut short by a fault or a stop, whose safe-stop retract belongs to no
+    pose, is recorded again on resume), from the ``(N,)`` ``frames/phase``, ``frames/object`` and
+    ``frames/pose_id`` columns."""
     free = set(np.unique(obj[phase == sf.PHASE_FREE]).tolist())
-    posed = set(np.unique(obj[phase != sf.PHASE_FREE]).tolist())
+    posed = set(np.unique(obj[(phase != sf.PHASE_FREE) & (pose_id >= 0)]).tolist())
     return {int(o) for o in free & posed if o >= 0}
 
 

@@ -251,6 +251,45 @@ def test_stop_event_then_resume_completes_the_plan(tmp_path):
         assert (s.n_frames, len(s.arm().t)) == done and s.closed_cleanly
 
 
+@pytest.mark.parametrize("phase", ["free", "hold"])
+def test_a_reference_or_hold_cut_short_is_recorded_again_on_resume(tmp_path, phase):
+    """The safe stop's retract after a stop in the box's reference (phase free) or in pose 0's hold
+    belongs to no contact pose: the cut-short reference or pose is not complete, and the resume
+    records it again (was: the retract made it look pressed, held and let go, and it was skipped)."""
+    out = tmp_path / "cut.h5"
+    config = BenchConfig.create("sim", objects=("box",), seed=1)
+    settings = PlanSettings(poses_per_object=2, seed=1)
+    stop = threading.Event()
+    frames_in_phase = []
+
+    def progress(**fields):
+        if fields["object_name"] == "box" and fields["phase"] == phase:
+            frames_in_phase.append(fields["frames"])
+            if len(frames_in_phase) >= 3:
+                stop.set()
+
+    with open_bench(config) as bench:
+        plan = plan_bench_collection(bench, settings)
+        with open_collection_writer(out, bench, plan, resume=False) as writer:
+            result = run_collection(bench, plan, writer, progress, stop)
+    assert result.stopped and result.poses_done == []
+    with Session.open(out) as s:
+        first = s.n_frames
+        cut = s.select(object="box", phase=phase)
+        assert len(cut) > 0 and s.phase[-1] == sf.PHASE_RETRACT  # the cut-short frames are kept
+    with open_bench(dataclasses.replace(config, start_pose=None)) as bench:
+        plan = plan_bench_collection(bench, settings)
+        with open_collection_writer(out, bench, plan, resume=True) as writer:
+            assert writer.completed_pose_ids == set()
+            assert writer.referenced_objects == ({0} if phase == "hold" else set())
+            result = run_collection(bench, plan, writer)
+    assert result.poses_done == [0, 1]
+    with Session.open(out) as s:
+        again = s.select(object="box", phase=phase)
+        assert again[0] == cut[0] and again[-1] >= first  # recorded again after the cut-short one
+        assert len(s.select(pose_id=0, phase="retract")) > 0
+
+
 def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
     out = tmp_path / "halted.h5"
     stop = threading.Event()
