@@ -344,8 +344,9 @@ def press_target_n(contact, added_n: float, cap_n: float) -> float:
 
 
 def _safe_stop(bench, recorder: _Recorder) -> None:
-    """Stop and retract the arm (frames keep recording, as ``retract`` of no contact pose: a pose
-    or a reference cut short is then not complete, and a resume records it again); never raises."""
+    """Stop and retract the arm; never raises. Frames keep recording while the recorder runs (not
+    after a camera or pressure-board fault, which ended it), as ``retract`` of no contact pose: a
+    pose or a reference cut short is then not complete, and a resume records it again."""
     stamp = recorder.stamp
     recorder.set_stamp(_Stamp(stamp.object_index, -1, sf.PHASE_RETRACT, stamp.pose_index), bench.clock())
     try:

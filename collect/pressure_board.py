@@ -194,7 +194,8 @@ class PressureBoard:
     def _good(self) -> None:
         self._last_valid = self._clock()
         if self._bad_run:
-            log.warning("pressure board: recovered after %d corrupt lines", self._bad_run)
+            if self._fault is None:  # after a serial-garbage fault the run is over: no "recovered"
+                log.warning("pressure board: recovered after %d corrupt lines", self._bad_run)
             self._bad_run = 0
 
     def _set_fault(self, fault: HardwareFault) -> None:
