@@ -72,7 +72,7 @@ def test_reader_survives_random_garbage_partial_lines_and_bad_checksums(pty_boar
     assert "corrupt data" in caplog.text and "recovered" in caplog.text
 
 
-def test_a_run_of_corrupt_lines_is_a_serial_garbage_fault(pty_board):
+def test_a_run_of_corrupt_lines_is_a_serial_garbage_fault(pty_board, caplog):
     board, master = pty_board
     os.write(master, encode_line("P,1,1060.00"))
     assert wait_until(lambda: board.latest() is not None)
@@ -84,9 +84,13 @@ def test_a_run_of_corrupt_lines_is_a_serial_garbage_fault(pty_board):
     for _ in range(MAX_CORRUPT_RUN):
         os.write(master, b"P,999,1000.00*00\r\n")
     assert wait_until(lambda: board.stats["bad_checksum"] == 2 * MAX_CORRUPT_RUN - 1)
+    caplog.clear()
+    os.write(master, encode_line("P,3,1060.00"))  # good lines after the fault: it stays, said once
+    assert wait_until(lambda: board.latest().seq == 3)
     with pytest.raises(HardwareFault) as err:
         board.check()
     assert err.value.kind == "serial-garbage"
+    assert "recovered" not in caplog.text
 
 
 def test_command_replies_errors_and_timeouts(pty_board):
