@@ -24,7 +24,7 @@ with ``trainer.training.train_model`` (what ``bubble train`` runs) and evaluated
 4. ToF vs model against the true membrane depth on those test sessions (``vs_true``): RMSE and
    delta<1.05 of the ToF, of the model on the same pixels, on every pixel, and where the ToF dropped out.
 
-Metrics (DESIGN.md) are against the ToF depth except in section 4. Models train from scratch in
+Metrics (``trainer.metrics``) are against the ToF depth except in section 4. Models train from scratch in
 1-2 (as in the paper's tables; the base model has seen every object, which would blur the
 leave-one-out protocol).
 """

@@ -7,7 +7,7 @@ Run: ``.venv/bin/python benchmarks/bench_simulator.py [--out docs/bench_simulato
    solved and rendered (physics + IR + ToF + truth), warm-started from the previous frame.
    Reported per frame: CPU time (median, 90th percentile), split into solve / render, and wall time.
 2. Physics: a 10 mm radius sphere pressed 5 mm (the "small rounded probe" of the real-bubble
-   reference in DESIGN.md) on 5 sensors: pressure rise per dent volume, bulge fraction, force per
+   reference in docs/simulator.md) on 5 sensors: pressure rise per dent volume, bulge fraction, force per
    pressure rise, force, next to the reference values.
 """
 

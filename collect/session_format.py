@@ -1,4 +1,4 @@
-"""Names and constants of the HDF5 session format (the contract in DESIGN.md).
+"""Names and constants of the HDF5 session format (documented in docs/session_format.md).
 
 One file per recording session, readable with plain h5py. Writers (``collect.session_writer``)
 and readers (``collect.session_reader``) take every name from here.
@@ -47,7 +47,7 @@ FRAMES_OBJECT = "frames/object"  # (N,) int16 index into objects/name, -1 = no o
 FRAMES_POSE_ID = "frames/pose_id"  # (N,) int32 contact pose index within the session, -1 = none
 FRAMES_PHASE = "frames/phase"  # (N,) uint8 PHASES; attrs hold the enum
 FRAMES_TCP_POSE = "frames/tcp_pose"  # (N,6) float64 arm TCP pose at frame time [m, rotvec]
-#: The per-frame datasets of DESIGN.md's contract, required in every session (``frames/tcp_pose``,
+#: The per-frame datasets of the format's contract, required in every session (``frames/tcp_pose``,
 #: this tool's addition to it, is read when present).
 FRAME_DATASETS = (FRAMES_IR, FRAMES_DEPTH, FRAMES_T_DEVICE, FRAMES_T_HOST, FRAMES_SEQ, FRAMES_OBJECT,
                   FRAMES_POSE_ID, FRAMES_PHASE)

@@ -1,4 +1,4 @@
-"""Read recorded sessions (the HDF5 format of DESIGN.md): frame selection, depth in metres, masks.
+"""Read recorded sessions (the HDF5 format of docs/session_format.md): frame selection, depth in metres, masks.
 
     with Session.open("session.h5") as s:
         idx = s.select(object="mug", phase=["press", "hold"])

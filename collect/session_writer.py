@@ -1,4 +1,4 @@
-"""Crash-safe HDF5 session recorder (the format of DESIGN.md, names in ``collect.session_format``).
+"""Crash-safe HDF5 session recorder (docs/session_format.md, names in ``collect.session_format``).
 
 ``SessionWriter`` takes frames, arm samples and pressure readings from the control loop and writes
 them from a background thread, so the caller never waits on the disk: ``append_*`` only copies the

@@ -94,7 +94,7 @@ def test_gas_law_and_real_bubble_reference(spec, probe):
     )
     dp_hpa = state.pressure_hpa - spec.rest_pressure_pa / 100
     dent_cm3 = state.dent_volume_m3 * 1e6
-    # Real Soft-bubble reference (DESIGN.md), within 30 %.
+    # Real Soft-bubble reference (docs/simulator.md), within 30 %.
     assert dp_hpa / dent_cm3 == pytest.approx(1.9, rel=0.3)
     assert 1 + state.net_volume_change_m3 / state.dent_volume_m3 == pytest.approx(0.75, rel=0.3)
     assert state.wrench[2] / dp_hpa == pytest.approx(1.0, rel=0.3)

@@ -1,4 +1,4 @@
-"""trainer.metrics against hand-computed values (the DESIGN.md metrics contract)."""
+"""trainer.metrics against hand-computed values (the definitions in its docstring)."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""The paper's depth metrics (the DESIGN.md contract, as in the BTS / packnet-sfm evaluation code).
+"""The paper's depth metrics (as in the BTS / packnet-sfm evaluation code).
 
 Over valid ground-truth pixels (``min_depth < gt < max_depth``), the prediction clamped to
 ``[min_depth, max_depth]``, each metric is computed per image and then averaged over images:
