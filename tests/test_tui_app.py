@@ -38,6 +38,7 @@ from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, YOUNG_OBJECTS
 from calibrate.tui.widgets.banner import Banner
 from calibrate.tui.widgets.confirm import ConfirmStart
+from calibrate.tui.widgets.steps_panel import STEP_TITLES
 from collect.errors import HardwareFault
 
 SIZE = (120, 36)
@@ -228,6 +229,22 @@ def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
     asyncio.run(scenario())
 
 
+def test_ctrl_p_opens_no_search_field_that_takes_the_stop_key(in_tmp):
+    """ctrl+p (textual's command palette) opens nothing: its search field took ``s`` and space as
+    text, so the stop key typed a letter instead of stopping the arm."""
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events())
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("ctrl+p", "s")
+            assert app.arm_state in ("stopping", "stopped")
+            await wait_for(lambda: app.result is not None, pilot)
+            assert flow.saw_stop and app.result.stopped
+
+    asyncio.run(scenario())
+
+
 def test_flow_thread_yields_to_the_ui_and_more_from_fine_tuning_on(in_tmp):
     events = [StepStarted(Step.COLLECT, 1.0), StepFinished(Step.COLLECT, True), StepStarted(Step.FINETUNE, 9.0),
               TrainingProgress(1, 0.1, 0.01)]
@@ -347,6 +364,62 @@ def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
             assert app.steps.row(Step.COLLECT).status == "stopped" and app.arm_state == "stopped"
 
     asyncio.run(scenario())
+
+
+def test_the_link_is_down_once_collection_has_closed_the_bench(in_tmp):
+    """A snapshot the UI picks up after the end of collection (it was waiting in the inbox, or the flow
+    sent it just before closing the bench) does not bring the link back: the bench panel showed
+    "stale (N s)" for the whole fine-tuning."""
+    clock = FixedClock()
+    ir, depth = bench_images()
+    snapshot = BenchSnapshot(True, [0.45, 0.0, 0.07, 3.1416, 0.0, 0.0], [0.0] * 6, 1065.5, ir, depth)
+    events = [StepStarted(Step.COLLECT, 40.0), snapshot, StepFinished(Step.COLLECT, True, "3 poses"),
+              StepStarted(Step.FINETUNE, 9.0)]
+
+    async def scenario():
+        flow = ScriptedFlow(events)
+        app = BenchApp(make_config(), flow=flow, clock=clock, refresh_hz=0.01)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)  # applies the events, then refreshes
+            clock.now += 3.0
+            app.refresh_live()
+            await pilot.pause()
+            link = (app.bench_panel.connected, app.bench_panel.arm_state)
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+        return link
+
+    assert asyncio.run(scenario()) == (False, "idle")
+
+
+def test_a_narrow_terminal_keeps_one_line_per_step_and_every_pass_fail_whole(in_tmp):
+    """80 x 24 (many terminals' default) and 100 x 30 (the documented minimum): the steps panel keeps
+    each step on its line (a wrapped step pushed the last ones out of its fixed height), and the
+    acceptance table gives way in the check names and thresholds, not in PASS/FAIL ("PA…")."""
+    passed = sum(1 for check in CHECKS if check["passed"])
+
+    def lines(widget):
+        strips = widget.render_lines(Region(0, 0, *widget.outer_size))
+        return ["".join(segment.text for segment in strip) for strip in strips]
+
+    async def scenario(size):
+        flow = ScriptedFlow(mid_run_events(), result=lambda config, stopped: CommissionResult(
+            accepted=False, checks=CHECKS, run_dir=config.run_dir, report_path=Path("run/report.html")))
+        app = BenchApp(make_config(), flow=flow, clock=FixedClock())
+        async with app.run_test(size=size) as pilot:
+            await start_and_wait(pilot, flow)
+            steps = "\n".join(lines(app.steps))
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+            await pilot.press("3")
+            await pilot.pause()
+            words = " ".join(lines(app.acceptance.table)).split()
+        return steps, words.count("PASS"), words.count("FAIL")
+
+    for size in ((80, 24), (100, 30)):
+        steps, n_pass, n_fail = asyncio.run(scenario(size))
+        assert all(title in steps for title in STEP_TITLES.values()), (size, steps)
+        assert (n_pass, n_fail) == (passed, len(CHECKS) - passed), size
 
 
 def test_sensor_view_draws_each_snapshot_once_and_through_the_app_filters(in_tmp, monkeypatch):

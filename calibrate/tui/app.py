@@ -99,6 +99,9 @@ class BenchApp(App):
 
     CSS_PATH = "bench.tcss"
     TITLE = "Bubble bench"
+    #: No command palette (textual's ctrl+p): its search field takes every printable key, the stop
+    #: keys ``s`` and space included, so while it was open they typed instead of stopping the arm.
+    ENABLE_COMMAND_PALETTE = False
 
     BINDINGS = [
         Binding("s", "stop", "STOP arm", priority=True),
@@ -384,6 +387,10 @@ class BenchApp(App):
         part in a frame of its own. A key press that arrives with the refresh then waits for one part
         of it, not for all (docs/tui.md "Responsiveness")."""
         snapshot = self._inbox.take_snapshot()
+        if not self._bench_open:
+            # left over from before collection closed the bench: it would bring the link back
+            # ("stale (N s)") for the rest of the run
+            snapshot = None
         parts = [partial(self._refresh_panels, snapshot)]
         if snapshot is not None:
             self._connected = True

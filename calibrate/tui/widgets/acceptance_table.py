@@ -32,7 +32,8 @@ def value_text(check: dict) -> str:
 
 class AcceptanceTable(Vertical):
     """Checks ``{name, value, threshold, op, unit, passed, reason}`` under a verdict line, the
-    reasons of the failed ones below; scrolls when taller than the panel."""
+    reasons of the failed ones below; scrolls when taller than the panel. In a narrow panel the check
+    names are cut and the thresholds wrap first, so that the values and PASS/FAIL stay whole."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
@@ -75,9 +76,11 @@ class AcceptanceTable(Vertical):
         self.verdict_line.update(line)
         self.checks = list(checks)
         table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, row_styles=["", "on grey11"])
-        table.add_column("check", no_wrap=True, style="bold")
+        # Too wide for the panel, rich narrows the wrappable columns first (names cut, thresholds
+        # wrapped); with every column no_wrap it cut all four evenly: "PA…" in a 100-column terminal.
+        table.add_column("check", style="bold")
         table.add_column("value", no_wrap=True, justify="right")
-        table.add_column("threshold", no_wrap=True)
+        table.add_column("threshold")
         table.add_column("result", no_wrap=True)
         why = []  # reasons of the failed checks, below the table
         for check in checks:
