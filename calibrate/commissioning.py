@@ -31,7 +31,8 @@ remaining data steps: the sensor is rejected without training on it.
 
 Resume: ``RUN_DIR/state.json`` (``calibrate.run_directory.RunState``) records every completed
 step and its results; running again with the same ``run_dir`` skips them
-(``StepFinished(resumed=True)``) and continues.
+(``StepFinished(resumed=True)``) and continues. One run at a time per run directory: a second
+``run_commissioning`` of a directory that a run (in this or another process) holds is refused.
 Faults: a ``HardwareFault`` safe-stops the arm (stop + retract), keeps every file, and ends the
 run rejected with the fault as the reason; the failed step is not recorded, so a re-run
 retries it. ``stop_event`` does the same but ends with ``result.stopped`` (no verdict).
@@ -85,6 +86,7 @@ from calibrate.run_statistics import collection_stats, nocontact_maps, pick_exam
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.json_files import plain_json, write_json
 from collect.loop_thread import LoopThread
+from collect.output_files import output_folder_lock
 from collect.session_format import DEPTH_UNIT_M, utc_now
 from trainer.contact import contact_mask
 from trainer.metrics import METRIC_KEYS
@@ -574,7 +576,6 @@ class _Flow:
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
         self.started = time.monotonic()
-        self.run_dir.mkdir(parents=True, exist_ok=True)
         sensor_id = self.sensor_spec.serial if self.sensor_spec is not None else "hardware"
         self.state = RunState.open(self.run_dir, run_settings(self.config, sensor_id))
         handlers = {
@@ -704,8 +705,8 @@ def run_commissioning(
     """Commission one sensor (see the module docstring); returns the verdict.
 
     Raises ``InputError`` for bad settings, specs or paths (before anything moves, or when the
-    run directory belongs to another run). Hardware faults do not raise: they end the run
-    rejected (``result.fault``).
+    run directory belongs to another run or another run is writing it). Hardware faults do not
+    raise: they end the run rejected (``result.fault``).
     """
     thresholds = validate_config(config)
     spec = _load_sensor_spec(config) if config.simulated else None
@@ -715,4 +716,6 @@ def run_commissioning(
         if not BASE_MODEL_DIR.is_dir():
             raise InputError(f"the packaged base model {BASE_MODEL_DIR} is missing; give --base-model MODEL_DIR")
     flow = _Flow(config, on_event, stop_event or threading.Event(), thresholds, spec)
-    return flow.run()
+    flow.run_dir.mkdir(parents=True, exist_ok=True)
+    with output_folder_lock(flow.run_dir, "bubble commission (or bubble tui)"):
+        return flow.run()

@@ -13,7 +13,8 @@ Location: ``--registry DIR``, else ``$BUBBLE_REGISTRY``, else ``<user data dir>/
     <root>/<serial>/acceptance.json  acceptance results of the last commissioning
 
 A rejected commissioning is recorded in the history and the status, but never replaces the model
-or reference of an earlier accepted one.
+or reference of an earlier accepted one. Registrations of one sensor are serialized (a lock on its
+directory): two commissionings that finish at the same moment are both recorded, one after the other.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 
 from collect.errors import InputError
 from collect.json_files import shown_json, write_json
+from collect.output_files import output_folder_lock
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
 ENV_VAR = "BUBBLE_REGISTRY"
@@ -167,49 +169,51 @@ class SensorRegistry:
 
         ``acceptance``: the ``acceptance.json`` content. ``model_dir`` and ``reference``
         (``depth_m`` (H,W) float32 m, ``ir`` (H,W) float32 and ``valid_count`` (H,W) arrays) are
-        stored only when ``accepted``.
+        stored only when ``accepted``. Another process registering ``serial`` at the same time
+        waits until this one is done, and the other way round.
         """
         sdir = self._sensor_dir(serial)
         sdir.mkdir(parents=True, exist_ok=True)
         when = when or datetime.now(timezone.utc)
-        prior = self._read_profile(sdir) if (sdir / PROFILE).exists() else {"serial": serial, "history": []}
-        metrics = {k: acceptance.get(k) for k in ("abs_rel", "rmse", "a1") if k in acceptance}
-        entry = {
-            "time": when.isoformat(timespec="seconds"),
-            "run_dir": str(Path(run_dir).resolve()),
-            "accepted": bool(accepted),
-            "reason": reason,
-            **metrics,
-        }
-        profile = dict(prior)
-        profile.update(
-            serial=serial,
-            status="accepted" if accepted else "rejected",
-            intrinsics=intrinsics,
-            camera_in_tcp=camera_in_tcp,
-            simulated=bool(simulated),
-            last_commissioned=entry["time"],
-            last_reason=reason,
-        )
-        if accepted:
-            if model_dir is not None:
-                dst = sdir / "model"
-                staging = sdir / "model.new"
-                shutil.rmtree(staging, ignore_errors=True)
-                shutil.copytree(model_dir, staging)
-                shutil.rmtree(dst, ignore_errors=True)
-                os.replace(staging, dst)
-                profile["model"] = "model"
-                profile["model_source"] = str(Path(model_dir).resolve())
-            if reference is not None:
-                np.savez_compressed(sdir / "reference.npz", **reference)
-                profile["reference"] = "reference.npz"
-            profile["accepted_at"] = entry["time"]
-            profile["accepted_metrics"] = metrics
-        profile["history"] = list(prior.get("history", [])) + [entry]
-        write_json(sdir / "acceptance.json", acceptance)
-        write_json(sdir / PROFILE, profile)
-        return SensorProfile(serial, sdir, profile)
+        with output_folder_lock(sdir):
+            prior = self._read_profile(sdir) if (sdir / PROFILE).exists() else {"serial": serial, "history": []}
+            metrics = {k: acceptance.get(k) for k in ("abs_rel", "rmse", "a1") if k in acceptance}
+            entry = {
+                "time": when.isoformat(timespec="seconds"),
+                "run_dir": str(Path(run_dir).resolve()),
+                "accepted": bool(accepted),
+                "reason": reason,
+                **metrics,
+            }
+            profile = dict(prior)
+            profile.update(
+                serial=serial,
+                status="accepted" if accepted else "rejected",
+                intrinsics=intrinsics,
+                camera_in_tcp=camera_in_tcp,
+                simulated=bool(simulated),
+                last_commissioned=entry["time"],
+                last_reason=reason,
+            )
+            if accepted:
+                if model_dir is not None:
+                    dst = sdir / "model"
+                    staging = sdir / "model.new"
+                    shutil.rmtree(staging, ignore_errors=True)
+                    shutil.copytree(model_dir, staging)
+                    shutil.rmtree(dst, ignore_errors=True)
+                    os.replace(staging, dst)
+                    profile["model"] = "model"
+                    profile["model_source"] = str(Path(model_dir).resolve())
+                if reference is not None:
+                    np.savez_compressed(sdir / "reference.npz", **reference)
+                    profile["reference"] = "reference.npz"
+                profile["accepted_at"] = entry["time"]
+                profile["accepted_metrics"] = metrics
+            profile["history"] = list(prior.get("history", [])) + [entry]
+            write_json(sdir / "acceptance.json", acceptance)
+            write_json(sdir / PROFILE, profile)
+            return SensorProfile(serial, sdir, profile)
 
     def _read_profile(self, sdir: Path) -> dict:
         try:

@@ -1,12 +1,16 @@
 """Checks of the files a command is about to write, made before any work: a command never
-overwrites a recording, a model or any other file that is not an earlier result of its own kind."""
+overwrites a recording, a model or any other file that is not an earlier result of its own kind,
+and two commands never write one output folder at once (``output_folder_lock``)."""
 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from collect.errors import InputError
@@ -47,6 +51,32 @@ def write_json_result(path, command: str, values: dict) -> None:
     """Write ``values`` (JSON data, see ``plain_json``) as ``command``'s ``--json`` result, marked
     with ``WRITTEN_BY`` first (``check_json_output`` checked ``path`` before the work)."""
     write_json(path, {WRITTEN_BY: command, **values})
+
+
+@contextmanager
+def output_folder_lock(folder, holder: str | None = None) -> Iterator[None]:
+    """Hold ``folder`` (an existing directory) for the with-block, against every other process that
+    writes it through this lock: an exclusive ``flock(2)`` on the folder itself, so nothing is added
+    to it, and the kernel releases the lock when the process ends, also when it is killed.
+
+    With ``holder`` (the command that writes such a folder, e.g. ``"bubble train"``), a folder held
+    elsewhere is refused at once with ``InputError``; without, the call waits until the holder is
+    done (for writes of a second or so, like a registry entry). Locks are per open folder, not per
+    process: a second lock of a folder this process holds is refused (or waits forever). On a file
+    system that cannot lock a folder (NFS takes no exclusive lock on a file opened read-only, as a
+    folder is) the with-block runs unlocked."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (fcntl.LOCK_NB if holder else 0))
+        except BlockingIOError:
+            raise InputError(f"{folder} is being written by another {holder}; wait until it has finished, "
+                             "or choose another --out") from None
+        except OSError:  # no folder locks on this file system: one writer at a time is then up to the user
+            pass
+        yield
+    finally:
+        os.close(fd)
 
 
 def check_parent_dirs(path) -> None:

@@ -7,7 +7,8 @@
         ref = s.reference_frames("mug") # no-contact frames recorded before the mug's first press
 
 Files whose writer was killed (status flags left set by HDF5) are opened through a SWMR reader and
-hold every frame up to the writer's last flush. Bad files raise ``InputError`` with one line.
+hold every frame up to the writer's last flush. Bad files raise ``InputError`` with one line, and
+so does a file another process is recording (``in_use_error``).
 """
 
 from __future__ import annotations
@@ -57,8 +58,10 @@ _LAYOUT = {
 MAX_DEPTH_UNIT_M = 0.01
 
 
-def open_h5(path) -> h5py.File:
-    """Open ``path`` read-only. Raises InputError for a missing, unreadable, non-HDF5 or truncated file."""
+def open_h5(path, *, locking: bool = True) -> h5py.File:
+    """Open ``path`` read-only. Raises InputError for a missing, unreadable, non-HDF5 or truncated
+    file, and for one that another process is writing (``in_use_error``). ``locking=False`` leaves
+    out HDF5's file lock: only for a caller that holds the file's lock itself."""
     path = os.fspath(path)
     if os.path.isdir(path):
         raise InputError(f"{path} is a directory, not a session file")
@@ -67,9 +70,19 @@ def open_h5(path) -> h5py.File:
             raise InputError(f"{path} is not a regular file (a device, a pipe or a socket), not a session file")
         raise InputError(f"{path}: no such file")
     try:
-        return h5py.File(path, "r")
+        return h5py.File(path, "r", locking=None if locking else False)  # None: HDF5's default file locking
+    except BlockingIOError:
+        raise in_use_error(path) from None
     except OSError as err:
         raise InputError(f"{path}: not a readable HDF5 session ({h5_error_text(err)})") from None
+
+
+def in_use_error(path) -> InputError:
+    """The refusal of a session file that another process holds: HDF5 locks a file while it is
+    written (a recording, or a resume rewriting a crashed one) against every other open, and while
+    it is read against writers (``BlockingIOError`` from h5py)."""
+    return InputError(f"{os.fspath(path)} is in use by another process (a recording still running, or a command "
+                      "reading it); try again once it has finished")
 
 
 def h5_error_text(err: Exception) -> str:

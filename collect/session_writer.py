@@ -45,6 +45,7 @@ docs/session_format.md and docs/bench_recorder.md for the measurements behind th
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import queue
@@ -62,7 +63,7 @@ from collect import session_format as sf
 from collect.errors import HardwareFault, InputError
 from collect.json_files import plain_json
 from collect.output_files import check_parent_dirs
-from collect.session_reader import h5_error_text
+from collect.session_reader import h5_error_text, in_use_error, open_h5
 
 #: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
 #: every HDF5 reader decodes (h5py, h5dump, MATLAB, HDFView; LZF is h5py-only). The writer
@@ -737,11 +738,14 @@ def _open_for_resume(path: str, serial: str, height: int, width: int, simulated:
         _check_resumable(session, serial, height, width, simulated, plan_text, objects)
         crashed = not session.closed_cleanly
     if crashed:
-        _recover_crashed(path)
-    try:
-        f = h5py.File(path, "a", libver=LIBVER)
-    except OSError as err:
-        raise InputError(f"cannot open {path} for appending: {err}") from None
+        f = _recover_crashed(path)
+    else:
+        try:
+            f = h5py.File(path, "a", libver=LIBVER)
+        except BlockingIOError:  # HDF5's lock: another process records or reads it
+            raise in_use_error(path) from None
+        except OSError as err:
+            raise InputError(f"cannot open {path} for appending: {err}") from None
     try:
         _truncate_to_common_length(f)
         _truncate_streams(f)
@@ -854,27 +858,40 @@ def _truncate_streams(f: h5py.File) -> None:
                 f[name].resize(n, axis=0)
 
 
-def _recover_crashed(path: str) -> None:
-    """Rewrite a crashed (never closed) session into a fresh copy, atomically.
+def _recover_crashed(path: str) -> h5py.File:
+    """Rewrite a crashed (never closed) session into a fresh copy, atomically; returns the copy, open
+    for appending.
 
     The copy leaves out what the dead writer stored after its last flush. The content goes into
     ``path.recover.tmp``, which then replaces the original (``os.replace``), so the original is
-    never half-modified.
+    never half-modified. One resume at a time: the crashed file is locked (``flock``, the lock HDF5
+    takes on a file it writes) while it is copied, and the copy stays open, under HDF5's own lock,
+    from its creation on. A second resume of the same file is refused (``in_use_error``), instead of
+    copying it too and replacing the copy the first one records into.
     """
-    from collect.session_reader import open_h5
-
     tmp = path + ".recover.tmp"
-    src = open_h5(path)
+    fd = os.open(path, os.O_RDONLY)
     try:
-        with h5py.File(tmp, "w", libver=LIBVER) as dst:
-            for key, value in src.attrs.items():
-                dst.attrs[key] = value
-            for key in src:
-                src.copy(src[key], dst, name=key)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise in_use_error(path) from None
+        if _file_replaced(fd, path):  # another resume rewrote it since this one opened it
+            raise in_use_error(path)
+        dst = h5py.File(tmp, "w", libver=LIBVER)
+        try:
+            with open_h5(path, locking=False) as src:  # this process holds the lock
+                for key, value in src.attrs.items():
+                    dst.attrs[key] = value
+                for key in src:
+                    src.copy(src[key], dst, name=key)
+            dst.flush()
+            os.replace(tmp, path)
+        except BaseException:
+            dst.close()
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
+        return dst
     finally:
-        src.close()
-    os.replace(tmp, path)
+        os.close(fd)

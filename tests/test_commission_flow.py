@@ -8,8 +8,10 @@ ones; the benchmark measures those), every hardware and data check keeps its pac
 """
 
 import dataclasses
+import fcntl
 import json
 import math
+import os
 import threading
 import time
 
@@ -315,6 +317,28 @@ def test_a_plan_the_bench_cannot_run_fails_before_the_arm_moves(tmp_path, monkey
         run_commissioning(tiny_config(tmp_path), lambda event: None)
     assert moves == []
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["state.json"]
+
+
+def test_a_run_directory_another_run_is_writing_is_refused_before_the_bench_opens(tmp_path, capsys):
+    """Two commissionings with one --out (the same command in two terminals): while one holds the
+    run directory, the other is refused with one line and touches nothing (was: both ran, one set
+    the other's reference.h5 aside, and the other ended rejected for a recording deleted under it,
+    a verdict it also wrote into the registry)."""
+    config = tiny_config(tmp_path)
+    config.run_dir.mkdir()
+    argv = ["commission", "--sim", "--out", str(config.run_dir), "--registry", str(config.registry_dir),
+            "--thresholds", str(config.thresholds), "--objects", "box", "--poses-per-object", "2",
+            "--finetune-minutes", "0.05", "--leak-hold-s", "2", "--sim-speed", "2", "--seed", "3"]
+    other_run = os.open(config.run_dir, os.O_RDONLY)
+    try:
+        fcntl.flock(other_run, fcntl.LOCK_EX)  # what the other run holds while it runs
+        assert main(argv) == 2
+    finally:
+        os.close(other_run)
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: error: ") and err.count("\n") == 1, err
+    assert "is being written by another bubble commission" in err, err
+    assert list(config.run_dir.iterdir()) == [] and not config.registry_dir.exists()
 
 
 def test_ctrl_c_during_commissioning_stops_the_arm_and_exits_130(tmp_path):

@@ -1,6 +1,10 @@
 """Sensor registry: registration, history, listing, location."""
 
+import errno
+import fcntl
 import json
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -61,6 +65,74 @@ def test_listing_lookup_and_bad_names(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="not a directory"):
         SensorRegistry(tmp_path / "file")
+
+
+def test_two_commissionings_of_one_sensor_finishing_together_are_both_registered(tmp_path, monkeypatch):
+    """The second registration waits for the first (was: it ran while the first had read the profile
+    and not yet written it, and the first then wrote the history without the second's entry; with
+    models, both staged them in one ``model.new`` and one failed with FileExistsError)."""
+    reg = SensorRegistry(tmp_path / "reg")
+    acc = {"accepted": True, "a1": 0.97, "abs_rel": 0.01, "rmse": 0.0008, "checks": []}
+
+    def register(tag):
+        return reg.register("SB-1", accepted=True, run_dir=tmp_path / f"run-{tag}", intrinsics=INTR,
+                            camera_in_tcp=None, simulated=True, acceptance=acc, model_dir=_model_dir(tmp_path, tag))
+
+    register("0")
+    first_read, first_may_go, second_ran = threading.Event(), threading.Event(), threading.Event()
+    read_profile, flock = SensorRegistry._read_profile, fcntl.flock
+
+    def read_profile_then_pause(self, sdir):  # the first registration: between reading and writing the profile
+        profile = read_profile(self, sdir)
+        if threading.current_thread().name == "first":
+            first_read.set()
+            first_may_go.wait()
+        return profile
+
+    def noted_flock(fd, operation):  # the second registration: about to wait for the first
+        if threading.current_thread().name == "second":
+            second_ran.set()
+        return flock(fd, operation)
+
+    monkeypatch.setattr(SensorRegistry, "_read_profile", read_profile_then_pause)
+    monkeypatch.setattr(fcntl, "flock", noted_flock)
+    errors = []
+
+    def run(tag, done: threading.Event):
+        try:
+            register(tag)
+        except Exception as err:  # noqa: BLE001 - reported by the assertion below
+            errors.append(err)
+        finally:
+            done.set()
+
+    first = threading.Thread(target=run, args=("a", threading.Event()), name="first")
+    second = threading.Thread(target=run, args=("b", second_ran), name="second")
+    first.start()
+    first_read.wait()
+    second.start()
+    second_ran.wait()  # finished (without a lock) or waiting for the first's
+    first_may_go.set()
+    first.join()
+    second.join()
+    assert errors == []
+    profile = reg.get("SB-1")
+    assert [Path(h["run_dir"]).name for h in profile.history] == ["run-0", "run-a", "run-b"]
+    assert json.loads((profile.model_dir / "model.json").read_text())["tag"] == "b"
+    assert not (profile.path / "model.new").exists()
+
+
+def test_registering_on_a_file_system_without_folder_locks(tmp_path, monkeypatch):
+    """NFS cannot lock a folder (its flock needs a file open for writing): the entry is written
+    unlocked, as before the lock, instead of failing at the end of a commissioning."""
+    def no_folder_locks(fd, operation):
+        raise OSError(errno.EBADF, "Bad file descriptor")
+
+    monkeypatch.setattr(fcntl, "flock", no_folder_locks)
+    reg = SensorRegistry(tmp_path / "reg")
+    reg.register("SB-1", accepted=False, run_dir=tmp_path, intrinsics=INTR, camera_in_tcp=None, simulated=True,
+                 acceptance={"accepted": False})
+    assert [h["accepted"] for h in reg.get("SB-1").history] == [False]
 
 
 def test_location_from_environment(tmp_path, monkeypatch):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -295,6 +296,62 @@ def test_resume_adds_new_objects_and_checks_meshes(tmp_path):
         assert s.object_names == ["mug", "box"] and s.objects[1].mesh_sha256 == "cd" * 32
     with pytest.raises(InputError, match="another mesh"):
         _writer(path, resume=True, objects=[dict(OBJECT, mesh_sha256="ef" * 32)])
+
+
+def _one_frame_session(path, closed: bool):
+    """A session of one frame, closed cleanly or as a killed recording (or one still running) leaves it."""
+    with _writer(path) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    if not closed:
+        with h5py.File(path, "r+") as f:
+            f.attrs[sf.ATTR_CLOSED] = ""
+
+
+@pytest.mark.parametrize("held", ["recorded", "read"])
+def test_a_session_another_process_holds_is_refused_in_one_clear_line(tmp_path, held):
+    """``bubble info``/``train``/``evaluate`` or ``collect --resume`` on a file another process records
+    (HDF5's exclusive lock), or a resume of one a command reads (its shared lock): one line that
+    says so (was: "not a readable HDF5 session (Resource temporarily unavailable)", as if the file
+    were damaged, and "cannot open ... for appending: [Errno 11] Unable to synchronously open file (...)")."""
+    path = tmp_path / "s.h5"
+    _one_frame_session(path, closed=held == "read")
+    other_process = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(other_process, fcntl.LOCK_EX if held == "recorded" else fcntl.LOCK_SH)  # as HDF5 takes it there
+        calls = [lambda: _writer(path, resume=True)] + ([lambda: Session.open(path)] if held == "recorded" else [])
+        for call in calls:
+            with pytest.raises(InputError) as refused:
+                call()
+            assert str(refused.value) == (f"{path} is in use by another process (a recording still running, or a "
+                                          "command reading it); try again once it has finished")
+    finally:
+        os.close(other_process)
+    with Session.open(path) as s:
+        assert s.n_frames == 1 and s.closed_cleanly == (held == "read")
+
+
+def test_two_resumes_of_one_crashed_recording_at_once(tmp_path, monkeypatch):
+    """Two resumes of one crashed recording (the same command in two terminals): the first to rewrite
+    it records, the other is refused in one line (was: both copied it into one temporary file, and
+    one's failure removed the other's copy: two tracebacks and nothing recorded; or the later copy
+    replaced the file the first one was recording into)."""
+    path = tmp_path / "s.h5"
+    _one_frame_session(path, closed=False)
+    recover, other = session_writer._recover_crashed, []
+
+    def overtaken(crashed):  # between this resume's checks and its rewrite, the other resume runs
+        monkeypatch.setattr(session_writer, "_recover_crashed", recover)
+        other.append(_writer(path, resume=True))
+        return recover(crashed)
+
+    monkeypatch.setattr(session_writer, "_recover_crashed", overtaken)
+    with pytest.raises(InputError, match="is in use by another process"):
+        _writer(path, resume=True)
+    with other[0] as w:
+        w.append_frame(*_frame(1), 0.1, 0.1, 1, 0, 0, sf.PHASE_APPROACH, np.zeros(6))
+    with Session.open(path) as s:
+        assert s.n_frames == 2 and s.closed_cleanly
+    assert sorted(os.listdir(tmp_path)) == ["s.h5"]
 
 
 def test_bad_output_paths(tmp_path):

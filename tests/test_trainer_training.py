@@ -1,6 +1,8 @@
 """Training, resume, inference and the train/evaluate command line on small synthetic sessions."""
 
+import fcntl
 import json
+import os
 import shutil
 import threading
 import time
@@ -186,6 +188,25 @@ def test_train_command_small_run(bubble, session, tmp_path):
     assert code == 0
     assert load_metadata(out).training["split"] == {"kind": "holdout-object", "object": "box"}
     assert json.loads((tmp_path / "m.json").read_text())["split"] == "holdout-object"
+
+
+def test_a_model_directory_another_training_writes_is_refused(bubble, session, tmp_path, capsys):
+    """Two ``bubble train`` with one --out: while one holds the directory, the other is refused with
+    one line and writes nothing (was: both trained and both said "model written to", the last to
+    finish replacing the other's files, or mixing with them: one's weights, the other's metadata)."""
+    out = tmp_path / "m"
+    out.mkdir()
+    other_training = os.open(out, os.O_RDONLY)
+    try:
+        fcntl.flock(other_training, fcntl.LOCK_EX)  # what the other training holds while it runs
+        code = bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.1", "--no-onnx",
+                      "--threads", "1")
+    finally:
+        os.close(other_training)
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and err == [f"bubble: error: {out} is being written by another bubble train; wait until it has "
+                                 "finished, or choose another --out"], err
+    assert list(out.iterdir()) == []
 
 
 def test_a_full_disk_when_the_model_is_written_is_one_line(bubble, session, tmp_path, capsys, monkeypatch):

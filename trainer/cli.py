@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext, suppress
 from pathlib import Path
 
-from collect.output_files import check_json_output, check_parent_dirs, output_path, write_json_result
+from collect.output_files import (check_json_output, check_parent_dirs, output_folder_lock, output_path,
+                                  write_json_result)
 from trainer.training_defaults import (
     ARCH_NAMES,
     DEFAULT_ARCH,
@@ -129,6 +132,25 @@ def metrics_table(title: str, rows: dict[str, dict]):
     return table
 
 
+@contextmanager
+def _model_dir_held(out: Path) -> Iterator[None]:
+    """The ``--out`` model directory, created when missing and, in the process that writes it (the
+    only one, or torchrun's rank 0), held for the with-block (``output_folder_lock``): a second
+    ``bubble train`` into it is refused while this one runs. A directory this call created is
+    removed again when nothing was written into it (bad data, a refusal)."""
+    from trainer.distributed import DistContext
+
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with output_folder_lock(out, "bubble train") if DistContext.from_env().is_main else nullcontext():
+            yield
+    finally:
+        if created:
+            with suppress(OSError):  # a folder with files in it stays
+                out.rmdir()
+
+
 def run_train(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -144,8 +166,6 @@ def run_train(args: argparse.Namespace) -> int:
     options = training_options(args)
     if args.holdout_object is not None and not args.holdout_object.strip():
         raise InputError("--holdout-object is empty: name the object to leave out, or drop the option")
-    if not args.resume and (out / WEIGHTS_FILE).exists():
-        raise InputError(f"{out} already holds a model; use --resume to continue its training or choose another --out")
     if args.json is not None:
         check_json_output(args.json, "bubble train")
     config = TrainConfig(
@@ -186,7 +206,11 @@ def run_train(args: argparse.Namespace) -> int:
         bar.update(task, completed=p.fraction, epoch=p.epoch, loss=loss, a1=a1)
 
     try:
-        result = train_model(config, progress_callback=on_progress)
+        with _model_dir_held(out):
+            if not args.resume and (out / WEIGHTS_FILE).exists():
+                raise InputError(f"{out} already holds a model; use --resume to continue its training or choose "
+                                 "another --out")
+            result = train_model(config, progress_callback=on_progress)
     finally:
         if task is not None:  # stopping a bar never started prints an empty line before the error
             bar.stop()
