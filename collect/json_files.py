@@ -50,8 +50,10 @@ def _new_file_mode() -> int:
     return 0o666 & ~umask
 
 
-#: Permissions of a written JSON file: those of any new file (``mkstemp`` alone would give 0600).
-_FILE_MODE = _new_file_mode()
+#: Permissions of any new file under this process's umask, given to the files whose writer alone
+#: would make them 0600 (``mkstemp``'s JSON files here, safetensors weights), which other users of
+#: the bench could then not read.
+NEW_FILE_MODE = _new_file_mode()
 
 
 def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
@@ -61,7 +63,7 @@ def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
     text = json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n"
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:
-        os.fchmod(fd, _FILE_MODE)
+        os.fchmod(fd, NEW_FILE_MODE)
         with os.fdopen(fd, "w") as f:
             f.write(text)
             f.flush()

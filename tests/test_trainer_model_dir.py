@@ -48,6 +48,12 @@ def test_round_trip_gives_identical_predictions(model_dir):
         DepthEstimator.load(model_dir).predict(np.zeros((172, 224), np.uint16))
 
 
+def test_weights_get_the_permissions_of_any_new_file(model_dir):
+    """Was 0600 (safetensors' own): a registry model other users of the bench could not load."""
+    (model_dir / "plain.txt").write_text("x")
+    assert (model_dir / WEIGHTS_FILE).stat().st_mode & 0o777 == (model_dir / "plain.txt").stat().st_mode & 0o777
+
+
 def test_pickle_weights_are_refused(model_dir):
     state = build_network("resnet", 0.125, 0.04, 0.12).state_dict()
     torch.save(state, model_dir / WEIGHTS_FILE)  # a pickle under the safetensors name
