@@ -20,6 +20,7 @@ import pytest
 from textual.geometry import Region
 
 from calibrate.commission_events import (
+    ArmSafeStopped,
     BenchSnapshot,
     CollectionProgress,
     FaultRaised,
@@ -366,6 +367,30 @@ def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
     asyncio.run(scenario())
 
 
+@pytest.mark.parametrize("retracted, outcome", [(True, "arm retracted, |F| 0.0 N"),
+                                                (False, "arm stopped but NOT retracted")])
+def test_a_fault_banner_says_what_the_safe_stop_did_to_the_arm(in_tmp, retracted, outcome):
+    """After a fault the operator reads whether the arm is clear of the object (was: the fault alone,
+    beside a bench panel still showing the force of the fault)."""
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events(), [FaultRaised("force-spike", "|F| 61.2 N > limit 40 N at pose 4"),
+                                               ArmSafeStopped(retracted, 0.0408, 0.0608 if retracted else 0.0408,
+                                                              0.0 if retracted else 61.2)],
+                            result=lambda config, stopped: CommissionResult(
+                                accepted=False, checks=[], run_dir=config.run_dir,
+                                report_path=config.run_dir / "report.html", fault="force-spike"))
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.result is not None, pilot)
+            return app.banner.level, str(app.banner.content)
+
+    level, text = asyncio.run(scenario())
+    assert level == "fault" and text.startswith("FAULT force-spike: |F| 61.2 N > limit 40 N at pose 4 | ")
+    assert f"| {outcome}" in text and "| run rejected; c retries" in text, text
+
+
 def test_the_link_is_down_once_collection_has_closed_the_bench(in_tmp):
     """A snapshot the UI picks up after the end of collection (it was waiting in the inbox, or the flow
     sent it just before closing the bench) does not bring the link back: the bench panel showed
@@ -512,7 +537,8 @@ def test_snapshot_verdict(snap_compare, in_tmp):
 
 def test_snapshot_fault_banner(snap_compare, in_tmp):
     clock = FixedClock()
-    flow = ScriptedFlow(mid_run_events(), [FaultRaised("force-spike", "|F| 61.2 N > limit 40 N at pose 4")],
+    flow = ScriptedFlow(mid_run_events(), [FaultRaised("force-spike", "|F| 61.2 N > limit 40 N at pose 4"),
+                                           ArmSafeStopped(True, 0.0408, 0.0608, 0.0)],
                         result=lambda config, stopped: CommissionResult(
                             accepted=False, checks=[], run_dir=config.run_dir, report_path=Path("run/report.html"),
                             fault="force-spike"))

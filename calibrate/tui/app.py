@@ -457,7 +457,8 @@ class BenchApp(App):
                 self.acceptance.show(None, result.checks, "", "stopped by operator")
             elif result.fault:
                 reported = self._fault_text or f"FAULT {result.fault}"
-                banner.show(f"{reported} | run rejected; c retries (completed steps are kept)", "fault")
+                banner.show(f"{reported} | {self._arm_outcome()} | run rejected; c retries (completed steps are kept)",
+                            "fault")
                 self.acceptance.show(result.accepted, result.checks, str(result.report_path))
             else:
                 verdict = "ACCEPTED" if result.accepted else "REJECTED"
