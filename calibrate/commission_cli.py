@@ -208,19 +208,22 @@ def run_sensors(args) -> int:
             reason = f" - {entry['reason']}" if entry.get("reason") else ""
             print(f"  {entry['time']}  {verdict}{a1}  {entry['run_dir']}{reason}")
         return EXIT_OK
-    profiles = registry.profiles()
+    listing = registry.survey()
+    profiles = listing.profiles
     if args.json:
         print(json.dumps([p.data for p in profiles], indent=2))
-        return EXIT_OK
-    print(f"registry {registry.root}: {len(profiles)} sensor{'s' if len(profiles) != 1 else ''}")
-    if profiles:
-        print(f"{'serial':<28} {'status':<9} {'last commissioned':<26} {'runs':>4} {'abs_rel':>8} {'a1':>6}  model")
-    for p in profiles:
-        m = p.data.get("accepted_metrics") or (p.history[-1] if p.history else {})
-        a1 = f"{m['a1']:.3f}" if m.get("a1") is not None else "-"
-        rel = f"{m['abs_rel']:.4f}" if m.get("abs_rel") is not None else "-"
-        print(
-            f"{p.serial:<28} {p.status:<9} {p.data.get('last_commissioned', '-'):<26} {len(p.history):>4} "
-            f"{rel:>8} {a1:>6}  {'yes' if p.model_dir else 'no'}"
-        )
+    else:
+        print(f"registry {registry.root}: {len(profiles)} sensor{'s' if len(profiles) != 1 else ''}")
+        if profiles:
+            print(f"{'serial':<28} {'status':<9} {'last commissioned':<26} {'runs':>4} {'abs_rel':>8} {'a1':>6}  model")
+        for p in profiles:
+            m = p.data.get("accepted_metrics") or (p.history[-1] if p.history else {})
+            a1 = f"{m['a1']:.3f}" if m.get("a1") is not None else "-"
+            rel = f"{m['abs_rel']:.4f}" if m.get("abs_rel") is not None else "-"
+            print(
+                f"{p.serial:<28} {p.status:<9} {p.data.get('last_commissioned', '-'):<26} {len(p.history):>4} "
+                f"{rel:>8} {a1:>6}  {'yes' if p.model_dir else 'no'}"
+            )
+    if listing.problem() is not None:  # the readable sensors are listed above
+        raise InputError(listing.problem())
     return EXIT_OK

@@ -137,6 +137,22 @@ def check_profile(profile, path: Path) -> None:
                 raise bad(f"history[{i}].{field}", what, entry[field])
 
 
+@dataclass
+class RegistryListing:
+    """What ``SensorRegistry.survey`` found: the readable profiles, sorted by serial, and one message
+    per entry whose ``profile.json`` is damaged."""
+
+    profiles: list[SensorProfile]
+    unreadable: list[str]
+
+    def problem(self) -> str | None:
+        """One line on the damaged entries (the first one's message), None when there are none."""
+        if not self.unreadable:
+            return None
+        more = len(self.unreadable) - 1
+        return self.unreadable[0] + (f" (and {more} more damaged entr{'y' if more == 1 else 'ies'})" if more else "")
+
+
 class SensorRegistry:
     """The registry directory (created on first registration)."""
 
@@ -229,15 +245,19 @@ class SensorRegistry:
             raise InputError(f"sensor {serial!r} is not in the registry {self.root}")
         return SensorProfile(serial, sdir, self._read_profile(sdir))
 
-    def profiles(self) -> list[SensorProfile]:
-        """All registered sensors, sorted by serial (unreadable entries raise ``InputError``)."""
+    def survey(self) -> RegistryListing:
+        """Every registered sensor, sorted by serial: the readable profiles, and the ``InputError``
+        message of each entry whose ``profile.json`` is damaged (one such entry hides no other)."""
+        listing = RegistryListing([], [])
         if not self.root.is_dir():
-            return []
-        out = []
+            return listing
         for sdir in sorted(p for p in self.root.iterdir()  # other folders are not sensors
                            if SENSOR_SERIAL_RE.fullmatch(p.name) and (p / PROFILE).is_file()):
-            out.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
-        return out
+            try:
+                listing.profiles.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
+            except InputError as err:
+                listing.unreadable.append(str(err))
+        return listing
 
     def reference(self, serial: str) -> dict[str, np.ndarray]:
         """The stored no-contact reference of an accepted sensor (the ``reference`` arrays of ``register``)."""

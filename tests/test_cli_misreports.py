@@ -225,6 +225,25 @@ def test_registry_profile_fields_of_the_wrong_type(tmp_path, capsys, edit, field
         assert f"sensor registry profile {path} is corrupt: " in err
 
 
+def test_a_damaged_registry_entry_hides_no_other_sensor(tmp_path, capsys):
+    """``bubble sensors`` lists every readable sensor, then names the damaged entries in its one error
+    line (exit 2); was: the error line alone, every other sensor hidden."""
+    registry = SensorRegistry(tmp_path / "reg")
+    for serial in ("SB-A", "SB-B", "SB-C"):
+        registry.register(serial, accepted=True, run_dir=tmp_path, intrinsics={"width": 4, "height": 3},
+                          camera_in_tcp=None, simulated=True, acceptance={"accepted": True, "a1": 0.9, "abs_rel": 0.01})
+    (tmp_path / "reg" / "SB-A" / "profile.json").write_text("{")
+    (tmp_path / "reg" / "SB-C" / "profile.json").write_text("[]")
+    for argv, listed in ((["sensors", "--registry", tmp_path / "reg"], lambda out: out.splitlines()[2].split()[0]),
+                         (["sensors", "--registry", tmp_path / "reg", "--json"],
+                          lambda out: [p["serial"] for p in json.loads(out)])):
+        assert main([str(a) for a in argv]) == 2
+        out, err = capsys.readouterr()
+        assert listed(out) in ("SB-B", ["SB-B"]) and "SB-A" not in out and "SB-C" not in out, out
+        assert err == (f"bubble: error: sensor registry entry {tmp_path / 'reg' / 'SB-A'} is unreadable: Expecting "
+                       "property name enclosed in double quotes: line 1 column 2 (char 1) (and 1 more damaged entry)\n")
+
+
 def test_output_read_by_a_pipe_that_closes_early_is_no_traceback(synthetic_session):
     """``bubble info S.h5 | head -1``: the reader goes away after one line; the tool stops quietly."""
     import subprocess

@@ -189,7 +189,7 @@ def test_report_of_the_run_renders_in_headless_chromium(faulted_then_resumed, tm
 
 def test_registry_records_both_commissionings_and_lists_them(faulted_then_resumed, capsys):
     registry_dir = faulted_then_resumed["config"].registry_dir
-    (profile,) = SensorRegistry(registry_dir).profiles()
+    (profile,) = SensorRegistry(registry_dir).survey().profiles
     assert profile.status == "accepted" and profile.model_dir is not None
     assert [h["accepted"] for h in profile.history] == [False, True]
     assert "camera-stall" in profile.history[0]["reason"]
@@ -210,7 +210,7 @@ def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
     assert result.accepted
     assert all(e.resumed for e in events if isinstance(e, StepFinished))
     assert not [e for e in events if isinstance(e, StepStarted)]
-    assert len(SensorRegistry(config.registry_dir).profiles()[0].history) == 2
+    assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 2
 
 
 def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
@@ -234,7 +234,7 @@ def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
         # sample, often before a camera frame is stamped with it
         assert s.n_frames > 0 and {"approach", "retract"} <= set(s.phase_name(np.arange(s.n_frames)))
     assert json.loads((config.run_dir / "acceptance.json").read_text())["stopped"] is True
-    assert SensorRegistry(config.registry_dir).profiles() == []
+    assert SensorRegistry(config.registry_dir).survey().profiles == []
 
 
 @pytest.mark.parametrize(

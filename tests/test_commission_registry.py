@@ -47,15 +47,15 @@ def test_accepted_then_rejected_keeps_accepted_model(tmp_path):
 
 def test_listing_lookup_and_bad_names(tmp_path):
     reg = SensorRegistry(tmp_path / "reg")
-    assert reg.profiles() == []
+    assert reg.survey().profiles == []
     for serial in ("SB-B", "SB-A"):
         reg.register(serial, accepted=False, run_dir=tmp_path, intrinsics=INTR, camera_in_tcp=None,
                      simulated=True, acceptance={"accepted": False})
-    assert [p.serial for p in reg.profiles()] == ["SB-A", "SB-B"]
+    assert [p.serial for p in reg.survey().profiles] == ["SB-A", "SB-B"]
     stray = tmp_path / "reg" / "copy of SB-A\n"  # no sensor serial: not listed (its newline broke the table)
     stray.mkdir()
     (stray / "profile.json").write_text((tmp_path / "reg" / "SB-A" / "profile.json").read_text())
-    assert [p.serial for p in reg.profiles()] == ["SB-A", "SB-B"]
+    assert [p.serial for p in reg.survey().profiles] == ["SB-A", "SB-B"]
     with pytest.raises(InputError, match="not in the registry"):
         reg.get("SB-C")
     with pytest.raises(InputError, match="valid registry name"):

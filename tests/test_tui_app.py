@@ -567,6 +567,26 @@ def test_snapshot_registry(snap_compare, in_tmp):
     assert snap_compare(app, terminal_size=SIZE, press=["4"])
 
 
+def test_the_registry_tab_lists_the_readable_sensors_and_names_a_damaged_entry(in_tmp):
+    """Was: "registry unreadable" and an empty table, every sensor hidden by one damaged profile."""
+    registry = SensorRegistry(Path("registry"))
+    for serial in ("SB-0041", "SB-0042"):
+        registry.register(serial, accepted=True, run_dir=Path("run"), intrinsics={"width": 4, "height": 3},
+                          camera_in_tcp=None, simulated=True, acceptance={"accepted": True, "a1": 0.9})
+    Path("registry/SB-0041/profile.json").write_text("{")
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]))
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("4")
+            view = app.registry
+            return view.table.row_count, str(view.table.get_cell_at((0, 0))), str(view.line.content)
+
+    rows, first_serial, line = asyncio.run(scenario())
+    assert rows == 1 and first_serial == "SB-0042"
+    assert "(1 sensor)" in line and "sensor registry entry registry/SB-0041 is unreadable" in line, line
+
+
 def test_the_app_collects_garbage_between_frames_when_it_owns_the_process(in_tmp):
     enabled = gc.isenabled()
 

@@ -21,7 +21,8 @@ def _short_time(iso: str | None) -> str:
 
 
 class RegistryView(Vertical):
-    """Table of ``SensorRegistry.profiles()``; ``reload`` re-reads the registry directory."""
+    """Table of the readable profiles of ``SensorRegistry.survey()``, its damaged entries named above
+    it; ``reload`` re-reads the registry directory."""
 
     def __init__(self, registry_dir: Path | None, **kwargs) -> None:
         super().__init__(**kwargs)
@@ -43,11 +44,15 @@ class RegistryView(Vertical):
         table.clear()
         try:
             registry = SensorRegistry(self.registry_dir)
-            profiles = registry.profiles()
+            listing = registry.survey()
         except InputError as err:
             line.update(Text(f"registry unreadable: {err}", style="bold red"))
             return
-        line.update(Text(f"{registry.root}  ({len(profiles)} sensor{'s' if len(profiles) != 1 else ''})  r: reload"))
+        profiles = listing.profiles
+        summary = Text(f"{registry.root}  ({len(profiles)} sensor{'s' if len(profiles) != 1 else ''})  r: reload")
+        if listing.problem() is not None:
+            summary.append(f"\n{listing.problem()}", style="bold red")
+        line.update(summary)
         for profile in profiles:
             data = profile.data
             metrics = data.get("accepted_metrics") or (profile.history[-1] if profile.history else {})
