@@ -137,6 +137,34 @@ def check_profile(profile, path: Path) -> None:
                 raise bad(f"history[{i}].{field}", what, entry[field])
 
 
+def _store_accepted(sdir: Path, model_dir, reference: dict[str, np.ndarray] | None) -> None:
+    """Put an accepted commissioning's model (a copy of ``model_dir``) and ``reference`` arrays
+    (``reference.npz``) into the sensor directory ``sdir``. Both are staged beside their places
+    first, so a failure (a full disk) leaves the earlier ones whole; then each is swapped in by
+    renames, so a reader finds the old one or the new one, never a half-written one."""
+    model, staging, old = sdir / "model", sdir / "model.new", sdir / "model.old"
+    ref, ref_tmp = sdir / "reference.npz", sdir / "reference.npz.tmp"
+    for leftover in (staging, old):  # of a registration that died midway
+        shutil.rmtree(leftover, ignore_errors=True)
+    try:
+        if model_dir is not None:
+            shutil.copytree(model_dir, staging)
+        if reference is not None:
+            with ref_tmp.open("wb") as f:
+                np.savez_compressed(f, **reference)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        ref_tmp.unlink(missing_ok=True)
+        raise
+    if model_dir is not None:
+        if model.exists():
+            os.replace(model, old)
+        os.replace(staging, model)
+        shutil.rmtree(old, ignore_errors=True)
+    if reference is not None:
+        ref_tmp.replace(ref)
+
+
 @dataclass
 class RegistryListing:
     """What ``SensorRegistry.survey`` found: the readable profiles, sorted by serial, and one message
@@ -212,17 +240,11 @@ class SensorRegistry:
                 last_reason=reason,
             )
             if accepted:
+                _store_accepted(sdir, model_dir, reference)
                 if model_dir is not None:
-                    dst = sdir / "model"
-                    staging = sdir / "model.new"
-                    shutil.rmtree(staging, ignore_errors=True)
-                    shutil.copytree(model_dir, staging)
-                    shutil.rmtree(dst, ignore_errors=True)
-                    os.replace(staging, dst)
                     profile["model"] = "model"
                     profile["model_source"] = str(Path(model_dir).resolve())
                 if reference is not None:
-                    np.savez_compressed(sdir / "reference.npz", **reference)
                     profile["reference"] = "reference.npz"
                 profile["accepted_at"] = entry["time"]
                 profile["accepted_metrics"] = metrics

@@ -6,9 +6,10 @@
         valid = s.valid(idx)            # (n,H,W) bool
         ref = s.reference_frames("mug") # no-contact frames recorded before the mug's first press
 
-Files whose writer was killed (status flags left set by HDF5) are opened through a SWMR reader and
-hold every frame up to the writer's last flush. Bad files raise ``InputError`` with one line, and
-so does a file another process is recording (``in_use_error``).
+A file whose writer was killed (never marked closed) holds every frame up to the writer's last
+flush, and is read up to its shortest per-frame dataset (a crash mid-flush leaves one batch uneven).
+Bad files raise ``InputError`` with one line, and so does a file another process is recording
+(``in_use_error``).
 """
 
 from __future__ import annotations

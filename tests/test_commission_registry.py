@@ -4,6 +4,7 @@ import errno
 import fcntl
 import json
 import threading
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -141,3 +142,32 @@ def test_location_from_environment(tmp_path, monkeypatch):
     assert SensorRegistry().root == tmp_path / "envreg"
     monkeypatch.delenv("BUBBLE_REGISTRY")
     assert default_registry_dir().name == "sensors" and "bubble-bench" in str(default_registry_dir())
+
+
+def test_a_registration_that_fails_midway_keeps_the_accepted_model_and_reference(tmp_path, monkeypatch):
+    """A disk filling up while the new reference is written: the earlier accepted model and
+    reference stay whole and readable, and no temporary file is left (was: the model already
+    replaced, and reference.npz written in place, half of it left by the failure)."""
+    reg = SensorRegistry(tmp_path / "reg")
+    ref = {"depth_m": np.full((4, 5), 0.09, np.float32)}
+    acc = {"accepted": True, "a1": 0.97, "checks": []}
+    reg.register("SB-1", accepted=True, run_dir=tmp_path / "run1", intrinsics=INTR, camera_in_tcp=None,
+                 simulated=True, acceptance=acc, model_dir=_model_dir(tmp_path, "a"), reference=ref)
+    savez = np.savez_compressed
+
+    def disk_full(file, **arrays):  # file: a path or an open file
+        with open(file, "r+b") if isinstance(file, (str, Path)) else nullcontext(file) as f:
+            savez(f, **arrays)
+            f.truncate(10)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        reg.register("SB-1", accepted=True, run_dir=tmp_path / "run2", intrinsics=INTR, camera_in_tcp=None,
+                     simulated=True, acceptance=acc, model_dir=_model_dir(tmp_path, "b"),
+                     reference={"depth_m": np.zeros((4, 5), np.float32)})
+    np.testing.assert_array_equal(reg.reference("SB-1")["depth_m"], ref["depth_m"])
+    assert json.loads((reg.get("SB-1").model_dir / "model.json").read_text())["tag"] == "a"
+    assert sorted(p.name for p in (tmp_path / "reg" / "SB-1").iterdir()) == [
+        "acceptance.json", "model", "profile.json", "reference.npz"]
+    assert [h["run_dir"] for h in reg.get("SB-1").history] == [str((tmp_path / "run1").resolve())]
