@@ -15,6 +15,7 @@ class ConfirmStart(ModalScreen[bool]):
         Binding("y", "answer(True)", "Start"),
         Binding("n", "answer(False)", "Cancel"),
         Binding("escape", "answer(False)", "Cancel", show=False),
+        Binding("q", "answer(False)", "Cancel", show=False),  # the app's quit key: back out first
     ]
 
     def __init__(self, details: str) -> None:
