@@ -188,6 +188,8 @@ def test_confirmation_guards_the_start(in_tmp):
             assert not isinstance(app.screen, ConfirmStart)
             await pilot.press("c", "s")  # the stop key also cancels the dialog
             assert not isinstance(app.screen, ConfirmStart)
+            await pilot.press("c", "q")  # and the quit key (was: ignored there); a second q quits
+            assert not isinstance(app.screen, ConfirmStart) and app.is_running
             assert flow.calls == 0 and not app.running
 
     asyncio.run(scenario())
@@ -389,6 +391,32 @@ def test_a_fault_banner_says_what_the_safe_stop_did_to_the_arm(in_tmp, retracted
     level, text = asyncio.run(scenario())
     assert level == "fault" and text.startswith("FAULT force-spike: |F| 61.2 N > limit 40 N at pose 4 | ")
     assert f"| {outcome}" in text and "| run rejected; c retries" in text, text
+
+
+def test_a_bench_reading_too_wide_for_its_panel_is_cut_not_wrapped(in_tmp):
+    """|F| of four digits makes the force line one cell wider than the panel: it is cut with an
+    ellipsis, and the camera line stays in the panel's 11 rows (a wrapped line pushed it out)."""
+    ir, depth = bench_images()
+    spike = BenchSnapshot(True, [0.412, -0.105, 0.187, 3.1416, 0.0, 0.0], [0.0, 0.0, -1234.5, 0.0, 0.0, 0.0], 1067.3,
+                          ir, depth)
+
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events()[:-1] + [spike])
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            app.refresh_live()
+            await wait_for(lambda: app.bench_panel.snapshot is spike, pilot)
+            await pilot.pause()
+            panel = app.bench_panel
+            shown = [strip.text for strip in panel.render_lines(Region(0, 0, *panel.outer_size))]
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+        return shown
+
+    shown = asyncio.run(scenario())
+    assert any("force  |F| 1234.50 N  Fz -1234.…" in line for line in shown), shown
+    assert shown[-2].startswith("│ camera 224x172"), shown
 
 
 def test_the_link_is_down_once_collection_has_closed_the_bench(in_tmp):
