@@ -419,6 +419,25 @@ def test_a_bench_reading_too_wide_for_its_panel_is_cut_not_wrapped(in_tmp):
     assert shown[-2].startswith("│ camera 224x172"), shown
 
 
+def test_a_terminal_below_the_minimum_size_is_named_once_per_shrink(in_tmp):
+    """Was: no word of it, the panels silently cut (the last steps, PASS/FAIL, the dialog's title)."""
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]))
+        async with app.run_test(size=(80, 24)) as pilot:
+            await pilot.pause()
+            messages = [n.message for n in app._notifications]
+            await pilot.resize_terminal(90, 24)  # still too small: no second warning
+            await pilot.resize_terminal(*SIZE)
+            await pilot.resize_terminal(120, 20)
+            await pilot.pause()
+            return messages, [n.message for n in app._notifications]
+
+    first, last = asyncio.run(scenario())
+    assert first == ["The terminal is 80 x 24: panels are cut below 100 x 30; enlarge the window. s or space still "
+                     "stops the arm."]
+    assert len(last) == 2 and last[-1].startswith("The terminal is 120 x 20: ")
+
+
 def test_the_link_is_down_once_collection_has_closed_the_bench(in_tmp):
     """A snapshot the UI picks up after the end of collection (it was waiting in the inbox, or the flow
     sent it just before closing the bench) does not bring the link back: the bench panel showed

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
-from textual import on
+from textual import events, on
 from textual.app import App
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
@@ -63,6 +63,10 @@ from collect.errors import HardwareFault, InputError
 #: the frame that answers the start (docs/tui.md "Responsiveness").
 IDLE_HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
 RUN_HINT = "Commissioning... s or space stops the arm and retracts it; recorded data is kept."
+
+#: The smallest terminal (columns, rows) in which every panel shows whole (docs/tui.md); below it the
+#: app says so once per shrink. The stop keys work at any size.
+MIN_TERMINAL = (100, 30)
 
 #: How long quitting waits for a stopping flow before giving up on a clean close, s.
 QUIT_WAIT_S = 60.0
@@ -153,6 +157,7 @@ class BenchApp(App):
         self._last_snapshot_at: float | None = None
         self._latest_images = None  # (ir, depth_m) of the latest snapshot
         self._fault_text: str | None = None  # banner text of the run's last FaultRaised
+        self._too_small = False  # the terminal is below MIN_TERMINAL (and the operator was told)
         self.safe_stop: ArmSafeStopped | None = None  # the run's last safe stop of the arm
         self.result = None  # the last CommissionResult
         self.error: BaseException | None = None  # the last exception raised by the flow
@@ -201,6 +206,16 @@ class BenchApp(App):
             self.call_after_refresh(self._show_tabs_once, [*others, shown])
         else:
             self.call_after_refresh(self._finish_start_up)  # after the first frame: its widgets are frozen too
+
+    def on_resize(self, event: events.Resize) -> None:
+        """Below ``MIN_TERMINAL`` panels are cut: say so once, when the terminal gets that small."""
+        width, height = event.size
+        too_small = width < MIN_TERMINAL[0] or height < MIN_TERMINAL[1]
+        if too_small and not self._too_small:
+            self.notify(f"The terminal is {width} x {height}: panels are cut below {MIN_TERMINAL[0]} x "
+                        f"{MIN_TERMINAL[1]}; enlarge the window. s or space still stops the arm.",
+                        severity="warning", timeout=10)
+        self._too_small = too_small
 
     def _show_tabs_once(self, order: list[str], polls: int = 0) -> None:
         """Start-up (``warm_up_tabs``): show each tab until it has been laid out (drawn), ending on
