@@ -258,7 +258,9 @@ def test_a_reference_or_hold_cut_short_is_recorded_again_on_resume(tmp_path, pha
     records it again (was: the retract made it look pressed, held and let go, and it was skipped)."""
     out = tmp_path / "cut.h5"
     config = BenchConfig.create("sim", objects=("box",), seed=1)
-    settings = PlanSettings(poses_per_object=2, seed=1)
+    # holds and references long enough for the stop to land in them at 10 progress reports/s on a
+    # loaded machine (the defaults, 0.25 s and 0.4 s, were once over before the third report)
+    settings = PlanSettings(poses_per_object=2, seed=1, hold_s=1.0, reference_s=1.0)
     stop = threading.Event()
     frames_in_phase = []
 
