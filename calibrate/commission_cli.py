@@ -224,6 +224,7 @@ def run_sensors(args) -> int:
                 f"{p.serial:<28} {p.status:<9} {p.data.get('last_commissioned', '-'):<26} {len(p.history):>4} "
                 f"{rel:>8} {a1:>6}  {'yes' if p.model_dir else 'no'}"
             )
-    if listing.problem() is not None:  # the readable sensors are listed above
-        raise InputError(listing.problem())
+    problem = listing.problem()
+    if problem is not None:  # the readable sensors are listed above
+        raise InputError(problem)
     return EXIT_OK

@@ -54,29 +54,36 @@ def write_json_result(path, command: str, values: dict) -> None:
 
 
 @contextmanager
-def output_folder_lock(folder, holder: str | None = None) -> Iterator[None]:
-    """Hold ``folder`` (an existing directory) for the with-block, against every other process that
-    writes it through this lock: an exclusive ``flock(2)`` on the folder itself, so nothing is added
-    to it, and the kernel releases the lock when the process ends, also when it is killed.
+def exclusive_lock(path, busy: InputError | None = None) -> Iterator[int]:
+    """Hold ``path`` (a file or a folder, opened read-only; yields its descriptor) for the with-block,
+    against every other process that takes this lock on it: an exclusive ``flock(2)``, which the
+    kernel releases when the process ends, also when it is killed, and which adds no file.
 
-    With ``holder`` (the command that writes such a folder, e.g. ``"bubble train"``), a folder held
-    elsewhere is refused at once with ``InputError``; without, the call waits until the holder is
-    done (for writes of a second or so, like a registry entry). Locks are per open folder, not per
-    process: a second lock of a folder this process holds is refused (or waits forever). On a file
-    system that cannot lock a folder (NFS takes no exclusive lock on a file opened read-only, as a
-    folder is) the with-block runs unlocked."""
-    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    With ``busy``, a path held elsewhere raises ``busy`` at once; without, the call waits until the
+    holder is done. Locks are per open file, not per process: a second lock of a path this process
+    holds is refused (or waits forever). On a file system that cannot take the lock (NFS takes no
+    exclusive lock on a file opened read-only) the with-block runs unlocked."""
+    fd = os.open(path, os.O_RDONLY)
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | (fcntl.LOCK_NB if holder else 0))
+            fcntl.flock(fd, fcntl.LOCK_EX | (fcntl.LOCK_NB if busy is not None else 0))
         except BlockingIOError:
-            raise InputError(f"{folder} is being written by another {holder}; wait until it has finished, "
-                             "or choose another --out") from None
-        except OSError:  # no folder locks on this file system: one writer at a time is then up to the user
+            raise busy from None
+        except OSError:  # no such locks on this file system: one writer at a time is then up to the user
             pass
-        yield
+        yield fd
     finally:
         os.close(fd)
+
+
+def output_folder_lock(folder, holder: str | None = None):
+    """``exclusive_lock`` on an output folder (an existing directory) for one writer at a time. With
+    ``holder`` (the command that writes such a folder, e.g. ``"bubble train"``), a folder held
+    elsewhere is refused at once with ``InputError``; without, the call waits until the holder is
+    done (for writes of a second or so, like a registry entry)."""
+    busy = None if holder is None else InputError(
+        f"{folder} is being written by another {holder}; wait until it has finished, or choose another --out")
+    return exclusive_lock(folder, busy)
 
 
 def check_parent_dirs(path) -> None:

@@ -45,7 +45,6 @@ docs/session_format.md and docs/bench_recorder.md for the measurements behind th
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import queue
@@ -62,7 +61,7 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import HardwareFault, InputError
 from collect.json_files import plain_json
-from collect.output_files import check_parent_dirs
+from collect.output_files import check_parent_dirs, exclusive_lock
 from collect.session_reader import h5_error_text, in_use_error, open_h5
 
 #: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
@@ -870,12 +869,7 @@ def _recover_crashed(path: str) -> h5py.File:
     copying it too and replacing the copy the first one records into.
     """
     tmp = path + ".recover.tmp"
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise in_use_error(path) from None
+    with exclusive_lock(path, in_use_error(path)) as fd:
         if _file_replaced(fd, path):  # another resume rewrote it since this one opened it
             raise in_use_error(path)
         dst = h5py.File(tmp, "w", libver=LIBVER)
@@ -893,5 +887,3 @@ def _recover_crashed(path: str) -> h5py.File:
                 os.remove(tmp)
             raise
         return dst
-    finally:
-        os.close(fd)

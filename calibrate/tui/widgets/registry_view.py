@@ -50,8 +50,9 @@ class RegistryView(Vertical):
             return
         profiles = listing.profiles
         summary = Text(f"{registry.root}  ({len(profiles)} sensor{'s' if len(profiles) != 1 else ''})  r: reload")
-        if listing.problem() is not None:
-            summary.append(f"\n{listing.problem()}", style="bold red")
+        problem = listing.problem()
+        if problem is not None:
+            summary.append(f"\n{problem}", style="bold red")
         line.update(summary)
         for profile in profiles:
             data = profile.data
