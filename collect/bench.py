@@ -17,6 +17,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
+import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -29,6 +31,7 @@ from collect.arm import Arm, MotionSettings
 from collect.camera import STALL_TIMEOUT_S, ToFCamera
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
+from collect.output_files import exclusive_lock
 from collect.pressure_board import PressureBoard
 from collect.safety import SafetyLimits
 
@@ -41,6 +44,22 @@ RTDE_HZ_RANGE = (1.0, 500.0)
 #: Frame rates (fps) of the OAK ToF camera: its 33D sensor runs at up to 80 fps (depthai's RVC2
 #: driver limit), and below two frames per stall timeout the camera driver would see a stall.
 CAMERA_FPS_RANGE = (2.0 / STALL_TIMEOUT_S, 80.0)
+
+
+def arm_lock(robot_ip: str) -> contextlib.AbstractContextManager:
+    """Hold the arm at ``robot_ip`` for one process of this machine (``exclusive_lock`` on
+    ``<temp dir>/bubble-arm-<robot_ip>.lock``, readable by every user), refused at once with
+    ``InputError`` while another holds it. A second ur_rtde control interface would upload its own
+    control script and so end the first process's motion halfway through a press."""
+    path = Path(tempfile.gettempdir()) / f"bubble-arm-{re.sub(r'[^A-Za-z0-9._-]', '_', robot_ip)}.lock"
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+        os.chmod(path, 0o644)  # whatever the umask: another user's run must be able to take the lock
+    except FileExistsError:  # left by an earlier run (it stays; the lock, not the file, says "in use")
+        pass
+    busy = InputError(f"arm {robot_ip} is driven by another bubble process on this machine (collect, "
+                      "commission or tui); wait until it has finished")
+    return exclusive_lock(path, busy)
 
 
 def _within(value, lo: float, hi: float) -> bool:
@@ -207,16 +226,19 @@ class URBenchConfig(BenchConfig):
         limits = self.limits or workspace_limits(objects)
         home = limits.check_pose(self.home_pose)
         library_said: list[str] = []
-        try:
-            with native_output_into(library_said):
-                receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.rtde_hz)
-                control = rtde_control.RTDEControlInterface(self.robot_ip, self.rtde_hz)
-        except RuntimeError as err:
-            raise HardwareFault("arm-disconnected",
-                                f"arm: cannot connect to {self.robot_ip}: {err}{folded(library_said)}") from err
-        return Bench(arm=Arm(control, receive, limits, settings=self.motion, state_hz=self.state_hz),
-                     camera=DepthaiToFCamera(self.camera_id, self.camera_fps, self.tof_profile),
-                     pressure=PressureBoard(self.serial_port), objects=objects, home_pose=home, simulated=False)
+        with contextlib.ExitStack() as held:
+            held.enter_context(arm_lock(self.robot_ip))  # before connecting: a second control interface takes the arm over
+            try:
+                with native_output_into(library_said):
+                    receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.rtde_hz)
+                    control = rtde_control.RTDEControlInterface(self.robot_ip, self.rtde_hz)
+            except RuntimeError as err:
+                raise HardwareFault("arm-disconnected",
+                                    f"arm: cannot connect to {self.robot_ip}: {err}{folded(library_said)}") from err
+            return Bench(arm=Arm(control, receive, limits, settings=self.motion, state_hz=self.state_hz),
+                         camera=DepthaiToFCamera(self.camera_id, self.camera_fps, self.tof_profile),
+                         pressure=PressureBoard(self.serial_port), objects=objects, home_pose=home, simulated=False,
+                         held=held.pop_all())
 
 
 @BenchConfig.register("sim")
@@ -270,7 +292,7 @@ class Bench:
     """
 
     def __init__(self, *, arm: Arm, camera: ToFCamera, pressure: PressureBoard, objects, home_pose,
-                 simulated: bool, sim=None, firmware=None):
+                 simulated: bool, sim=None, firmware=None, held: contextlib.ExitStack | None = None):
         self.arm = arm
         self.camera = camera
         self.pressure = pressure
@@ -284,6 +306,7 @@ class Bench:
         self.sensor_serial = ""
         self.limits = arm.limits
         self._unretracted = ""  # why the last safe stop could not retract ("" after a retract)
+        self._held = held or contextlib.ExitStack()  # released by close(): the arm lock of a real bench
 
     def start(self) -> None:
         """Open the pressure board, start the camera and the arm monitor; read serial and intrinsics."""
@@ -326,6 +349,7 @@ class Bench:
             self._firmware.stop()
         if self.sim is not None:
             self.sim.stop()
+        self._held.close()
 
 
 @contextlib.contextmanager

@@ -23,6 +23,7 @@ bench clock.
 
 from __future__ import annotations
 
+import errno
 import logging
 import re
 import threading
@@ -32,7 +33,7 @@ from dataclasses import dataclass
 
 import serial
 
-from collect.errors import HardwareFault
+from collect.errors import HardwareFault, InputError
 from collect.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
@@ -108,9 +109,12 @@ class PressureBoard:
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
         """Open the port and start the reader thread."""
-        try:
-            self._serial = serial.Serial(self.port, self.baudrate, timeout=0.05)
+        try:  # exclusive: flock(2) on the port, so that two runs never split the board's lines between them
+            self._serial = serial.Serial(self.port, self.baudrate, timeout=0.05, exclusive=True)
         except (serial.SerialException, OSError) as err:
+            if err.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise InputError(f"pressure board: {self.port} is in use by another bubble process; wait until "
+                                 "it has finished, or check serial_port") from err
             raise HardwareFault("serial-missing", f"pressure board: cannot open {self.port}: {err}") from err
         self._serial.reset_input_buffer()
         self._last_valid = self._clock()

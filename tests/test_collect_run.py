@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 import threading
 
 import h5py
@@ -12,7 +13,7 @@ import pytest
 from calibrate.cli import main
 from collect import session_format as sf
 from collect.arm import MotionSettings
-from collect.bench import BenchConfig, open_bench
+from collect.bench import BenchConfig, arm_lock, open_bench
 from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
@@ -350,9 +351,20 @@ def test_bench_yaml_rates_are_checked_before_any_device_opens(tmp_path, capsys):
     assert "rtde_hz 1000 is outside 1..500 Hz" in _error_line(capsys)
 
 
-def test_real_bench_without_a_robot_is_a_fault(tmp_path, capfd):
+@pytest.fixture
+def own_temp_dir(tmp_path, monkeypatch):
+    """``tempfile.gettempdir()`` is a folder of this test's own: the arm locks a real bench takes
+    there (``arm_lock``) are not shared with another test run on the machine."""
+    folder = tmp_path / "temp"
+    folder.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    return folder
+
+
+def test_real_bench_without_a_robot_is_a_fault(tmp_path, capfd, own_temp_dir):
     """Without --sim the 'ur' bench of --bench is opened: no robot at the address -> one line, exit 3
-    (ur_rtde's own ``connect: Connection refused``, written by its C++ code, folded into it)."""
+    (ur_rtde's own ``connect: Connection refused``, written by its C++ code, folded into it).
+    The arm lock taken before connecting is given back."""
     bench = tmp_path / "bench.yaml"
     bench.write_text("type: ur\nrobot_ip: 127.0.0.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n")
     out = tmp_path / "real.h5"
@@ -360,3 +372,21 @@ def test_real_bench_without_a_robot_is_a_fault(tmp_path, capfd):
     [line] = capfd.readouterr().err.strip().splitlines()
     assert line.startswith("bubble: fault: arm-disconnected: arm: cannot connect to 127.0.0.1")
     assert not out.exists()
+    with arm_lock("127.0.0.1"):
+        pass
+
+
+def test_an_arm_driven_by_another_run_is_refused_before_connecting(tmp_path, capfd, own_temp_dir):
+    """A second process on one arm would take it over halfway through the first one's press (its
+    ur_rtde control interface uploads a new control script): refused, one line, exit 2, before any
+    connection attempt (no ur_rtde output)."""
+    bench = tmp_path / "bench.yaml"
+    bench.write_text("type: ur\nrobot_ip: 127.0.0.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n")
+    out = tmp_path / "second.h5"
+    with arm_lock("127.0.0.1"):  # the first run (a lock is per open file: this process's own run is refused too)
+        code = main(["collect", "--bench", str(bench), "--objects", "box", "--quiet", "--out", str(out)])
+    assert code == 2
+    assert capfd.readouterr().err == ("bubble: error: arm 127.0.0.1 is driven by another bubble process on this "
+                                      "machine (collect, commission or tui); wait until it has finished\n")
+    assert not out.exists()
+    assert (own_temp_dir / "bubble-arm-127.0.0.1.lock").stat().st_mode & 0o777 == 0o644

@@ -10,7 +10,7 @@ import tty
 import numpy as np
 import pytest
 
-from collect.errors import HardwareFault
+from collect.errors import HardwareFault, InputError
 from collect.pressure_board import MAX_CORRUPT_RUN, PressureBoard, checksum, decode_line, encode_line
 from conftest import wait_until
 
@@ -153,6 +153,18 @@ def test_unplug_is_detected(pty_board):
             board.check()
             time.sleep(0.005)
     assert err.value.kind == "serial-unplug"
+
+
+def test_a_port_open_in_another_run_is_refused(pty_board):
+    """Two runs on one board would split its lines between them (each sees gaps and corrupt lines):
+    the port is opened exclusively, and a second open is refused with one line until the first closes."""
+    board, _ = pty_board
+    second = PressureBoard(board.port)
+    with pytest.raises(InputError, match=f"^pressure board: {board.port} is in use by another bubble process"):
+        second.open()
+    board.close()
+    second.open()
+    second.close()
 
 
 def test_missing_port_is_a_fault():
