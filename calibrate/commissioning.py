@@ -401,6 +401,7 @@ class _Flow:
             seed=self.config.seed,
             split="poses",
             eval_interval_s=max(10.0, budget_s / 8),
+            write_on_stop=False,  # a stopped run fine-tunes again on resume: a stop returns at once
         )
         result = train_model(config, on_progress, self.stop_event)
         if result.stopped:

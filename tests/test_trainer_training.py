@@ -117,6 +117,22 @@ def test_stop_event_ends_training_early(session, tmp_path):
     assert result.stopped and result.steps == 2 and (tmp_path / "m" / WEIGHTS_FILE).is_file()
 
 
+def test_a_stop_without_write_on_stop_returns_at_once(session, tmp_path):
+    """A caller that throws a stopped model away (commissioning) gets control back after the step in
+    progress: no final validation (no "done" report), no model written."""
+    stop = threading.Event()
+    events = []
+
+    def on_progress(progress):
+        events.append(progress.event)
+        if progress.step == 2:
+            stop.set()
+
+    result = train_model(_config([session], tmp_path / "m", write_on_stop=False), on_progress, stop)
+    assert result.stopped and result.steps == 2 and result.metrics == {}
+    assert "done" not in events and not (tmp_path / "m" / WEIGHTS_FILE).exists()
+
+
 def test_deadline_bounds_the_whole_call_and_drives_the_schedule(session, tmp_path):
     events = []
     start = time.perf_counter()

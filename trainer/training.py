@@ -96,6 +96,7 @@ class TrainConfig:
     eval_frames: int = 64  # validation frames used for the periodic (live) metrics
     deadline_s: float | None = None  # wall-time limit (s) of the whole train_model call; None: budget only
     export_onnx: bool = True
+    write_on_stop: bool = True  # False: a stop_event ends the call at once, no final validation nor model written
     threads: int | None = None  # torch CPU threads; None: the cores shared by local processes
 
 
@@ -249,8 +250,11 @@ def train_model(
     Returns the final validation metrics and the periodic validation history; the model
     directory holds the weights, ``metadata.json`` (with those metrics) and, when
     ``config.export_onnx``, ``model.onnx`` with the inference runtime chosen. ``stop_event``
-    ends training early (the model so far is still written). Raises ``InputError`` for bad
-    data or settings. Under torchrun only rank 0 returns a result (the others None).
+    ends training early: the model so far is still validated and written, or, with
+    ``config.write_on_stop`` False (a caller that throws it away), the call returns at once with
+    ``stopped`` set and empty ``metrics``, and ``config.out`` keeps only the last periodic
+    checkpoint, if any. Raises ``InputError`` for bad data or settings. Under torchrun only rank 0
+    returns a result (the others None).
     """
     call_start = time.perf_counter()
     _check_config(config)
@@ -395,7 +399,10 @@ def train_model(
             epoch_f = float(epoch + 1)
 
     result = None
-    if ctx.is_main:
+    if stopped and not config.write_on_stop:
+        if ctx.is_main:
+            result = TrainResult(out_dir, {}, history, epoch_f, step, train_s, True, _peak_rss_mb())
+    elif ctx.is_main:
         metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
         history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
                         **evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)})
