@@ -5,7 +5,8 @@ subcommand sets ``func(args) -> int`` (the exit code). Handlers import their hea
 (torch, h5py, textual) lazily so that ``bubble --help`` stays fast.
 
 Errors: ``InputError`` prints one line ``bubble: error: ...`` and exits 2; ``HardwareFault``
-prints ``bubble: fault: ...`` and exits 3; Ctrl-C exits 130. No tracebacks for either.
+prints ``bubble: fault: ...`` and exits 3; Ctrl-C exits 130, SIGTERM and SIGHUP end a command the
+same way (``calibrate.stop_signals``) and exit 143 and 129. No tracebacks for any of them.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import importlib
 import os
 import sys
 
+from calibrate.stop_signals import Terminated, raise_terminated, stop_signals_handled
 from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, HardwareFault, InputError, OneLineParser
 
 #: Modules providing ``register(subparsers)``, in the order their commands are listed.
@@ -48,13 +50,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        with stop_signals_handled(raise_terminated):
+            return int(args.func(args) or 0)
     except InputError as err:
         print(f"bubble: error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except HardwareFault as err:
         print(f"bubble: fault: {err.kind}: {err}", file=sys.stderr)
         return EXIT_FAULT
+    except Terminated as err:
+        print(f"bubble: interrupted ({err.name})", file=sys.stderr)
+        return err.exit_code
     except KeyboardInterrupt:
         print("bubble: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

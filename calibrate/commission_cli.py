@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+from calibrate.stop_signals import Terminated, stop_signals_handled
 from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import output_path
@@ -162,17 +163,20 @@ def run_commission(args) -> int:
         finally:
             done.set()
 
-    def on_sigint(signum, frame) -> None:
-        # Ctrl-C only asks the flow to stop: it halts the arm, retracts and closes the files itself.
+    def on_stop(signum, frame=None) -> None:
+        # Ctrl-C (or SIGTERM, SIGHUP) only asks the flow to stop: it halts the arm, retracts and closes the files itself.
         print("bubble: still stopping (arm retracting, files closing) ..." if stop.is_set()
               else "bubble: stopping the arm and closing the run ...", file=sys.stderr)
+        if signum != signal.SIGINT:
+            outcome["signal"] = Terminated(signum)
         stop.set()
 
-    previous = signal.signal(signal.SIGINT, on_sigint)
+    previous = signal.signal(signal.SIGINT, on_stop)
     try:
-        threading.Thread(target=work, name="commission", daemon=True).start()
-        while not done.wait(0.2):
-            pass
+        with stop_signals_handled(on_stop):
+            threading.Thread(target=work, name="commission", daemon=True).start()
+            while not done.wait(0.2):
+                pass
     finally:
         signal.signal(signal.SIGINT, previous)
     if "error" in outcome:
@@ -180,7 +184,7 @@ def run_commission(args) -> int:
     result = outcome["result"]
     if result.stopped:
         print(f"STOPPED: data kept in {result.run_dir}; re-run the same command to resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return outcome["signal"].exit_code if "signal" in outcome else EXIT_INTERRUPTED
     if result.accepted:
         print(f"ACCEPTED: report {result.report_path}")
         return EXIT_OK

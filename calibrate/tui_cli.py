@@ -7,6 +7,7 @@ from datetime import datetime
 from pathlib import Path
 
 from calibrate.commission_cli import add_run_options, run_config
+from calibrate.stop_signals import Terminated, stop_signals_handled
 from collect.errors import InputError
 from collect.output_files import output_path
 
@@ -39,5 +40,13 @@ def run_tui(args) -> int:
 
     from calibrate.tui.app import BenchApp
 
-    BenchApp(config, tune_gc=True, warm_up_tabs=True).run()
-    return 0
+    app = BenchApp(config, tune_gc=True, warm_up_tabs=True)
+    received: list[int] = []
+
+    def quit_app(signum: int) -> None:  # as the q key: stop the run and close its files, then leave
+        received.append(signum)
+        app.call_later(app.action_quit)
+
+    with stop_signals_handled(quit_app):
+        app.run()
+    return Terminated(received[0]).exit_code if received else 0

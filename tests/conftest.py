@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -114,13 +115,12 @@ def make_synthetic_session_fixture():
     return make_synthetic_session
 
 
-def ctrl_c_once_recording(argv: list[str], recording: Path, timeout_s: float = 120.0):
-    """Run ``bubble ARGV`` in a child, press Ctrl-C once ``recording`` holds 2 MB on disk (a few dozen
-    frames; the writer holds HDF5's file lock, so the size is what can be watched); returns
-    ``(returncode, stderr)``. SIGINT is restored to its default disposition in the child, as in a
-    terminal, also when pytest was started by a shell without job control (which ignores it)."""
+def interrupt_once_recording(argv: list[str], recording: Path, timeout_s: float = 120.0, signum: int = signal.SIGINT):
+    """Run ``bubble ARGV`` in a child, send it ``signum`` (default SIGINT: Ctrl-C) once ``recording``
+    holds 2 MB on disk (a few dozen frames; the writer holds HDF5's file lock, so the size is what can
+    be watched); returns ``(returncode, stderr)``. SIGINT is restored to its default disposition in the
+    child, as in a terminal, also when pytest was started by a shell without job control (which ignores it)."""
     import os
-    import signal
     import subprocess
     import sys
     import time
@@ -133,7 +133,7 @@ def ctrl_c_once_recording(argv: list[str], recording: Path, timeout_s: float = 1
             recording.exists() and recording.stat().st_size > 2e6):
         time.sleep(0.2)
     assert proc.poll() is None, proc.communicate()[1]
-    os.kill(proc.pid, signal.SIGINT)
+    os.kill(proc.pid, signum)
     _, err = proc.communicate(timeout=60)
     return proc.returncode, err
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import signal
 import tempfile
 import threading
 
@@ -18,7 +19,7 @@ from collect.collection import open_collection_writer, plan_bench_collection, ru
 from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
-from conftest import ctrl_c_once_recording
+from conftest import interrupt_once_recording
 
 
 def _collect(tmp_path, *extra, name="s.h5"):
@@ -323,11 +324,19 @@ def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
     assert z_after[-1] > z_stop + 1e-3  # then the safe stop retracted it
 
 
-def test_ctrl_c_exits_130_and_closes_the_file(tmp_path):
+@pytest.mark.parametrize("signum, code, last_line", [
+    (signal.SIGINT, 130, "bubble: interrupted"),  # Ctrl-C
+    (signal.SIGTERM, 143, "bubble: interrupted (SIGTERM)"),  # kill, a service manager's stop
+    (signal.SIGHUP, 129, None),  # the terminal closed: nothing more is written to it
+], ids=["SIGINT", "SIGTERM", "SIGHUP"])
+def test_an_interrupt_stops_the_arm_and_closes_the_file(tmp_path, signum, code, last_line):
+    """Ctrl-C, SIGTERM and SIGHUP all stop the arm and close the session (was, for the last two:
+    the process died at once, the file unclosed and the arm wherever the signal found it)."""
     out = tmp_path / "interrupted.h5"
-    code, err = ctrl_c_once_recording(["collect", "--sim", "--objects", "box", "--poses-per-object", "2", "--quiet",
-                                       "--out", str(out)], out, timeout_s=60)
-    assert code == 130 and err.strip().splitlines()[-1] == "bubble: interrupted"
+    returncode, err = interrupt_once_recording(["collect", "--sim", "--objects", "box", "--poses-per-object", "2",
+                                                "--quiet", "--out", str(out)], out, timeout_s=60, signum=signum)
+    assert returncode == code, err
+    assert (err.strip().splitlines()[-1] if last_line else err) == (last_line or "")
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 0
 

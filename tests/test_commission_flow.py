@@ -12,6 +12,7 @@ import fcntl
 import json
 import math
 import os
+import signal
 import threading
 import time
 
@@ -38,7 +39,7 @@ from calibrate.sensor_registry import SensorRegistry
 from collect.errors import InputError
 from collect.safety import SafetyViolation
 from collect.session_reader import Session
-from conftest import ctrl_c_once_recording
+from conftest import interrupt_once_recording
 from trainer.metrics import METRIC_KEYS
 
 #: Model to fine-tune from: None = the packaged base model (trainer/base_model).
@@ -341,13 +342,15 @@ def test_a_run_directory_another_run_is_writing_is_refused_before_the_bench_open
     assert list(config.run_dir.iterdir()) == [] and not config.registry_dir.exists()
 
 
-def test_ctrl_c_during_commissioning_stops_the_arm_and_exits_130(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupt_during_commissioning_stops_the_arm_and_keeps_the_data(tmp_path, signum):
+    """Ctrl-C and SIGTERM alike: the flow stops the arm and closes the run, exit 128 + signal."""
     run = tmp_path / "run"
-    code, err = ctrl_c_once_recording(["commission", "--sim", "--objects", "box", "--poses-per-object", "2",
-                                       "--leak-hold-s", "1", "--sim-speed", "2", "--quiet",
-                                       "--registry", str(tmp_path / "registry"), "--out", str(run)],
-                                      run / "session.h5")
-    assert code == 130, err
+    code, err = interrupt_once_recording(["commission", "--sim", "--objects", "box", "--poses-per-object", "2",
+                                          "--leak-hold-s", "1", "--sim-speed", "2", "--quiet",
+                                          "--registry", str(tmp_path / "registry"), "--out", str(run)],
+                                         run / "session.h5", signum=signum)
+    assert code == 128 + signum, err
     assert err.strip().splitlines()[-1].startswith("STOPPED: data kept in")
     assert json.loads((run / "acceptance.json").read_text())["stopped"] is True
     with Session.open(run / "session.h5") as s:

@@ -87,3 +87,64 @@ def test_stop_mid_collection_then_resume_to_a_verdict(tmp_path):
 
     asyncio.run(scenario())
     assert Path(app.result.report_path).is_file()
+
+
+def test_sigterm_stops_the_run_and_gives_the_terminal_back(tmp_path):
+    """``bubble tui`` in a real terminal (a pty), a run started with c, y: SIGTERM (``kill``) acts as
+    the q key: it stops the run (arm retracted, files closed) and the app leaves its alternate screen,
+    exit 143 (was: the process died at once and left the terminal in the app's screen)."""
+    import json
+    import os
+    import pty
+    import select
+    import signal
+    import sys
+    import time
+
+    run = tmp_path / "run"
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: the real command line in the pty
+        os.environ["TERM"] = "xterm-256color"
+        os.execv(sys.executable, [sys.executable, "-m", "calibrate.cli", "tui", "--sim", "--objects", "box",
+                                  "--poses-per-object", "2", "--leak-hold-s", "1", "--out", str(run),
+                                  "--registry", str(tmp_path / "registry")])
+    screen = bytearray()
+    exit_status: list[int] = []
+
+    def read_until(done, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() > deadline:
+                return False
+            if select.select([fd], [], [], 0.05)[0]:
+                try:
+                    screen.extend(os.read(fd, 1 << 16))
+                except OSError:  # the child closed the pty: read nothing more
+                    time.sleep(0.05)
+        return True
+
+    def exited() -> bool:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            exit_status.append(os.waitstatus_to_exitcode(status))
+        return bool(exit_status)
+
+    try:
+        assert read_until(lambda: b"Commission" in screen, 60), bytes(screen[-2000:])
+        os.write(fd, b"c")
+        assert read_until(lambda: b"Start" in screen[-20000:], 10)
+        os.write(fd, b"y")
+        session = run / "session.h5"
+        assert read_until(lambda: session.exists() and session.stat().st_size > 2e6, 90)
+        os.kill(pid, signal.SIGTERM)
+        assert read_until(exited, 60)
+    finally:
+        if not exit_status:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        os.close(fd)
+    assert exit_status == [143]
+    assert b"\x1b[?1049l" in screen  # the alternate screen left: the shell's screen is back
+    assert json.loads((run / "acceptance.json").read_text())["stopped"] is True
+    with Session.open(run / "session.h5") as s:
+        assert s.closed_cleanly and s.n_frames > 0
