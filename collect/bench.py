@@ -57,8 +57,8 @@ def arm_lock(robot_ip: str) -> contextlib.AbstractContextManager:
         os.chmod(path, 0o644)  # whatever the umask: another user's run must be able to take the lock
     except FileExistsError:  # left by an earlier run (it stays; the lock, not the file, says "in use")
         pass
-    busy = InputError(f"arm {robot_ip} is driven by another bubble process on this machine (collect, "
-                      "commission or tui); wait until it has finished")
+    busy = InputError(f"arm {robot_ip} is driven by another bubble process on this machine (bubble "
+                      "collect or bubble commission); wait until it has finished")
     return exclusive_lock(path, busy)
 
 

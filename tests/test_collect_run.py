@@ -396,6 +396,6 @@ def test_an_arm_driven_by_another_run_is_refused_before_connecting(tmp_path, cap
         code = main(["collect", "--bench", str(bench), "--objects", "box", "--quiet", "--out", str(out)])
     assert code == 2
     assert capfd.readouterr().err == ("bubble: error: arm 127.0.0.1 is driven by another bubble process on this "
-                                      "machine (collect, commission or tui); wait until it has finished\n")
+                                      "machine (bubble collect or bubble commission); wait until it has finished\n")
     assert not out.exists()
     assert (own_temp_dir / "bubble-arm-127.0.0.1.lock").stat().st_mode & 0o777 == 0o644
