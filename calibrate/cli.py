@@ -17,7 +17,7 @@ import importlib
 import os
 import sys
 
-from calibrate.stop_signals import Terminated, raise_terminated, stop_signals_handled
+from calibrate.stop_signals import INTERRUPTS, Terminated, raise_interrupt, stop_signals_handled
 from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, HardwareFault, InputError, OneLineParser
 
 #: Modules providing ``register(subparsers)``, in the order their commands are listed.
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with stop_signals_handled(raise_terminated):
+        with stop_signals_handled(raise_interrupt, INTERRUPTS):
             return int(args.func(args) or 0)
     except InputError as err:
         print(f"bubble: error: {err}", file=sys.stderr)

@@ -14,7 +14,7 @@ import threading
 import time
 from pathlib import Path
 
-from calibrate.stop_signals import Terminated, stop_signals_handled
+from calibrate.stop_signals import INTERRUPTS, Terminated, stop_signals_handled
 from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import output_path
@@ -163,22 +163,17 @@ def run_commission(args) -> int:
         finally:
             done.set()
 
-    def on_stop(signum, frame=None) -> None:
+    def on_stop(signum: int) -> None:
         # Ctrl-C (or SIGTERM, SIGHUP) only asks the flow to stop: it halts the arm, retracts and closes the files itself.
-        print("bubble: still stopping (arm retracting, files closing) ..." if stop.is_set()
-              else "bubble: stopping the arm and closing the run ...", file=sys.stderr)
+        print("bubble: stopping the arm and closing the run ...", file=sys.stderr)
         if signum != signal.SIGINT:
             outcome["signal"] = Terminated(signum)
         stop.set()
 
-    previous = signal.signal(signal.SIGINT, on_stop)
-    try:
-        with stop_signals_handled(on_stop):
-            threading.Thread(target=work, name="commission", daemon=True).start()
-            while not done.wait(0.2):
-                pass
-    finally:
-        signal.signal(signal.SIGINT, previous)
+    with stop_signals_handled(on_stop, INTERRUPTS):
+        threading.Thread(target=work, name="commission", daemon=True).start()
+        while not done.wait(0.2):
+            pass
     if "error" in outcome:
         raise outcome["error"]
     result = outcome["result"]

@@ -1,11 +1,13 @@
-"""Signals that end a command the way Ctrl-C does: SIGTERM (``kill``, a service manager's stop)
-and SIGHUP (the terminal or the SSH session closed).
+"""Ctrl-C and the signals that end a command the way it does: SIGTERM (``kill``, a service
+manager's stop) and SIGHUP (the terminal or the SSH session closed).
 
-Python's default for them ends the process at once: an arm in the middle of a press is left
-wherever the signal found it and the session file is left unclosed. ``bubble`` handles them like
-Ctrl-C instead: the arm is stopped and retracted, the files are closed, and the command exits with
-``128 + signal number`` (143 for SIGTERM, 129 for SIGHUP). A repeat of either signal while that
-runs is ignored, so that the safe stop finishes.
+Python's default for the last two ends the process at once: an arm in the middle of a press is
+left wherever the signal found it and the session file is left unclosed. ``bubble`` handles them
+like Ctrl-C instead: the arm is stopped and retracted, the files are closed, and the command exits
+with ``128 + signal number`` (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP). Any of them
+arriving again while that runs is ignored (a second Ctrl-C says ``still stopping``), so that the
+safe stop and the closing of the files finish: a second Ctrl-C 20 ms after the first used to cut
+the closing short and leave the session file unclosed.
 """
 
 from __future__ import annotations
@@ -18,6 +20,11 @@ from contextlib import contextmanager
 
 #: The signals handled like Ctrl-C.
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+#: Ctrl-C and ``STOP_SIGNALS``.
+INTERRUPTS = (signal.SIGINT, *STOP_SIGNALS)
+#: What a Ctrl-C during the stop says (written to the stderr descriptor: a signal handler must not
+#: enter a Python stream that the interrupted code may be writing).
+STILL_STOPPING = b"bubble: still stopping (arm retracting, files closing) ...\n"
 
 
 class Terminated(KeyboardInterrupt):
@@ -40,18 +47,26 @@ class Terminated(KeyboardInterrupt):
 
 
 @contextmanager
-def stop_signals_handled(on_signal: Callable[[int], None]) -> Iterator[None]:
-    """Call ``on_signal(signum)`` for the first of ``STOP_SIGNALS`` that arrives during the with-block
-    (later ones are ignored); the previous handlers are restored afterwards. After SIGHUP stdout and
-    stderr go to /dev/null first: the terminal is gone, and a write to it would fail in the middle of
-    the safe stop. Outside the main thread (where no handler can be set) the block runs unchanged."""
+def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP_SIGNALS) -> Iterator[None]:
+    """Call ``on_signal(signum)`` for the first of ``signals`` that arrives during the with-block;
+    later ones are ignored (a Ctrl-C prints ``STILL_STOPPING``). The previous handlers are restored
+    afterwards. After SIGHUP stdout and stderr go to /dev/null first: the terminal is gone, and a
+    write to it would fail in the middle of the safe stop. Outside the main thread (where no handler
+    can be set) the block runs unchanged."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
+    def still_stopping(signum, frame) -> None:
+        if signum == signal.SIGINT:
+            try:
+                os.write(2, STILL_STOPPING)
+            except OSError:  # no terminal any more
+                pass
+
     def handler(signum, frame) -> None:
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, signal.SIG_IGN)
+        for sig in signals:
+            signal.signal(sig, still_stopping)
         if signum == signal.SIGHUP:
             null = os.open(os.devnull, os.O_WRONLY)
             os.dup2(null, 1)
@@ -59,7 +74,7 @@ def stop_signals_handled(on_signal: Callable[[int], None]) -> Iterator[None]:
             os.close(null)
         on_signal(signum)
 
-    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+    previous = {sig: signal.signal(sig, handler) for sig in signals}
     try:
         yield
     finally:
@@ -67,6 +82,7 @@ def stop_signals_handled(on_signal: Callable[[int], None]) -> Iterator[None]:
             signal.signal(sig, old)
 
 
-def raise_terminated(signum: int) -> None:
-    """``on_signal`` of a command that stops on ``KeyboardInterrupt``: raise ``Terminated``."""
-    raise Terminated(signum)
+def raise_interrupt(signum: int) -> None:
+    """``on_signal`` of a command that stops on ``KeyboardInterrupt``: raise it (``Terminated`` for
+    ``STOP_SIGNALS``)."""
+    raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)

@@ -115,11 +115,13 @@ def make_synthetic_session_fixture():
     return make_synthetic_session
 
 
-def interrupt_once_recording(argv: list[str], recording: Path, timeout_s: float = 120.0, signum: int = signal.SIGINT):
+def interrupt_once_recording(argv: list[str], recording: Path, timeout_s: float = 120.0, signum: int = signal.SIGINT,
+                             again_after_s: float | None = None):
     """Run ``bubble ARGV`` in a child, send it ``signum`` (default SIGINT: Ctrl-C) once ``recording``
     holds 2 MB on disk (a few dozen frames; the writer holds HDF5's file lock, so the size is what can
-    be watched); returns ``(returncode, stderr)``. SIGINT is restored to its default disposition in the
-    child, as in a terminal, also when pytest was started by a shell without job control (which ignores it)."""
+    be watched), and once more ``again_after_s`` later if given; returns ``(returncode, stderr)``.
+    SIGINT is restored to its default disposition in the child, as in a terminal, also when pytest was
+    started by a shell without job control (which ignores it)."""
     import os
     import subprocess
     import sys
@@ -134,6 +136,9 @@ def interrupt_once_recording(argv: list[str], recording: Path, timeout_s: float 
         time.sleep(0.2)
     assert proc.poll() is None, proc.communicate()[1]
     os.kill(proc.pid, signum)
+    if again_after_s is not None:
+        time.sleep(again_after_s)
+        os.kill(proc.pid, signum)
     _, err = proc.communicate(timeout=60)
     return proc.returncode, err
 
