@@ -14,9 +14,9 @@ import threading
 import time
 from pathlib import Path
 
-from calibrate.stop_signals import INTERRUPTS, Terminated, stop_signals_handled
+from calibrate.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
 from collect.cli import DEFAULT_OBJECTS_ARG
-from collect.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_REJECTED, InputError
+from collect.errors import EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import output_path
 
 
@@ -166,8 +166,7 @@ def run_commission(args) -> int:
     def on_stop(signum: int) -> None:
         # Ctrl-C (or SIGTERM, SIGHUP) only asks the flow to stop: it halts the arm, retracts and closes the files itself.
         print("bubble: stopping the arm and closing the run ...", file=sys.stderr)
-        if signum != signal.SIGINT:
-            outcome["signal"] = Terminated(signum)
+        outcome["signum"] = signum
         stop.set()
 
     with stop_signals_handled(on_stop, INTERRUPTS):
@@ -179,7 +178,7 @@ def run_commission(args) -> int:
     result = outcome["result"]
     if result.stopped:
         print(f"STOPPED: data kept in {result.run_dir}; re-run the same command to resume", file=sys.stderr)
-        return outcome["signal"].exit_code if "signal" in outcome else EXIT_INTERRUPTED
+        return exit_code(outcome.get("signum", signal.SIGINT))
     if result.accepted:
         print(f"ACCEPTED: report {result.report_path}")
         return EXIT_OK

@@ -27,13 +27,18 @@ INTERRUPTS = (signal.SIGINT, *STOP_SIGNALS)
 STILL_STOPPING = b"bubble: still stopping (arm retracting, files closing) ...\n"
 
 
+def exit_code(signum: int) -> int:
+    """``128 + signum``, what a shell reports for a process ended by the signal (130 for Ctrl-C)."""
+    return 128 + signum
+
+
 class Terminated(KeyboardInterrupt):
     """Raised in the main thread for one of ``STOP_SIGNALS`` (``signum``): every ``except
     KeyboardInterrupt`` of a run (safe stop, files closed) handles it as it handles Ctrl-C."""
 
     def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
         self.signum = signum
+        super().__init__(self.name)
 
     @property
     def name(self) -> str:
@@ -42,8 +47,7 @@ class Terminated(KeyboardInterrupt):
 
     @property
     def exit_code(self) -> int:
-        """``128 + signum``, what a shell reports for a process ended by the signal."""
-        return 128 + self.signum
+        return exit_code(self.signum)
 
 
 @contextmanager

@@ -7,7 +7,7 @@ from datetime import datetime
 from pathlib import Path
 
 from calibrate.commission_cli import add_run_options, run_config
-from calibrate.stop_signals import Terminated, stop_signals_handled
+from calibrate.stop_signals import exit_code, stop_signals_handled
 from collect.errors import InputError
 from collect.output_files import output_path
 
@@ -49,4 +49,4 @@ def run_tui(args) -> int:
 
     with stop_signals_handled(quit_app):
         app.run()
-    return Terminated(received[0]).exit_code if received else 0
+    return exit_code(received[0]) if received else 0

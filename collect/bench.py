@@ -53,10 +53,12 @@ def arm_lock(robot_ip: str) -> contextlib.AbstractContextManager:
     control script and so end the first process's motion halfway through a press."""
     path = Path(tempfile.gettempdir()) / f"bubble-arm-{re.sub(r'[^A-Za-z0-9._-]', '_', robot_ip)}.lock"
     try:
-        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
-        os.chmod(path, 0o644)  # whatever the umask: another user's run must be able to take the lock
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     except FileExistsError:  # left by an earlier run (it stays; the lock, not the file, says "in use")
         pass
+    else:
+        os.fchmod(fd, 0o644)  # whatever the umask: another user's run must be able to take the lock
+        os.close(fd)
     busy = InputError(f"arm {robot_ip} is driven by another bubble process on this machine (bubble "
                       "collect or bubble commission); wait until it has finished")
     return exclusive_lock(path, busy)

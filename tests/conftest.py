@@ -125,7 +125,6 @@ def interrupt_once_recording(argv: list[str], recording: Path, timeout_s: float 
     import os
     import subprocess
     import sys
-    import time
 
     proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", *argv], cwd=Path(__file__).resolve().parents[1],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import os
+import pty
+import select
+import signal
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -93,14 +100,6 @@ def test_sigterm_stops_the_run_and_gives_the_terminal_back(tmp_path):
     """``bubble tui`` in a real terminal (a pty), a run started with c, y: SIGTERM (``kill``) acts as
     the q key: it stops the run (arm retracted, files closed) and the app leaves its alternate screen,
     exit 143 (was: the process died at once and left the terminal in the app's screen)."""
-    import json
-    import os
-    import pty
-    import select
-    import signal
-    import sys
-    import time
-
     run = tmp_path / "run"
     pid, fd = pty.fork()
     if pid == 0:  # the child: the real command line in the pty
