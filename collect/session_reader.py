@@ -54,6 +54,15 @@ _LAYOUT = {
     sf.ARM_TCP_WRENCH: ("(M,6) floats", 2, "f", 6),
     sf.PRESSURE_T: ("(K,) floats", 1, "f", None),
     sf.PRESSURE_HPA: ("(K,) floats", 1, "f", None),
+    sf.OBJECTS_NAME: ("(O,) strings", 1, "OS", None),
+    sf.OBJECTS_FIXTURE_POSE: ("(O,6) floats", 2, "f", 6),
+    sf.OBJECTS_MESH_SHA256: ("(O,) strings", 1, "OS", None),
+    sf.OBJECTS_PRIMITIVE: ("(O,) strings", 1, "OS", None),
+}
+#: The same for each object's mesh, ``objects/meshes/<name>/<key>``.
+_MESH_LAYOUT = {
+    "vertices": ("(V,3) floats", 2, "f", 3),
+    "faces": ("(F,3) integers", 2, "iu", 3),
 }
 #: Largest depth unit accepted (m per count): 1 cm, 100 times the recorder's.
 MAX_DEPTH_UNIT_M = 0.01
@@ -186,15 +195,9 @@ class Session:
             missing.append(sf.SIM_TRUE_DEPTH)
         if missing:
             raise InputError(f"{self.path}: corrupt session, missing {', '.join(missing)}")
-        for name in (*_REQUIRED, sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH, sf.OBJECTS_PRIMITIVE):
-            if name in f and not isinstance(f[name], h5py.Dataset):
-                raise InputError(f"{self.path}: corrupt session, {name} is not a dataset")
-        for name, (what, ndim, kinds, row) in _LAYOUT.items():
-            if name not in f:  # optional (the required ones are checked above)
-                continue
-            shape, dtype = f[name].shape, f[name].dtype
-            if shape is None or len(shape) != ndim or dtype.kind not in kinds or (row and shape[1] != row):
-                raise InputError(f"{self.path}: corrupt session, {name} must hold {what}, got shape {shape} of {dtype}")
+        for name, layout in _LAYOUT.items():
+            if name in f:  # optional (the required ones are checked above)
+                _check_layout(self.path, name, f[name], layout)
         _, self.height, self.width = f[sf.FRAMES_IR].shape
         if f[sf.FRAMES_DEPTH].shape[1:] != (self.height, self.width):
             raise InputError(f"{self.path}: corrupt session, frames/ir and frames/depth differ in size")
@@ -240,8 +243,9 @@ class Session:
     def open(cls, path) -> "Session":
         """Open a session file read-only. Raises InputError for missing/corrupt/truncated files,
         another format or format version, malformed root attributes (intrinsics, camera_in_tcp,
-        sensor_spec, collection_plan), a bad depth unit, repeated object names, or NaN in the
-        per-frame metadata."""
+        sensor_spec, collection_plan), a dataset of the wrong shape or type (``_LAYOUT``, and each
+        object's mesh: ``_MESH_LAYOUT``, faces within its vertices), a bad depth unit, repeated
+        object names, or NaN in the per-frame metadata or a mesh."""
         f = open_h5(path)
         try:
             check_session_attrs(f)
@@ -499,6 +503,17 @@ def _check_even_lengths(path: str, f: h5py.File, names) -> None:
                          f"{longest} (they are written together)")
 
 
+def _check_layout(path: str, name: str, dataset, layout: tuple) -> None:
+    """InputError unless ``dataset`` (at ``name``) is an HDF5 dataset of the ``layout`` of
+    ``_LAYOUT`` / ``_MESH_LAYOUT``: (what it holds, dimensions, dtype kinds, row width or None)."""
+    what, ndim, kinds, row = layout
+    if not isinstance(dataset, h5py.Dataset):
+        raise InputError(f"{path}: corrupt session, {name} is not a dataset")
+    shape, dtype = dataset.shape, dataset.dtype
+    if shape is None or len(shape) != ndim or dtype.kind not in kinds or (row and shape[1] != row):
+        raise InputError(f"{path}: corrupt session, {name} must hold {what}, got shape {shape} of {dtype}")
+
+
 def _check_finite(path: str, name: str, values) -> None:
     if values is None or values.dtype.kind != "f":
         return
@@ -521,10 +536,20 @@ def _read_objects(f: h5py.File) -> list[SessionObject]:
     _check_finite(f.filename, sf.OBJECTS_FIXTURE_POSE, poses)
     objects = []
     for i, name in enumerate(names):
-        group = f.get(f"{sf.OBJECTS_MESH_GROUP}/{name}")
-        vertices = group["vertices"][()] if group is not None else np.zeros((0, 3), np.float32)
-        faces = group["faces"][()] if group is not None else np.zeros((0, 3), np.int32)
-        _check_finite(f.filename, f"{sf.OBJECTS_MESH_GROUP}/{name}/vertices", vertices)
+        mesh = f"{sf.OBJECTS_MESH_GROUP}/{name}"
+        vertices, faces = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)  # no mesh stored
+        if mesh in f:
+            if not isinstance(f[mesh], h5py.Group):
+                raise InputError(f"{f.filename}: corrupt session, {mesh} is not a group")
+            for key, layout in _MESH_LAYOUT.items():
+                if key not in f[mesh]:
+                    raise InputError(f"{f.filename}: corrupt session, missing {mesh}/{key}")
+                _check_layout(f.filename, f"{mesh}/{key}", f[mesh][key], layout)
+            vertices, faces = f[mesh]["vertices"][()], f[mesh]["faces"][()]
+            _check_finite(f.filename, f"{mesh}/vertices", vertices)
+            if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+                raise InputError(f"{f.filename}: corrupt session, {mesh}/faces names vertices that "
+                                 f"{mesh}/vertices does not hold ({len(vertices)} vertices)")
         objects.append(
             SessionObject(i, name, poses[i], shas[i], json.loads(prims[i]) if prims[i] else {}, vertices, faces)
         )

@@ -97,6 +97,28 @@ CASES = {
     "pressure-cut-short": (lambda f: f[sf.PRESSURE_HPA].resize(1, axis=0), "corrupt session, pressure/hpa holds 1 of the"),
     "object-names-repeated": (lambda f: f[sf.OBJECTS_NAME].__setitem__(1, f[sf.OBJECTS_NAME][0]),
                               "corrupt session, object 'mug' is listed twice in objects/name"),
+    "object-names-numbers": (_replace(sf.OBJECTS_NAME, lambda old: np.arange(len(old))),
+                             "corrupt session, objects/name must hold (O,) strings, got shape (2,) of int64"),
+    "fixture-pose-text": (_replace(sf.OBJECTS_FIXTURE_POSE, lambda old: np.array([b"x"] * len(old))),
+                          "corrupt session, objects/fixture_pose must hold (O,6) floats, got shape (2,) of |S1"),
+    "fixture-pose-5-columns": (_replace(sf.OBJECTS_FIXTURE_POSE, lambda old: old[:, :5]),
+                               "corrupt session, objects/fixture_pose must hold (O,6) floats, got shape (2, 5)"),
+    "primitive-numbers": (_replace(sf.OBJECTS_PRIMITIVE, lambda old: np.zeros(len(old))),
+                          "corrupt session, objects/primitive must hold (O,) strings"),
+    "mesh-a-dataset": (lambda f: (f.__delitem__(f"{sf.OBJECTS_MESH_GROUP}/box"),
+                                  f.create_dataset(f"{sf.OBJECTS_MESH_GROUP}/box", data=np.zeros(3))),
+                       "corrupt session, objects/meshes/box is not a group"),
+    "mesh-without-faces": (lambda f: f.__delitem__(f"{sf.OBJECTS_MESH_GROUP}/box/faces"),
+                           "corrupt session, missing objects/meshes/box/faces"),
+    "mesh-faces-floats": (_replace(f"{sf.OBJECTS_MESH_GROUP}/box/faces", lambda old: old.astype(np.float32)),
+                          "corrupt session, objects/meshes/box/faces must hold (F,3) integers, got shape (12, 3) of float32"),
+    "mesh-vertices-2-columns": (_replace(f"{sf.OBJECTS_MESH_GROUP}/mug/vertices", lambda old: old[:, :2]),
+                                "corrupt session, objects/meshes/mug/vertices must hold (V,3) floats, got shape (8, 2)"),
+    "mesh-vertices-cut-short": (_replace(f"{sf.OBJECTS_MESH_GROUP}/box/vertices", lambda old: old[:-1]),
+                                "corrupt session, objects/meshes/box/faces names vertices that "
+                                "objects/meshes/box/vertices does not hold (7 vertices)"),
+    "mesh-face-index-negative": (lambda f: f[f"{sf.OBJECTS_MESH_GROUP}/box/faces"].__setitem__((0, 0), -1),
+                                 "corrupt session, objects/meshes/box/faces names vertices that"),
 }
 
 
