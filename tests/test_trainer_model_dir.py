@@ -112,6 +112,10 @@ BAD_METADATA = [
     ("normalization.kind", "zscore"),
     ("normalization", None),
     ("training", "none"),
+    ("format", "onnx"),  # was: a message without the model directory or the field
+    ("format", None),
+    ("format_version", 2),
+    ("format_version", None),
 ]
 
 

@@ -76,10 +76,14 @@ class ModelMetadata:
     def from_dict(cls, data: dict, model_dir: str | Path) -> "ModelMetadata":
         """The metadata in ``data`` (the parsed ``metadata.json`` of ``model_dir``), checked by
         ``check_metadata`` before anything is built from it."""
-        if data.get("format") != METADATA_FORMAT:
-            raise InputError(f"not a bubble depth model metadata file (format {data.get('format')!r})")
-        if data.get("format_version") != METADATA_VERSION:
-            raise InputError(f"unsupported model metadata version {data.get('format_version')!r}")
+        where = f"model {model_dir}: metadata.json"
+        for name, expected, what in (("format", METADATA_FORMAT, "a bubble depth model's"),
+                                     ("format_version", METADATA_VERSION, "the version this build reads")):
+            if name not in data:
+                raise InputError(f"{where} has no field '{name}' (not a bubble depth model directory)")
+            if data[name] != expected or isinstance(data[name], bool):
+                raise InputError(f"{where} field '{name}' = {shown_json(data[name])} is not {what}, "
+                                 f"{shown_json(expected)}")
         check_metadata(data, model_dir)
         return cls(
             arch=data["arch"],
