@@ -42,13 +42,13 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.loop_thread import LoopThread
-from collect.safety import SafetyLimits, tool_z_axis
+from collect.safety import SafetyLimits, real_number, tool_z_axis
 from collect.transforms import rotation_between_rad
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
@@ -81,6 +81,10 @@ class ArmState:
         return float(-np.dot(self.tcp_wrench[:3], axis))
 
 
+#: Arm state sampling rates accepted (Hz); 125-500 recommended.
+STATE_HZ_RANGE = (1.0, 500.0)
+
+
 @dataclass(frozen=True)
 class MotionSettings:
     """Speeds (m/s), acceleration (m/s^2), force (N) and distances (m) of the pressing motions: the
@@ -98,6 +102,12 @@ class MotionSettings:
     max_contact_travel_m: float = 0.05
     max_press_depth_m: float = 0.015
     retract_m: float = 0.03
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (real_number(value) and value > 0):
+                raise InputError(f"motion: {f.name} must be a positive number, got {value!r}")
 
 
 def move_duration_s(distance_m: float, speed: float, accel: float) -> float:
@@ -142,8 +152,9 @@ class Arm:
 
     def __init__(self, control, receive, limits: SafetyLimits, *, settings: MotionSettings = MotionSettings(),
                  clock: Callable[[], float] = time.monotonic, state_hz: float = 125.0):
-        if not 1.0 <= state_hz <= 500.0:
-            raise InputError(f"arm: state rate {state_hz} Hz is outside 1..500 Hz")
+        lo, hi = STATE_HZ_RANGE
+        if not (real_number(state_hz) and lo <= state_hz <= hi):
+            raise InputError(f"arm: state rate {state_hz!r} Hz is outside {lo:g}..{hi:g} Hz")
         check_motion_settings(settings, limits)
         self._ctl = control
         self._rcv = receive

@@ -27,13 +27,13 @@ from typing import ClassVar
 
 import numpy as np
 
-from collect.arm import Arm, MotionSettings
+from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings
 from collect.camera import STALL_TIMEOUT_S, ToFCamera
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
 from collect.output_files import exclusive_lock
 from collect.pressure_board import PressureBoard
-from collect.safety import SafetyLimits
+from collect.safety import SafetyLimits, real_number, real_numbers
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +65,15 @@ def arm_lock(robot_ip: str) -> contextlib.AbstractContextManager:
 
 
 def _within(value, lo: float, hi: float) -> bool:
-    """Whether ``value`` is a real number (not a bool or a string) in ``[lo, hi]``."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and lo <= value <= hi
+    """Whether ``value`` is a finite real number (not a bool or a string) in ``[lo, hi]``."""
+    return real_number(value) and lo <= value <= hi
+
+
+def _check_pose(type_name: str, name: str, pose, what: str) -> None:
+    """InputError unless ``pose`` is 6 finite numbers (m, rotation vector rad)."""
+    if not real_numbers(pose, 6):
+        raise InputError(f"bench '{type_name}': {name} ({what}) must be 6 numbers [x, y, z, rx, ry, rz] "
+                         f"(m, rotation vector in rad), got {pose!r}")
 
 
 @dataclass
@@ -94,6 +101,10 @@ class BenchConfig(ABC):
             raise InputError(f"bench '{self.type}': objects must be a list of object names or mesh paths, "
                              f"got {self.objects!r}")
         self.objects = tuple(os.fspath(o) for o in self.objects)
+        lo, hi = STATE_HZ_RANGE
+        if not _within(self.state_hz, lo, hi):
+            raise InputError(f"bench '{self.type}': state_hz {self.state_hz!r} is outside {lo:g}..{hi:g} Hz "
+                             "(the arm's state sampling rate)")
 
     @classmethod
     def register(cls, name: str) -> Callable[[type], type]:
@@ -213,6 +224,18 @@ class URBenchConfig(BenchConfig):
         if not _within(self.camera_fps, lo, hi):
             raise InputError(f"bench 'ur': camera_fps {self.camera_fps!r} is outside {lo:g}..{hi:g} fps "
                              f"(the OAK ToF camera's frame rates)")
+        if isinstance(self.camera_id, int) and not isinstance(self.camera_id, bool):
+            self.camera_id = str(self.camera_id)  # YAML reads an all-digit device name as a number
+        for name, value, what in (("robot_ip", self.robot_ip, "the UR controller's IP address or host name"),
+                                  ("camera_id", "" if self.camera_id is None else self.camera_id,
+                                   "the OAK device's MxId, IP or name; leave it out for the first one found"),
+                                  ("tof_profile", self.tof_profile, "a dai.ToFConfig.Profile name, e.g. LOW_RANGE"),
+                                  ("serial_port", self.serial_port, "the pressure board's device, e.g. /dev/ttyACM0")):
+            if not isinstance(value, str):
+                raise InputError(f"bench 'ur': {name} must be text ({what}), got {value!r}")
+        _check_pose("ur", "plate_pose", self.plate_pose, "the fixture plate origin in the base frame")
+        if self.home_pose is not None:
+            _check_pose("ur", "home_pose", self.home_pose, "a safe TCP pose above the plate")
 
     def open(self) -> "Bench":
         if not self.robot_ip:
@@ -256,6 +279,21 @@ class SimBenchConfig(BenchConfig):
     faults: tuple = ()
     speed: float = 1.0
     start_pose: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        from hw_mocks.sensor_spec import SensorSpec
+        from hw_mocks.sim_bench import SimFault
+
+        super().__post_init__()
+        if not (self.sensor is None or isinstance(self.sensor, (str, os.PathLike, SensorSpec))):
+            raise InputError(f"bench 'sim': sensor must be a sensor spec YAML path (leave it out to draw one "
+                             f"from seed), got {self.sensor!r}")
+        if not (isinstance(self.seed, (int, np.integer)) and not isinstance(self.seed, bool) and self.seed >= 0):
+            raise InputError(f"bench 'sim': seed must be a whole number >= 0, got {self.seed!r}")
+        if isinstance(self.faults, str):  # one fault, not a sequence of letters
+            self.faults = (self.faults,)
+        if not (isinstance(self.faults, (list, tuple)) and all(isinstance(f, (str, SimFault)) for f in self.faults)):
+            raise InputError(f"bench 'sim': faults must be a list of KIND@SECONDS strings, got {self.faults!r}")
 
     def open(self) -> "Bench":
         from hw_mocks.fake_camera import SimToFCamera

@@ -15,6 +15,7 @@ Poses are ``[x, y, z, rx, ry, rz]`` (m + rotation vector) in the robot base fram
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,19 @@ from collect.errors import InputError
 
 class SafetyViolation(InputError):
     """A motion request that breaks a ``SafetyLimits`` limit; never sent to the robot."""
+
+
+def real_number(value) -> bool:
+    """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf."""
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+            and math.isfinite(value))
+
+
+def real_numbers(values, n: int) -> bool:
+    """Whether ``values`` is a list, tuple or 1-D array of ``n`` finite real numbers (``real_number``)."""
+    if isinstance(values, np.ndarray) and values.ndim == 1:
+        values = values.tolist()
+    return isinstance(values, (list, tuple)) and len(values) == n and all(map(real_number, values))
 
 
 def tool_z_axis(pose) -> np.ndarray:
@@ -57,13 +71,15 @@ class SafetyLimits:
     max_tilt_deg: float = 30.0
 
     def __post_init__(self):
-        lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
-        if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+        for name in ("workspace_min", "workspace_max"):
+            if not real_numbers(getattr(self, name), 3):
+                raise InputError(f"safety: {name} must be 3 numbers [x, y, z] (m), got {getattr(self, name)!r}")
+        if not all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)):
             raise InputError(f"safety: workspace box min {self.workspace_min} must be below max {self.workspace_max}")
         for name in ("max_speed_m_s", "max_accel_m_s2", "force_limit_n", "max_tilt_deg"):
             value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f"safety: {name} must be a positive number, got {value}")
+            if not (real_number(value) and value > 0):
+                raise InputError(f"safety: {name} must be a positive number, got {value!r}")
 
     def room_along(self, position, direction, up_to_m: float) -> float:
         """How far (m, at most ``up_to_m``) the TCP at ``position`` (3,) m may move along the unit
@@ -79,7 +95,10 @@ class SafetyLimits:
 
     def check_pose(self, pose) -> np.ndarray:
         """Validate a target pose; returns it as (6,) float64 or raises ``SafetyViolation``."""
-        p = np.asarray(pose, dtype=float)
+        try:
+            p = np.asarray(pose, dtype=float)
+        except (TypeError, ValueError):  # text, a mapping, ragged lists
+            p = np.full(0, np.nan)
         if p.shape != (6,) or not np.all(np.isfinite(p)):
             raise SafetyViolation(f"safety: pose must be 6 finite numbers [x,y,z,rx,ry,rz], got {pose!r}")
         lo, hi = np.asarray(self.workspace_min), np.asarray(self.workspace_max)

@@ -39,6 +39,7 @@ import numpy as np
 
 from collect.errors import InputError
 from collect.loop_thread import LoopThread
+from collect.safety import real_number
 
 log = logging.getLogger(__name__)
 
@@ -112,8 +113,8 @@ class SimClock:
     """
 
     def __init__(self, speed: float = 1.0):
-        if not (np.isfinite(speed) and 0.1 <= speed <= 100.0):
-            raise InputError(f"simulation speed {speed} must be within 0.1..100")
+        if not (real_number(speed) and 0.1 <= speed <= 100.0):
+            raise InputError(f"simulation speed {speed!r} must be within 0.1..100")
         self.speed = float(speed)
         self._t0 = time.monotonic()
         self._paused = 0.0

@@ -232,6 +232,60 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
         BenchConfig.create("ur").open()  # no robot_ip: refused before any connection attempt
 
 
+UR_BENCH = "type: ur\nrobot_ip: 192.0.2.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n"
+
+#: A bench YAML line of the wrong kind -> what the one error line says. Each is checked when the
+#: config is built, before the arm lock or any connection (was: a traceback from the arm lock, the
+#: fixture plate or the safety limits, or an error only after the robot had connected).
+BAD_BENCH_LINES = {
+    "robot_ip: 10": "bench 'ur': robot_ip must be text (the UR controller's IP address or host name), got 10",
+    "serial_port: 0": "bench 'ur': serial_port must be text (the pressure board's device, e.g. /dev/ttyACM0), got 0",
+    "tof_profile: [LOW_RANGE]": "bench 'ur': tof_profile must be text",
+    "camera_id: true": "bench 'ur': camera_id must be text",
+    "plate_pose: [0, 0, 0]": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers "
+                             "[x, y, z, rx, ry, rz] (m, rotation vector in rad), got (0, 0, 0)",
+    "plate_pose: flat": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers",
+    "state_hz: fast": "bench 'ur': state_hz 'fast' is outside 1..500 Hz (the arm's state sampling rate)",
+    "limits: {workspace_min: low}": "safety: workspace_min must be 3 numbers [x, y, z] (m), got 'low'",
+    "limits: {force_limit_n: []}": "safety: force_limit_n must be a positive number, got ()",
+    "limits: {max_tilt_deg: .nan}": "safety: max_tilt_deg must be a positive number, got nan",
+    "motion: {accel: fast}": "motion: accel must be a positive number, got 'fast'",
+    "motion: {retract_m: 0}": "motion: retract_m must be a positive number, got 0",
+}
+SIM_BENCH = "type: sim\nobjects: [mug]\n"
+#: The same for the simulated bench's own fields (was: tracebacks from numpy's seeding, the
+#: simulated clock, the sensor spec loader and the safety check of the start pose).
+BAD_SIM_BENCH_LINES = {
+    "sensor: 3": "bench 'sim': sensor must be a sensor spec YAML path (leave it out to draw one from seed), got 3",
+    "seed: -1": "bench 'sim': seed must be a whole number >= 0, got -1",
+    "seed: 1.5": "bench 'sim': seed must be a whole number >= 0, got 1.5",
+    "faults: 7": "bench 'sim': faults must be a list of KIND@SECONDS strings, got 7",
+    "speed: fast": "simulation speed 'fast' must be within 0.1..100",
+    "start_pose: {x: 1}": "safety: pose must be 6 finite numbers [x,y,z,rx,ry,rz], got {'x': 1}",
+}
+
+
+@pytest.mark.parametrize("bench_text, message", [(UR_BENCH + line, m) for line, m in BAD_BENCH_LINES.items()]
+                         + [(SIM_BENCH + line, m) for line, m in BAD_SIM_BENCH_LINES.items()],
+                         ids=[*BAD_BENCH_LINES, *BAD_SIM_BENCH_LINES])
+def test_a_bench_field_of_the_wrong_kind_is_one_line_before_anything_connects(tmp_path, capsys, bench_text, message):
+    from calibrate.cli import main
+
+    bench = tmp_path / "bench.yaml"
+    bench.write_text(bench_text + "\n")
+    assert main(["collect", "--bench", str(bench), "--out", str(tmp_path / "s.h5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bubble: error: {message}"), err
+    assert err.count("\n") == 1 and not (tmp_path / "s.h5").exists()
+
+
+def test_a_numeric_camera_id_and_the_home_pose_as_a_list_are_taken_as_written(tmp_path):
+    bench = tmp_path / "bench.yaml"
+    bench.write_text(UR_BENCH + "camera_id: 184430\n")  # an all-digit device name, read by YAML as a number
+    config = BenchConfig.from_yaml(bench)
+    assert config.camera_id == "184430" and config.home_pose == (0.45, 0.0, 0.25, 3.14159, 0, 0)
+
+
 def test_a_cpu_starved_camera_twin_slows_simulated_time_instead_of_stalling(monkeypatch):
     """Rendering made slower than the stall timeout: simulated time waits for the camera twin
     (pacing), so the driver sees every frame late in real time but never a camera-stall."""
