@@ -56,6 +56,10 @@ class Thresholds:
         return self.checks[name]
 
 
+#: The keys a check of a thresholds file may hold.
+CHECK_KEYS = ("min", "max", "unit", "gate", "describe")
+
+
 def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) -> dict[str, Threshold]:
     if not isinstance(raw, dict) or not raw:
         raise InputError(f"{where}: 'checks' must be a non-empty mapping of check name -> limits")
@@ -65,6 +69,9 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
             raise InputError(f"{where}: unknown check {name!r} (known: {', '.join(sorted(base))})")
         if not isinstance(entry, dict):
             raise InputError(f"{where}: check {name!r} must be a mapping with min and/or max")
+        unknown = sorted(str(key) for key in entry if key not in CHECK_KEYS)
+        if unknown:  # a misspelt min or max would leave the packaged limit in force without a word
+            raise InputError(f"{where}: check {name!r}: unknown key {unknown[0]!r} (known: {', '.join(CHECK_KEYS)})")
         prior = out.get(name)
         lo = entry.get("min", prior.lo if prior else None)
         hi = entry.get("max", prior.hi if prior else None)
@@ -75,13 +82,16 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
             raise InputError(f"{where}: check {name!r} needs min and/or max")
         if lo is not None and hi is not None and lo > hi:
             raise InputError(f"{where}: check {name!r}: min {lo} is above max {hi}")
+        gate = entry.get("gate", prior.gate if prior else False)
+        if not isinstance(gate, bool):  # text such as "false" would count as true
+            raise InputError(f"{where}: check {name!r}: gate must be true or false, got {gate!r}")
         out[name] = Threshold(
             name=name,
             lo=None if lo is None else float(lo),
             hi=None if hi is None else float(hi),
             unit=str(entry.get("unit", prior.unit if prior else "")),
             describe=str(entry.get("describe", prior.describe if prior else "")),
-            gate=bool(entry.get("gate", prior.gate if prior else False)),
+            gate=gate,
         )
     return out
 
@@ -112,7 +122,7 @@ def load_thresholds(path: Path | None = None) -> Thresholds:
     if path is None:
         return Thresholds(version, checks, str(DEFAULT_THRESHOLDS_PATH))
     raw = _read_yaml(Path(path))
-    if raw["version"] != version:
+    if raw["version"] != version or isinstance(raw["version"], bool):
         raise InputError(f"thresholds file {path} has version {raw['version']!r}; this bubble expects version {version}")
     checks = _parse_checks(raw["checks"], str(path), checks)
     return Thresholds(version, checks, f"{DEFAULT_THRESHOLDS_PATH} + {path}")

@@ -37,6 +37,11 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
         ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: 1100, max: 1000}\n", "above max"),
         ("version: 1\nchecks: [1, 2\n", "not valid YAML"),
         ("just text\n", "must hold"),
+        # was: silently ignored, the packaged limit left in force
+        ("version: 1\nchecks:\n  heldout_a1: {mn: 0.99}\n", "check 'heldout_a1': unknown key 'mn' "
+                                                             r"\(known: min, max, unit, gate, describe\)"),
+        ("version: 1\nchecks:\n  heldout_a1: {gate: 'false'}\n", "gate must be true or false, got 'false'"),  # was: true
+        ("version: true\nchecks:\n  heldout_a1: {min: 0.9}\n", "has version True"),
     ],
 )
 def test_bad_threshold_files_are_one_line_input_errors(tmp_path, text, fragment):
