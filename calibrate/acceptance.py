@@ -18,6 +18,7 @@ from pathlib import Path
 import yaml
 
 from collect.errors import InputError
+from collect.numbers import real_number
 
 #: Packaged thresholds, used when no ``--thresholds`` file is given.
 DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("acceptance_thresholds.yaml")
@@ -76,7 +77,7 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
         lo = entry.get("min", prior.lo if prior else None)
         hi = entry.get("max", prior.hi if prior else None)
         for key, val in (("min", lo), ("max", hi)):
-            if val is not None and (isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val)):
+            if val is not None and not real_number(val):
                 raise InputError(f"{where}: check {name!r}: {key} must be a finite number, got {val!r}")
         if lo is None and hi is None:
             raise InputError(f"{where}: check {name!r} needs min and/or max")

@@ -20,7 +20,6 @@ directory): two commissionings that finish at the same moment are both recorded,
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ import numpy as np
 
 from collect.errors import InputError
 from collect.json_files import shown_json, write_json
+from collect.numbers import real_number, real_numbers
 from collect.output_files import output_folder_lock
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
@@ -69,19 +69,14 @@ class SensorProfile:
         return self.path / "model" if (self.path / "model").is_dir() else None
 
 
-def _is_number(value) -> bool:
-    """A finite JSON number (the registry writes NaN / inf as null)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 _TEXT = (lambda v: isinstance(v, str), "a string")
-_OPTIONAL_NUMBER = (lambda v: v is None or _is_number(v), "a finite number or null")
+_OPTIONAL_NUMBER = (lambda v: v is None or real_number(v), "a finite number or null")  # NaN / inf are written as null
 #: Fields of a profile (all optional but 'history') and of each history entry: (check, what it must be).
 _PROFILE_FIELDS = {
     "serial": _TEXT,
     "status": (lambda v: v in ("accepted", "rejected"), "'accepted' or 'rejected'"),
     "intrinsics": (lambda v: v is None or isinstance(v, dict), "an object or null"),
-    "camera_in_tcp": (lambda v: v is None or (isinstance(v, list) and len(v) == 6 and all(map(_is_number, v))),
+    "camera_in_tcp": (lambda v: v is None or real_numbers(v, 6),
                       "6 finite numbers or null"),
     "simulated": (lambda v: isinstance(v, bool), "true or false"),
     "last_commissioned": _TEXT,

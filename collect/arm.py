@@ -48,7 +48,8 @@ import numpy as np
 
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.loop_thread import LoopThread
-from collect.safety import SafetyLimits, real_number, tool_z_axis
+from collect.numbers import real_number
+from collect.safety import SafetyLimits, tool_z_axis
 from collect.transforms import rotation_between_rad
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.

@@ -31,9 +31,10 @@ from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings
 from collect.camera import STALL_TIMEOUT_S, ToFCamera
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
+from collect.numbers import real_number, real_numbers
 from collect.output_files import exclusive_lock
 from collect.pressure_board import PressureBoard
-from collect.safety import SafetyLimits, real_number, real_numbers
+from collect.safety import SafetyLimits
 
 log = logging.getLogger(__name__)
 

@@ -15,30 +15,17 @@ Poses are ``[x, y, z, rx, ry, rz]`` (m + rotation vector) in the robot base fram
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from collect.errors import InputError
+from collect.numbers import real_number, real_numbers
 
 
 class SafetyViolation(InputError):
     """A motion request that breaks a ``SafetyLimits`` limit; never sent to the robot."""
-
-
-def real_number(value) -> bool:
-    """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf."""
-    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-            and math.isfinite(value))
-
-
-def real_numbers(values, n: int) -> bool:
-    """Whether ``values`` is a list, tuple or 1-D array of ``n`` finite real numbers (``real_number``)."""
-    if isinstance(values, np.ndarray) and values.ndim == 1:
-        values = values.tolist()
-    return isinstance(values, (list, tuple)) and len(values) == n and all(map(real_number, values))
 
 
 def tool_z_axis(pose) -> np.ndarray:

@@ -15,7 +15,6 @@ Bad files raise ``InputError`` with one line, and so does a file another process
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ import numpy as np
 
 from collect import session_format as sf
 from collect.errors import InputError
+from collect.numbers import real_number, real_numbers
 
 _REQUIRED = (
     *sf.FRAME_DATASETS,
@@ -172,7 +172,7 @@ class Session:
         #: (6,) float64 camera frame in the TCP frame [x,y,z m, rotation vector rad]
         self.camera_in_tcp = np.asarray(_root_json(
             f, sf.ATTR_CAMERA_IN_TCP, "a JSON list of 6 finite numbers (x, y, z in m, rotation vector in rad)",
-            lambda v: isinstance(v, list) and len(v) == 6 and all(map(_finite_number, v))), dtype=np.float64)
+            lambda v: real_numbers(v, 6)), dtype=np.float64)
         plan = _text(attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
         self._collection_plan = _root_json(f, sf.ATTR_COLLECTION_PLAN, "a JSON object", _is_object) if plan else None
         try:
@@ -426,14 +426,8 @@ def _text(value) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
-def _finite_number(value) -> bool:
-    """True for a finite real number (a Python or NumPy scalar, not a bool)."""
-    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-            and math.isfinite(value))
-
-
 def _positive_number(value) -> bool:
-    return _finite_number(value) and value > 0
+    return real_number(value) and value > 0
 
 
 def _positive_int(value) -> bool:
@@ -476,8 +470,8 @@ def _root_json(f: h5py.File, name: str, expected: str, valid):
 _INTRINSICS_FIELDS = {
     "fx": ("a finite number > 0 (px)", _positive_number),
     "fy": ("a finite number > 0 (px)", _positive_number),
-    "cx": ("a finite number (px)", _finite_number),
-    "cy": ("a finite number (px)", _finite_number),
+    "cx": ("a finite number (px)", real_number),
+    "cy": ("a finite number (px)", real_number),
     "width": ("a positive integer (px)", _positive_int),
     "height": ("a positive integer (px)", _positive_int),
 }
@@ -489,7 +483,7 @@ def _check_intrinsics(path: str, intrinsics: dict) -> None:
         if not valid(intrinsics[name]):
             raise _bad(path, f"root attr '{sf.ATTR_INTRINSICS}' field '{name}'", expected, intrinsics[name])
     distortion = intrinsics.get("distortion", [])
-    if not (isinstance(distortion, list) and all(map(_finite_number, distortion))):
+    if not (isinstance(distortion, list) and all(map(real_number, distortion))):
         raise _bad(path, f"root attr '{sf.ATTR_INTRINSICS}' field 'distortion'", "a list of finite numbers", distortion)
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from collect.errors import InputError
 from collect.loop_thread import LoopThread
-from collect.safety import real_number
+from collect.numbers import real_number
 
 log = logging.getLogger(__name__)
 

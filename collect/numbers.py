@@ -1,0 +1,24 @@
+"""Predicates for numbers read from user files (YAML, JSON, HDF5 attributes): what counts as a
+real number before a value reaches arithmetic, numpy or a device.
+
+A bool is no number here (YAML's ``yes`` and JSON's ``true`` are not 1), nor is text, NaN or inf.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def real_number(value) -> bool:
+    """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf."""
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+            and math.isfinite(value))
+
+
+def real_numbers(values, n: int) -> bool:
+    """Whether ``values`` is a list, tuple or 1-D array of ``n`` finite real numbers (``real_number``)."""
+    if isinstance(values, np.ndarray) and values.ndim == 1:
+        values = values.tolist()
+    return isinstance(values, (list, tuple)) and len(values) == n and all(map(real_number, values))
