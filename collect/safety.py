@@ -85,8 +85,8 @@ class SafetyLimits:
         try:
             p = np.asarray(pose, dtype=float)
         except (TypeError, ValueError):  # text, a mapping, ragged lists
-            p = np.full(0, np.nan)
-        if p.shape != (6,) or not np.all(np.isfinite(p)):
+            p = None
+        if p is None or p.shape != (6,) or not np.all(np.isfinite(p)):
             raise SafetyViolation(f"safety: pose must be 6 finite numbers [x,y,z,rx,ry,rz], got {pose!r}")
         lo, hi = np.asarray(self.workspace_min), np.asarray(self.workspace_max)
         if np.any(p[:3] < lo) or np.any(p[:3] > hi):

@@ -82,8 +82,8 @@ class ModelMetadata:
             if name not in data:
                 raise InputError(f"{where} has no field '{name}' (not a bubble depth model directory)")
             if data[name] != expected or isinstance(data[name], bool):
-                raise InputError(f"{where} field '{name}' = {shown_json(data[name])} is not {what}, "
-                                 f"{shown_json(expected)}")
+                raise InputError(f"{where} field '{name}' = {shown_json(data[name])} must be "
+                                 f"{shown_json(expected)} ({what})")
         check_metadata(data, model_dir)
         return cls(
             arch=data["arch"],
