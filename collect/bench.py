@@ -227,12 +227,12 @@ class URBenchConfig(BenchConfig):
                              f"(the OAK ToF camera's frame rates)")
         if isinstance(self.camera_id, int) and not isinstance(self.camera_id, bool):
             self.camera_id = str(self.camera_id)  # YAML reads an all-digit device name as a number
-        for name, value, what in (("robot_ip", self.robot_ip, "the UR controller's IP address or host name"),
-                                  ("camera_id", "" if self.camera_id is None else self.camera_id,
-                                   "the OAK device's MxId, IP or name; leave it out for the first one found"),
-                                  ("tof_profile", self.tof_profile, "a dai.ToFConfig.Profile name, e.g. LOW_RANGE"),
-                                  ("serial_port", self.serial_port, "the pressure board's device, e.g. /dev/ttyACM0")):
-            if not isinstance(value, str):
+        for name, what in (("robot_ip", "the UR controller's IP address or host name"),
+                           ("camera_id", "the OAK device's MxId, IP or name; leave it out for the first one found"),
+                           ("tof_profile", "a dai.ToFConfig.Profile name, e.g. LOW_RANGE"),
+                           ("serial_port", "the pressure board's device, e.g. /dev/ttyACM0")):
+            value = getattr(self, name)
+            if not (isinstance(value, str) or name == "camera_id" and value is None):
                 raise InputError(f"bench 'ur': {name} must be text ({what}), got {value!r}")
         _check_pose("ur", "plate_pose", self.plate_pose, "the fixture plate origin in the base frame")
         if self.home_pose is not None:

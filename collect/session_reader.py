@@ -532,14 +532,15 @@ def _read_objects(f: h5py.File) -> list[SessionObject]:
     for i, name in enumerate(names):
         mesh = f"{sf.OBJECTS_MESH_GROUP}/{name}"
         vertices, faces = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)  # no mesh stored
-        if mesh in f:
-            if not isinstance(f[mesh], h5py.Group):
+        group = f.get(mesh)
+        if group is not None:
+            if not isinstance(group, h5py.Group):
                 raise InputError(f"{f.filename}: corrupt session, {mesh} is not a group")
             for key, layout in _MESH_LAYOUT.items():
-                if key not in f[mesh]:
+                if key not in group:
                     raise InputError(f"{f.filename}: corrupt session, missing {mesh}/{key}")
-                _check_layout(f.filename, f"{mesh}/{key}", f[mesh][key], layout)
-            vertices, faces = f[mesh]["vertices"][()], f[mesh]["faces"][()]
+                _check_layout(f.filename, f"{mesh}/{key}", group[key], layout)
+            vertices, faces = group["vertices"][()], group["faces"][()]
             _check_finite(f.filename, f"{mesh}/vertices", vertices)
             if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
                 raise InputError(f"{f.filename}: corrupt session, {mesh}/faces names vertices that "

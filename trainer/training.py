@@ -399,9 +399,8 @@ def train_model(
             epoch_f = float(epoch + 1)
 
     result = None
-    if stopped and not config.write_on_stop:
-        if ctx.is_main:
-            result = TrainResult(out_dir, {}, history, epoch_f, step, train_s, True, _peak_rss_mb())
+    if ctx.is_main and stopped and not config.write_on_stop:
+        result = TrainResult(out_dir, {}, history, epoch_f, step, train_s, True, _peak_rss_mb())
     elif ctx.is_main:
         metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
         history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
