@@ -190,6 +190,7 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
     if s.max_tilt_deg > limits.max_tilt_deg:
         raise InputError(f"plan tilt {s.max_tilt_deg} deg exceeds the arm's limit {limits.max_tilt_deg} deg")
     travel_z = max(float(o.bounds_base()[1, 2]) for o in objects) + s.travel_clearance_m
+    deepest_press = f" (the deepest press, {motion.max_press_depth_m * 1e3:.3g} mm past the first touch: motion.max_press_depth_m)"
     rng = np.random.default_rng(s.seed)
     stops, poses = [], []
     for index, obj in enumerate(objects):
@@ -217,8 +218,8 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
             approach_end, deepest = above.copy(), above.copy()
             approach_end[:3] += axis * approach
             deepest[:3] += axis * (back + motion.max_press_depth_m)
-            for pose in (above, approach_end, deepest):
-                _check_reachable(limits, obj.name, pose)
+            for pose, target in ((above, ""), (approach_end, ""), (deepest, deepest_press)):
+                _check_reachable(limits, obj.name, pose, target)
             poses.append(
                 ContactPose(
                     pose_id=index * s.poses_per_object + k,
@@ -236,8 +237,9 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
     return CollectionPlan(list(objects), stops, poses, s, motion)
 
 
-def _check_reachable(limits: SafetyLimits, name: str, pose: np.ndarray) -> None:
+def _check_reachable(limits: SafetyLimits, name: str, pose: np.ndarray, target: str = "") -> None:
+    """``limits.check_pose(pose)``, its error naming the object ``name`` and the ``target`` the pose is."""
     try:
         limits.check_pose(pose)
     except InputError as err:
-        raise type(err)(f"object '{name}' cannot be reached safely: {err}") from None
+        raise type(err)(f"object '{name}' cannot be reached safely: {err}{target}") from None

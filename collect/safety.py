@@ -92,7 +92,7 @@ class SafetyLimits:
         if np.any(p[:3] < lo) or np.any(p[:3] > hi):
             raise SafetyViolation(
                 f"safety: target position {np.round(p[:3], 4).tolist()} m is outside the workspace box "
-                f"{list(self.workspace_min)}..{list(self.workspace_max)}"
+                f"{np.round(lo, 4).tolist()}..{np.round(hi, 4).tolist()} m"
             )
         tilt = tilt_deg(p)
         if tilt > self.max_tilt_deg:

@@ -12,7 +12,9 @@ interesting one):
 * ``box``: 70 x 50 x 40 mm box, flat on the plate. Primitive: box.
 * ``fingers``: a flat hand, palm down: a 50 x 82 x 16 mm palm and four 17 mm thick rounded fingers along +x.
 
-A mesh file (STL/OBJ/PLY, metres, +z up, origin on the fixture) must be watertight.
+A mesh file (STL/OBJ/PLY, metres, +z up, origin on the fixture) must be watertight and stand on its
+origin: its lowest point at z = 0 and the origin under its footprint, within ``MESH_PLACEMENT_TOL_M``.
+Its duplicate and zero-area triangles are dropped and, when it is inside out, its faces turned over.
 """
 
 from __future__ import annotations
@@ -38,6 +40,11 @@ PLATE_Z = 0.0
 #: Free space between neighbouring objects' footprints (m): more than half the bubble's long
 #: axis (60 mm) plus tilt, so a bubble pressing one object never touches its neighbour.
 PLATE_GAP = 0.09
+#: Largest and smallest extent (m) of a mesh file's object; the lower bound allows float32's rounding
+#: of an STL's coordinates (a 5 mm part reads as 4.9999997 mm).
+MESH_SIZE_RANGE_M = (0.005 * (1 - 1e-6), 0.5)
+#: How far (m) a mesh file's lowest point may lie from z = 0, and its origin outside its footprint.
+MESH_PLACEMENT_TOL_M = 1e-3
 
 
 @dataclass
@@ -258,8 +265,9 @@ def _builtin(name: str) -> tuple[trimesh.Trimesh, dict | None]:
 def load_object(name_or_path: str | Path) -> BenchObject:
     """A built-in object by name or a watertight mesh file by path, at the object-frame origin.
 
-    Raises ``InputError`` for an unknown name, a missing/unreadable file or a mesh that is empty
-    or not watertight.
+    Raises ``InputError`` for an unknown name, a missing/unreadable file, a mesh file named as a
+    built-in, or a mesh that is empty, not watertight, not finite, of the wrong size or not standing
+    on its origin (module docstring).
     """
     key = str(name_or_path)
     if key in _BUILDERS:
@@ -271,9 +279,11 @@ def load_object(name_or_path: str | Path) -> BenchObject:
             f"unknown object '{key}': use one of {', '.join(BUILTIN_OBJECTS)} or a mesh file ({', '.join(MESH_SUFFIXES)})"
         )
     if not path.is_file():
-        raise InputError(f"mesh file not found: {path}")
+        raise InputError(f"mesh {path} is not a regular file" if path.exists() else f"mesh file not found: {path}")
+    if path.stem in _BUILDERS:
+        raise InputError(f"mesh {path} would be named '{path.stem}', as the built-in object; rename the file")
     try:
-        mesh = trimesh.load(path, force="mesh")
+        mesh = trimesh.load(path, force="mesh", process=False)  # merged below, once its vertices are checked
     except ImportError:  # a file that is no binary mesh is read as text, whose encoding needs an optional package
         raise InputError(f"cannot read mesh {path}: it is neither a binary {path.suffix.lower()[1:].upper()} "
                          "file nor UTF-8 text (truncated or corrupt?)") from None
@@ -281,13 +291,24 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         raise InputError(f"cannot read mesh {path}: {type(err).__name__}: {err}".splitlines()[0]) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"mesh {path} holds no triangles")
-    if not mesh.is_watertight:
-        raise InputError(f"mesh {path} is not watertight (it must be a closed surface)")
     if not np.all(np.isfinite(mesh.vertices)):
         raise InputError(f"mesh {path} has non-finite vertices")
+    mesh.process()  # merges the vertices that an STL repeats per triangle
+    if not mesh.is_watertight:
+        mesh.update_faces(mesh.nondegenerate_faces() & mesh.unique_faces())
+        mesh.remove_unreferenced_vertices()
+        if not mesh.is_watertight:
+            raise InputError(f"mesh {path} is not watertight (it must be a closed surface)")
+    if not mesh.is_winding_consistent or mesh.volume < 0:  # inside out, or some faces turned
+        mesh.fix_normals()
     size = float(np.max(mesh.extents))
-    if not (0.005 <= size <= 0.5):
+    if not (MESH_SIZE_RANGE_M[0] <= size <= MESH_SIZE_RANGE_M[1]):
         raise InputError(f"mesh {path} is {size:.3g} m across; expected metres (5 mm to 0.5 m)")
+    (x0, y0, z0), (x1, y1, _) = mesh.bounds
+    tol = MESH_PLACEMENT_TOL_M
+    if abs(z0) > tol or not (x0 - tol <= 0 <= x1 + tol and y0 - tol <= 0 <= y1 + tol):
+        raise InputError(f"mesh {path} spans x {x0:.4g}..{x1:.4g}, y {y0:.4g}..{y1:.4g}, z from {z0:.4g} m: its "
+                         "origin must be on the fixture, under the object (lowest point at z = 0, +z up)")
     return BenchObject(name=path.stem, mesh=mesh, primitive=None)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import trimesh
@@ -111,6 +113,46 @@ def test_mesh_files(tmp_path):
         load_object(tmp_path / "missing.obj")
     with pytest.raises(InputError, match="unknown object"):
         load_object("teapot")
+
+
+def _brick(tmp_path, name, shift=(0.0, 0.0, 0.005), extents=(0.03, 0.02, 0.01), edit=None):
+    """A box mesh file ``name`` in ``tmp_path``, moved by ``shift`` (m) and passed through ``edit``."""
+    mesh = trimesh.creation.box(extents=extents)
+    mesh.apply_translation(shift)
+    if edit is not None:
+        mesh = edit(mesh)
+    mesh.export(tmp_path / name)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("name, shift, message", [
+    ("centred.stl", (0.0, 0.0, 0.0), r"spans x -0.015..0.015, y -0.01..0.01, z from -0.005 m: its origin must be on the "
+                                     r"fixture"),  # was: sunk halfway into the plate
+    ("floating.stl", (0.0, 0.0, 5.0), r"z from 4.995 m: its origin"),  # was: pressed 5 m above the plate
+    ("aside.stl", (3.0, 3.0, 0.005), r"spans x 2.985..3.015"),  # was: a pose check 50 mm off, turned about a far origin
+])
+def test_a_mesh_must_stand_on_its_origin(tmp_path, name, shift, message):
+    with pytest.raises(InputError, match=message):
+        load_object(_brick(tmp_path, name, shift))
+
+
+def test_mesh_files_that_are_repaired_or_named_wrong(tmp_path):
+    inside_out = load_object(_brick(tmp_path, "inside_out.stl", edit=lambda m: trimesh.Trimesh(m.vertices, m.faces[:, ::-1])))
+    assert inside_out.mesh.volume == pytest.approx(6e-6)  # was: taken as is, a negative volume for the pose check's SDF
+    doubled = load_object(_brick(tmp_path, "doubled.stl", edit=lambda m: trimesh.Trimesh(
+        m.vertices, np.vstack([m.faces, m.faces, [[0, 0, 1]]]), process=False)))  # each face twice, one of zero area
+    assert len(doubled.mesh.faces) == 12 and doubled.mesh.is_watertight  # was: "is not watertight"
+    five_mm = load_object(_brick(tmp_path, "five.stl", shift=(0, 0, 0.0025), extents=(0.005, 0.005, 0.005)))
+    assert five_mm.mesh.extents.max() < 0.005  # float32's rounding, was: "is 0.005 m across; expected 5 mm to 0.5 m"
+    nan = _brick(tmp_path, "nan.ply", edit=lambda m: trimesh.Trimesh(np.where(np.arange(8)[:, None] == 3, np.nan, m.vertices),
+                                                                     m.faces, process=False))
+    with pytest.raises(InputError, match="has non-finite vertices"):  # was: "is not watertight"
+        load_object(nan)
+    with pytest.raises(InputError, match=r"mug.stl would be named 'mug', as the built-in object; rename the file"):
+        load_object(_brick(tmp_path, "mug.stl"))
+    os.mkfifo(tmp_path / "pipe.stl")
+    with pytest.raises(InputError, match="pipe.stl is not a regular file"):  # was: "mesh file not found"
+        load_object(tmp_path / "pipe.stl")
 
 
 def test_fixture_plate_spacing_and_surface_points():
