@@ -39,7 +39,7 @@ def register(subparsers) -> None:
         description="List the commissioned sensors in the registry, or show one sensor's profile and history.",
     )
     s.add_argument("serial", nargs="?", help="show this sensor's profile and commissioning history")
-    s.add_argument("--registry", type=Path, metavar="DIR", help="registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    s.add_argument("--registry", type=output_path, metavar="DIR", help="registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.set_defaults(func=run_sensors)
 
@@ -51,7 +51,7 @@ def add_run_options(p) -> None:
     p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
     p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
     p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
-    p.add_argument("--registry", type=Path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    p.add_argument("--registry", type=output_path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
     p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
     p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M",
                    help="fine-tuning time budget (default %(default)s)")
@@ -191,7 +191,7 @@ def run_sensors(args) -> int:
     from calibrate.sensor_registry import SensorRegistry
 
     registry = SensorRegistry(args.registry)
-    if args.serial:
+    if args.serial is not None:
         profile = registry.get(args.serial)
         if args.json:
             print(json.dumps(profile.data, indent=2))
@@ -211,7 +211,8 @@ def run_sensors(args) -> int:
     if args.json:
         print(json.dumps([p.data for p in profiles], indent=2))
     else:
-        print(f"registry {registry.root}: {len(profiles)} sensor{'s' if len(profiles) != 1 else ''}")
+        absent = "" if registry.root.is_dir() else " (no such directory yet: the first commissioning creates it)"
+        print(f"registry {registry.root}: {len(profiles)} sensor{'s' if len(profiles) != 1 else ''}{absent}")
         if profiles:
             print(f"{'serial':<28} {'status':<9} {'last commissioned':<26} {'runs':>4} {'abs_rel':>8} {'a1':>6}  model")
         for p in profiles:

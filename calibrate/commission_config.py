@@ -86,6 +86,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
     from calibrate.run_directory import SESSION_FILE
+    from calibrate.sensor_registry import SensorRegistry
     from collect.output_files import check_parent_dirs
     from collect.pose_planner import check_unique_names
     from collect.session_writer import check_free_space
@@ -117,11 +118,9 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         check_model_arg(str(config.base_model), "--base-model")
         load_metadata(config.base_model)
         load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
-    registry = Path(config.registry_dir) if config.registry_dir is not None else None
-    if registry is not None and registry.exists() and not registry.is_dir():
-        raise InputError(f"sensor registry {registry} is not a directory")
-    if registry is not None:
-        check_parent_dirs(registry / "profile.json")  # the run registers the sensor at its end
+    if config.registry_dir is not None:
+        registry = SensorRegistry(config.registry_dir)  # InputError: not a directory
+        check_parent_dirs(registry.root / "profile.json")  # the run registers the sensor at its end
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")

@@ -40,7 +40,6 @@ retries it. ``stop_event`` does the same but ends with ``result.stopped`` (no ve
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 import time
@@ -228,12 +227,16 @@ class _Flow:
     def step_connect(self) -> dict:
         from collect.collection import session_metadata
 
+        from calibrate.sensor_registry import SensorRegistry
+
         self.open_bench()
         b = self.bench
+        serial = b.sensor_serial
+        # a damaged registry entry of this sensor would fail its registration at the end of the run
+        SensorRegistry(self.config.registry_dir).check_entry(serial)
         self.collection_plan()  # a plan this bench cannot run (its limits, its objects) fails before any motion
         b.arm.travel_to(b.home_pose)  # free air above the plate: nothing touches the bubble
         firmware = b.pressure.firmware_version()
-        serial = b.sensor_serial
         prior = self.state.data.get("serial")
         if prior is not None and prior != serial:
             raise InputError(f"{self.run_dir} was started for sensor {prior}, the bench holds {serial}; use a new --out")
@@ -590,7 +593,7 @@ class _Flow:
             Step.POSE_CHECK: self.step_pose_check,
         }
         etas = {Step.LEAK_TEST: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed()}
-        if self.state.done(Step.VERDICT) and (self.run_dir / ACCEPTANCE_FILE).is_file():
+        if self.state.done(Step.VERDICT):
             return self._finished_before()
         pending_bench = [s for s in BENCH_STEPS if not self.state.done(s)]
         try:
@@ -625,7 +628,8 @@ class _Flow:
             self.close_bench(safe_stop=False)
             self.emit(StepStarted(Step.VERDICT))
             result = self.finish()
-            self.state.record(Step.VERDICT, {"ok": result.accepted, "summary": "accepted" if result.accepted else result.reason})
+            self.state.record(Step.VERDICT, {"ok": result.accepted, "summary": "accepted" if result.accepted else result.reason,
+                                             "reason": result.reason, "fault": result.fault})
             self.emit(StepFinished(Step.VERDICT, result.accepted, "accepted" if result.accepted else result.reason))
             return result
         except HardwareFault as fault:
@@ -640,18 +644,18 @@ class _Flow:
             raise
 
     def _finished_before(self) -> CommissionResult:
-        """The verdict of a run that already finished in this directory (nothing runs again)."""
+        """The verdict of a run that already finished in this directory, as its ``state.json`` recorded it
+        (nothing runs again)."""
         for step in STEPS:
             if self.state.done(step):
                 rec = self.state.get(step)
                 self.emit(StepFinished(step, rec["ok"], rec["summary"], resumed=True, skipped=bool(rec.get("skipped"))))
             else:  # not run: a hardware check failed before it
                 self.emit(StepFinished(step, False, "not run", resumed=True, skipped=True))
-        doc = json.loads((self.run_dir / ACCEPTANCE_FILE).read_text())
+        verdict, checks = self.state.get(Step.VERDICT), self.state.checks()
         report = self.run_dir / REPORT_FILE
-        self.emit(Verdict(doc["accepted"], doc["checks"], str(report)))
-        return CommissionResult(doc["accepted"], doc["checks"], self.run_dir, report, fault=doc.get("fault"),
-                                reason=doc.get("reason", ""))
+        self.emit(Verdict(verdict["ok"], checks, str(report)))
+        return CommissionResult(verdict["ok"], checks, self.run_dir, report, fault=verdict["fault"], reason=verdict["reason"])
 
     def _speed(self) -> float:
         return float(self.config.sim_speed) if self.config.simulated else 1.0

@@ -2,10 +2,13 @@
 
 ``RunState`` is ``RUN_DIR/state.json``: the settings of the run (``run_settings``) and the results of
 its completed steps, which a re-run with the same ``RUN_DIR`` skips (``calibrate.commissioning``).
+Only this module writes it, with a SHA-256 of its content: a re-run refuses a ``state.json`` that was
+damaged or edited by hand, whose step results it would otherwise trust (and put into the registry).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -14,14 +17,15 @@ from typing import TYPE_CHECKING
 
 from calibrate.commission_events import STEPS, Step
 from collect.errors import InputError
-from collect.json_files import write_json
+from collect.json_files import JSON_READ_ERRORS, plain_json, write_json
 from collect.session_format import utc_now
 
 if TYPE_CHECKING:
     from calibrate.commission_config import CommissionConfig
 
 STATE_FILE = "state.json"
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: with its checksum (CHECKSUM_KEY)
+CHECKSUM_KEY = "sha256"
 SESSION_FILE = "session.h5"
 REFERENCE_FILE = "reference.h5"
 MODEL_DIR = "model"
@@ -73,11 +77,15 @@ class RunState:
             return state
         try:
             data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
+        except JSON_READ_ERRORS as err:
             raise InputError(f"{path} is unreadable ({err}); use a new --out directory") from None
+        if not isinstance(data, dict):
+            raise InputError(f"{path} does not hold a JSON object; use a new --out directory")
         if data.get("version") != STATE_VERSION:
             raise InputError(f"{path} is from another version of bubble commission; use a new --out directory")
-        saved = data.get("settings", {})
+        if data.get(CHECKSUM_KEY) != _checksum(data):
+            raise InputError(f"{path} does not match its checksum (damaged or edited by hand); use a new --out directory")
+        saved = data["settings"]
         for key in RESUME_KEYS:
             if saved.get(key) != settings.get(key):
                 raise InputError(
@@ -87,6 +95,7 @@ class RunState:
         return cls(path, data)
 
     def save(self) -> None:
+        self.data[CHECKSUM_KEY] = _checksum(self.data)
         write_json(self.path, self.data)
 
     def done(self, step: Step) -> bool:
@@ -105,6 +114,13 @@ class RunState:
         for step in STEPS:
             out += self.get(step).get("checks", [])
         return out
+
+
+def _checksum(data: dict) -> str:
+    """SHA-256 (hex) of ``data`` without its ``CHECKSUM_KEY``, as the canonical text (sorted keys) of the
+    JSON that ``write_json`` writes (``plain_json``: NaN as null, tuples as lists)."""
+    content = plain_json({k: v for k, v in data.items() if k != CHECKSUM_KEY})
+    return hashlib.sha256(json.dumps(content, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def set_aside(path: Path) -> None:

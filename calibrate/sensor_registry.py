@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from collect.errors import InputError
-from collect.json_files import shown_json, write_json
+from collect.json_files import JSON_READ_ERRORS, shown_json, write_json
 from collect.numbers import real_number, real_numbers
 from collect.output_files import output_folder_lock
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
@@ -70,12 +70,18 @@ class SensorProfile:
 
 
 _TEXT = (lambda v: isinstance(v, str), "a string")
-_OPTIONAL_NUMBER = (lambda v: v is None or real_number(v), "a finite number or null")  # NaN / inf are written as null
+#: Held-out metrics: (check, what it must be); NaN / inf are written as null.
+_METRICS = {
+    "abs_rel": (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null"),
+    "rmse": (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null"),
+    "a1": (lambda v: v is None or (real_number(v) and 0 <= v <= 1), "a number from 0 to 1 or null"),
+}
 #: Fields of a profile (all optional but 'history') and of each history entry: (check, what it must be).
 _PROFILE_FIELDS = {
     "serial": _TEXT,
     "status": (lambda v: v in ("accepted", "rejected"), "'accepted' or 'rejected'"),
-    "intrinsics": (lambda v: v is None or isinstance(v, dict), "an object or null"),
+    "intrinsics": (lambda v: v is None or (isinstance(v, dict) and all(map(real_number, v.values()))),
+                   "an object of finite numbers or null"),
     "camera_in_tcp": (lambda v: v is None or real_numbers(v, 6),
                       "6 finite numbers or null"),
     "simulated": (lambda v: isinstance(v, bool), "true or false"),
@@ -87,13 +93,12 @@ _PROFILE_FIELDS = {
     "model_source": _TEXT,
     "reference": _TEXT,
 }
-_METRIC_KEYS = ("abs_rel", "rmse", "a1")
 _HISTORY_FIELDS = {
     "time": _TEXT,
     "run_dir": _TEXT,
     "accepted": (lambda v: isinstance(v, bool), "true or false"),
     "reason": _TEXT,
-    **{key: _OPTIONAL_NUMBER for key in _METRIC_KEYS},
+    **_METRICS,
 }
 _REQUIRED_HISTORY_FIELDS = ("time", "run_dir", "accepted")
 
@@ -114,10 +119,10 @@ def check_profile(profile, path: Path) -> None:
             raise bad(field, what, profile[field])
     if profile.get("serial", path.parent.name) != path.parent.name:
         raise bad("serial", f"its folder's name {path.parent.name!r}", profile["serial"])
-    for key in _METRIC_KEYS:
+    for key, (ok, what) in _METRICS.items():
         value = (profile.get("accepted_metrics") or {}).get(key)
-        if not _OPTIONAL_NUMBER[0](value):
-            raise bad(f"accepted_metrics.{key}", _OPTIONAL_NUMBER[1], value)
+        if not ok(value):
+            raise bad(f"accepted_metrics.{key}", what, value)
     history = profile["history"]
     if not isinstance(history, list):
         raise bad("history", "a list of commissionings", history)
@@ -179,7 +184,7 @@ class RegistryListing:
 class SensorRegistry:
     """The registry directory (created on first registration)."""
 
-    def __init__(self, root: Path | None = None):
+    def __init__(self, root: Path | str | None = None):
         self.root = Path(root).expanduser() if root is not None else default_registry_dir()
         if self.root.exists() and not self.root.is_dir():
             raise InputError(f"sensor registry {self.root} is not a directory")
@@ -216,7 +221,7 @@ class SensorRegistry:
         when = when or datetime.now(timezone.utc)
         with output_folder_lock(sdir):
             prior = self._read_profile(sdir) if (sdir / PROFILE).exists() else {"serial": serial, "history": []}
-            metrics = {k: acceptance.get(k) for k in ("abs_rel", "rmse", "a1") if k in acceptance}
+            metrics = {k: acceptance.get(k) for k in _METRICS if k in acceptance}
             entry = {
                 "time": when.isoformat(timespec="seconds"),
                 "run_dir": str(Path(run_dir).resolve()),
@@ -249,27 +254,49 @@ class SensorRegistry:
             return SensorProfile(serial, sdir, profile)
 
     def _read_profile(self, sdir: Path) -> dict:
+        """The checked ``profile.json`` of the entry ``sdir``; ``InputError`` when the entry is not a
+        directory holding a readable one."""
+        path = sdir / PROFILE
+        if not sdir.is_dir():
+            raise InputError(f"sensor registry entry {sdir} is not a directory")
+        if not path.is_file():
+            raise InputError(f"sensor registry entry {sdir} is damaged: its {PROFILE} is not a regular file")
         try:
-            profile = json.loads((sdir / PROFILE).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            profile = json.loads(path.read_text())
+        except JSON_READ_ERRORS as err:
             raise InputError(f"sensor registry entry {sdir} is unreadable: {err}") from None
-        check_profile(profile, sdir / PROFILE)
+        check_profile(profile, path)
         return profile
+
+    def _has_profile(self, sdir: Path) -> bool:
+        """Whether ``sdir`` is an entry to read: something named ``profile.json`` in it (a folder without
+        one is a first registration under way, or one that died before writing it: the next
+        registration starts the profile afresh), or ``sdir`` itself is something other than a folder."""
+        profile = sdir / PROFILE
+        return profile.exists() or profile.is_symlink() or (sdir.is_symlink() or sdir.exists()) and not sdir.is_dir()
+
+    def check_entry(self, serial: str) -> None:
+        """Raise ``InputError`` when ``register(serial)`` would fail on the existing entry (a damaged
+        ``profile.json``): what a commissioning checks as soon as it knows the sensor's serial."""
+        sdir = self._sensor_dir(serial)
+        if self._has_profile(sdir):
+            self._read_profile(sdir)
 
     def get(self, serial: str) -> SensorProfile:
         sdir = self._sensor_dir(serial)
-        if not (sdir / PROFILE).is_file():
+        if not self._has_profile(sdir):
             raise InputError(f"sensor {serial!r} is not in the registry {self.root}")
         return SensorProfile(serial, sdir, self._read_profile(sdir))
 
     def survey(self) -> RegistryListing:
         """Every registered sensor, sorted by serial: the readable profiles, and the ``InputError``
-        message of each entry whose ``profile.json`` is damaged (one such entry hides no other)."""
+        message of each entry (a folder named as a serial) whose ``profile.json`` is damaged (one such
+        entry hides no other)."""
         listing = RegistryListing([], [])
         if not self.root.is_dir():
             return listing
-        for sdir in sorted(p for p in self.root.iterdir()  # other folders are not sensors
-                           if SENSOR_SERIAL_RE.fullmatch(p.name) and (p / PROFILE).is_file()):
+        for sdir in sorted(p for p in self.root.iterdir()  # other files and folders are not sensors
+                           if SENSOR_SERIAL_RE.fullmatch(p.name) and p.is_dir() and self._has_profile(p)):
             try:
                 listing.profiles.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
             except InputError as err:

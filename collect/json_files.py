@@ -12,6 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+#: What reading a JSON file that a user may have damaged can raise: OSError (the file system),
+#: ValueError (not UTF-8, not JSON, or an int of more than 4300 digits) and RecursionError
+#: (thousands of nested brackets).
+JSON_READ_ERRORS = (OSError, ValueError, RecursionError)
+
 
 def plain_json(value):
     """``value`` as strict JSON data: dataclasses -> dicts, numpy arrays -> lists, numpy scalars ->

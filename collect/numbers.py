@@ -12,9 +12,14 @@ import numpy as np
 
 
 def real_number(value) -> bool:
-    """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf."""
-    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-            and math.isfinite(value))
+    """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf,
+    nor an int beyond float's range (JSON and YAML read a 400-digit number as an exact int)."""
+    if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, (bool, np.bool_)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def real_numbers(values, n: int) -> bool:

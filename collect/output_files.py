@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from collect.errors import InputError
-from collect.json_files import write_json
+from collect.json_files import JSON_READ_ERRORS, write_json
 
 #: Longest file name (one path component) in bytes; 255 on the usual Linux file systems.
 _NAME_MAX = os.pathconf("/", "PC_NAME_MAX")
@@ -124,6 +124,6 @@ def _written_by(path: Path) -> str | None:
             if f.read(64).lstrip()[:1] != b"{":
                 return None
         document = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
+    except JSON_READ_ERRORS:
         return None
     return document.get(WRITTEN_BY)

@@ -24,6 +24,7 @@ import numpy as np
 
 from collect import session_format as sf
 from collect.errors import InputError
+from collect.json_files import JSON_READ_ERRORS
 from collect.numbers import real_number, real_numbers
 
 _REQUIRED = (
@@ -459,8 +460,8 @@ def _root_json(f: h5py.File, name: str, expected: str, valid):
     JSON, or not ``valid(value)`` (``expected`` says what it must be)."""
     try:
         value = json.loads(_text(_root_attr(f, name)))
-    except json.JSONDecodeError as err:
-        raise InputError(f"{f.filename}: root attr '{name}' is not valid JSON ({err.msg})") from None
+    except JSON_READ_ERRORS as err:
+        raise InputError(f"{f.filename}: root attr '{name}' is not valid JSON ({getattr(err, 'msg', err)})") from None
     if not valid(value):
         raise _bad(f.filename, f"root attr '{name}'", expected, value)
     return value

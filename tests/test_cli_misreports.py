@@ -13,6 +13,7 @@ import pytest
 from calibrate.cli import main
 from calibrate.sensor_registry import SensorRegistry
 from collect import session_format as sf
+from collect.errors import InputError
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
 
@@ -198,9 +199,14 @@ def test_a_resumed_segment_is_listed_only_when_it_records_a_frame(tmp_path):
         (lambda d: d["history"][0].__setitem__("accepted", "yes"), "'history[0].accepted' must be true or false, got \"yes\""),
         (lambda d: d.__setitem__("history", 3), "'history' must be a list of commissionings, got 3"),
         (lambda d: d.__setitem__("accepted_metrics", 3), "'accepted_metrics' must be an object of metrics or null, got 3"),
-        (lambda d: d["accepted_metrics"].__setitem__("a1", "high"), "'accepted_metrics.a1' must be a finite number or null"),
-        (lambda d: d["history"][0].__setitem__("a1", "high"), "'history[0].a1' must be a finite number or null"),
-        (lambda d: d["history"][0].__setitem__("a1", float("nan")), "'history[0].a1' must be a finite number or null, got NaN"),
+        (lambda d: d["accepted_metrics"].__setitem__("a1", "high"), "'accepted_metrics.a1' must be a number from 0 to 1 or null"),
+        (lambda d: d["history"][0].__setitem__("a1", "high"), "'history[0].a1' must be a number from 0 to 1 or null"),
+        (lambda d: d["history"][0].__setitem__("a1", float("nan")), "'history[0].a1' must be a number from 0 to 1 or null, got NaN"),
+        (lambda d: d["history"][0].__setitem__("a1", 10**400),  # was: an OverflowError traceback
+         "'history[0].a1' must be a number from 0 to 1 or null, got 1000000000000000000000000000000000000..."),
+        (lambda d: d["history"][0].__setitem__("a1", -5), "'history[0].a1' must be a number from 0 to 1 or null, got -5"),  # was: listed
+        (lambda d: d["history"][0].__setitem__("abs_rel", -0.5), "'history[0].abs_rel' must be a number >= 0 or null, got -0.5"),
+        (lambda d: d.__setitem__("intrinsics", {"fx": "x"}), "'intrinsics' must be an object of finite numbers or null"),
         (lambda d: d.__setitem__("status", ["accepted"]), "'status' must be 'accepted' or 'rejected'"),
         (lambda d: d.__setitem__("last_commissioned", 5), "'last_commissioned' must be a string, got 5"),
         (lambda d: d.__setitem__("simulated", "no"), "'simulated' must be true or false"),
@@ -242,6 +248,42 @@ def test_a_damaged_registry_entry_hides_no_other_sensor(tmp_path, capsys):
         assert listed(out) in ("SB-B", ["SB-B"]) and "SB-A" not in out and "SB-C" not in out, out
         assert err == (f"bubble: error: sensor registry entry {tmp_path / 'reg' / 'SB-A'} is unreadable: Expecting "
                        "property name enclosed in double quotes: line 1 column 2 (char 1) (and 1 more damaged entry)\n")
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda p: p.write_text('{"history": [], "a1": ' + "9" * 5000 + "}"), "is unreadable: Exceeds the limit (4300 digits)"),
+    (lambda p: p.write_text("[" * 100000), "is unreadable: maximum recursion depth exceeded"),  # was: a traceback
+    (lambda p: (p.unlink(), p.mkdir()), "is damaged: its profile.json is not a regular file"),  # was: left out of the
+    # listing without a word, "not in the registry" for the sensor itself, and a commissioning failed at its end
+    (lambda p: (p.unlink(), p.symlink_to(p.parent / "gone.json")), "is damaged: its profile.json is not a regular file"),
+])
+def test_a_registry_entry_that_cannot_be_read_is_named(tmp_path, capsys, damage, message):
+    registry = SensorRegistry(tmp_path / "reg")
+    for serial in ("SB-A", "SB-B"):
+        registry.register(serial, accepted=True, run_dir=tmp_path, intrinsics={"width": 4, "height": 3},
+                          camera_in_tcp=None, simulated=True, acceptance={"accepted": True, "a1": 0.9, "abs_rel": 0.01})
+    damage(tmp_path / "reg" / "SB-A" / "profile.json")
+    for argv in (["sensors", "--registry", tmp_path / "reg"], ["sensors", "--registry", tmp_path / "reg", "SB-A"]):
+        err = _refused(capsys, argv, message)
+        assert err.startswith(f"bubble: error: sensor registry entry {tmp_path / 'reg' / 'SB-A'} "), err
+    with pytest.raises(InputError, match="sensor registry entry"):
+        registry.check_entry("SB-A")
+    registry.check_entry("SB-B")
+    registry.check_entry("SB-NEW")
+
+
+def test_registry_options_that_name_nothing(tmp_path, capsys):
+    for argv in (["sensors", "--registry", ""],  # was: the current folder listed
+                 ["commission", "--sim", "--out", str(tmp_path / "run"), "--registry", ""]):
+        with pytest.raises(SystemExit) as usage_error:  # argparse's, one line on stderr
+            main(argv)
+        assert usage_error.value.code == 2
+        assert capsys.readouterr().err == "bubble: error: argument --registry: is empty: name a file or folder\n"
+    _refused(capsys, ["sensors", "--registry", tmp_path, ""], "sensor serial '' is not a valid registry name")  # was:
+    # the whole listing
+    assert main(["sensors", "--registry", str(tmp_path / "typo")]) == 0  # was: "0 sensors", no word of the folder
+    assert capsys.readouterr().out == (f"registry {tmp_path / 'typo'}: 0 sensors (no such directory yet: the first "
+                                       "commissioning creates it)\n")
 
 
 def test_output_read_by_a_pipe_that_closes_early_is_no_traceback(synthetic_session):

@@ -12,6 +12,7 @@ import fcntl
 import json
 import math
 import os
+import shutil
 import signal
 import threading
 import time
@@ -214,6 +215,54 @@ def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
     assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 2
 
 
+def test_a_finished_run_keeps_its_verdict_whatever_happened_to_its_acceptance_json(faulted_then_resumed, tmp_path):
+    """The verdict of a finished run comes from its state.json. Was: read back from acceptance.json,
+    so that ``"accepted": "no"`` there gave ACCEPTED, a damaged file a traceback, and a deleted one a
+    second registration of the same run."""
+    config = faulted_then_resumed["config"]
+    registry = tmp_path / "registry"
+    shutil.copytree(config.registry_dir, registry)
+    for damage in ('{"accepted": "no", "checks": "x"}', "{\"accepted\": tr", None):
+        run_dir = tmp_path / f"run{len(list(tmp_path.iterdir()))}"
+        shutil.copytree(config.run_dir, run_dir)
+        acceptance = run_dir / "acceptance.json"
+        acceptance.unlink() if damage is None else acceptance.write_text(damage)
+        result = run_commissioning(dataclasses.replace(config, run_dir=run_dir, registry_dir=registry), lambda e: None)
+        assert result.accepted and result.checks == faulted_then_resumed["result"].checks
+    assert len(SensorRegistry(registry).survey().profiles[0].history) == 2
+
+
+def test_a_damaged_registry_entry_of_the_sensor_stops_the_run_at_connect(tmp_path):
+    """Was: the whole run, then a traceback or an exit 2 at its registration that hid the verdict."""
+    from hw_mocks.sensor_spec import draw_sensor
+
+    config = tiny_config(tmp_path)
+    entry = config.registry_dir / draw_sensor(config.seed).serial
+    (entry / "profile.json").mkdir(parents=True)
+    events: list = []
+    with pytest.raises(InputError, match=f"sensor registry entry {entry} is damaged: its profile.json is not a regular"):
+        run_commissioning(config, events.append)
+    assert not [e for e in events if isinstance(e, StepFinished)]
+    assert sorted(p.name for p in config.run_dir.iterdir()) == ["state.json"]
+
+
+@pytest.mark.parametrize("edit", [
+    lambda state: state["steps"]["connect"].update(intrinsics="x"),  # was: put into the registry as is
+    lambda state: state["steps"]["verdict"].update(ok="yes"),
+    lambda state: state.update(steps=[]),  # was: a TypeError traceback
+])
+def test_a_state_json_edited_by_hand_is_refused(faulted_then_resumed, tmp_path, edit):
+    config = faulted_then_resumed["config"]
+    run_dir = tmp_path / "run"
+    shutil.copytree(config.run_dir, run_dir)
+    state = json.loads((run_dir / "state.json").read_text())
+    edit(state)
+    (run_dir / "state.json").write_text(json.dumps(state))
+    with pytest.raises(InputError, match="state.json does not match its checksum"):
+        run_commissioning(dataclasses.replace(config, run_dir=run_dir, registry_dir=tmp_path / "registry"), lambda e: None)
+    assert not (tmp_path / "registry").exists()
+
+
 def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
     stop = threading.Event()
     events: list = []
@@ -288,8 +337,6 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
 def test_a_disk_too_full_to_record_on_is_refused_before_the_bench_opens(tmp_path, capsys, monkeypatch):
     """The recorder will not start with less than ``MIN_FREE_BYTES`` free; commissioning says so
     before the bench opens, not at the collection step after the leak test has moved the arm."""
-    import shutil
-
     import collect.session_writer as session_writer
 
     monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", shutil.disk_usage(tmp_path).free + 2**40)

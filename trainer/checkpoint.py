@@ -16,7 +16,7 @@ from safetensors.torch import load_file
 from torch import nn
 
 from collect.errors import InputError
-from collect.json_files import write_json
+from collect.json_files import JSON_READ_ERRORS, write_json
 from trainer.model_dir import write_safetensors
 
 CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
@@ -48,7 +48,7 @@ def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     try:
         tensors = load_file(str(model_dir / CHECKPOINT_WEIGHTS))
         state = json.loads((model_dir / CHECKPOINT_STATE).read_text())
-    except (SafetensorError, OSError, ValueError) as err:
+    except (SafetensorError, *JSON_READ_ERRORS) as err:
         raise InputError(f"cannot read the checkpoint in {model_dir}: {err}") from None
     net_state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
     try:

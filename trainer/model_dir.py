@@ -28,7 +28,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from collect.errors import InputError
-from collect.json_files import NEW_FILE_MODE, shown_json, write_json
+from collect.json_files import JSON_READ_ERRORS, NEW_FILE_MODE, shown_json, write_json
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, MAX_WIDTH, build_network
 from trainer.preprocessing import MAX_LOG_IR, MIN_IR_STD, InputGeometry, IRNormalization
 
@@ -192,7 +192,7 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
         raise InputError(f"model directory {model_dir} has no {METADATA_FILE}")
     try:
         data = json.loads(path.read_text())
-    except (ValueError, RecursionError) as err:  # also a 5000-digit number, 100000 nested brackets
+    except JSON_READ_ERRORS as err:
         raise InputError(f"{path} is not valid JSON: {err}") from None
     if not isinstance(data, dict):
         raise InputError(f"{path} does not hold a JSON object")
