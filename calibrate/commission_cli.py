@@ -17,7 +17,7 @@ from pathlib import Path
 from calibrate.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
 from collect.cli import DEFAULT_OBJECTS_ARG
 from collect.errors import EXIT_OK, EXIT_REJECTED, InputError
-from collect.output_files import output_path
+from collect.output_files import named_path
 
 
 def register(subparsers) -> None:
@@ -27,8 +27,8 @@ def register(subparsers) -> None:
         description="Commission a new bubble sensor end to end and register it. Exit 0 accepted, 1 rejected, "
         "2 bad input. Re-running with the same --out resumes from the last completed step.",
     )
-    p.add_argument("--bench", type=Path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
-    p.add_argument("--out", type=output_path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
+    p.add_argument("--bench", type=named_path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
+    p.add_argument("--out", type=named_path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
     add_run_options(p)
     p.add_argument("--quiet", action="store_true", help="print only the verdict")
     p.set_defaults(func=run_commission)
@@ -39,7 +39,7 @@ def register(subparsers) -> None:
         description="List the commissioned sensors in the registry, or show one sensor's profile and history.",
     )
     s.add_argument("serial", nargs="?", help="show this sensor's profile and commissioning history")
-    s.add_argument("--registry", type=output_path, metavar="DIR", help="registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    s.add_argument("--registry", type=named_path, metavar="DIR", help="registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.set_defaults(func=run_sensors)
 
@@ -49,10 +49,10 @@ def add_run_options(p) -> None:
     from calibrate.commission_config import CommissionConfig
 
     p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
-    p.add_argument("--sensor", type=Path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
-    p.add_argument("--thresholds", type=Path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
-    p.add_argument("--registry", type=output_path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
-    p.add_argument("--base-model", type=Path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
+    p.add_argument("--sensor", type=named_path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
+    p.add_argument("--thresholds", type=named_path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
+    p.add_argument("--registry", type=named_path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
+    p.add_argument("--base-model", type=named_path, metavar="MODEL_DIR", help="model to fine-tune from (default: the packaged base model)")
     p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes, metavar="M",
                    help="fine-tuning time budget (default %(default)s)")
     p.add_argument("--total-minutes", type=float, default=CommissionConfig.total_minutes, metavar="M",
@@ -72,14 +72,17 @@ def run_config(args, run_dir: str | Path, bench=None):
     bench's ``BenchConfig``; None for the simulated one)."""
     from calibrate.commission_config import CommissionConfig
 
+    def path(text: str | None) -> Path | None:
+        return None if text is None else Path(text)
+
     return CommissionConfig(
         run_dir=Path(run_dir),
         simulated=args.sim,
-        sensor_spec=args.sensor,
+        sensor_spec=path(args.sensor),
         bench=bench,
-        thresholds=args.thresholds,
-        registry_dir=args.registry,
-        base_model=args.base_model,
+        thresholds=path(args.thresholds),
+        registry_dir=path(args.registry),
+        base_model=path(args.base_model),
         finetune_minutes=args.finetune_minutes,
         total_minutes=args.total_minutes,
         objects=tuple(name.strip() for name in args.objects.split(",") if name.strip()),

@@ -18,8 +18,10 @@ from collect.errors import InputError
 if TYPE_CHECKING:
     from collect.bench import BenchConfig
 
-#: Leak-test hold (s of bench time), the default of ``CommissionConfig.leak_hold_s``.
+#: Leak-test hold (s of bench time), the default of ``CommissionConfig.leak_hold_s``, and the holds accepted
+#: (a second is a hundred samples of the pressure board; ten minutes is far more than a leak needs to show).
 LEAK_HOLD_S = 10.0
+LEAK_HOLD_RANGE_S = (1.0, 600.0)
 #: Wall time (s) the fine-tune step may take beyond its training budget: loading the calibration
 #: set, the live validations, the final validation and the ONNX export (about 20 s on the 2-core
 #: CPU of docs/benchmarks.md, 28-35 s on one half as fast). The trainer's deadline cuts training
@@ -88,7 +90,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     from calibrate.run_directory import SESSION_FILE
     from calibrate.sensor_registry import SensorRegistry
     from collect.output_files import check_parent_dirs
-    from collect.pose_planner import check_unique_names
+    from collect.pose_planner import MAX_POSES_PER_OBJECT, check_unique_names
     from collect.session_writer import check_free_space
     from hw_mocks.objects import load_object
     from trainer.cli import check_model_arg
@@ -104,16 +106,19 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     # InputError for an unknown object, a bad mesh, or one named twice (the run would reach the
     # collection step, after the arm's first moves, before the planner said so)
     check_unique_names([load_object(name).name for name in config.objects])
-    if int(config.poses_per_object) < 2:  # the validation holds out a share of each object's poses
-        raise InputError(f"poses per object must be at least 2 (one or more is held out), got {config.poses_per_object}")
+    if not 2 <= int(config.poses_per_object) <= MAX_POSES_PER_OBJECT:  # the validation holds out a share of each
+        # object's poses
+        raise InputError(f"poses per object must be 2..{MAX_POSES_PER_OBJECT} (one or more is held out), got "
+                         f"{config.poses_per_object}")
     if int(config.seed) < 0:
         raise InputError(f"seed must be >= 0, got {config.seed}")
     if not (math.isfinite(config.finetune_minutes) and config.finetune_minutes > 0):
         raise InputError(f"fine-tune minutes must be positive, got {config.finetune_minutes}")
     if config.total_minutes is not None and not config.total_minutes > 0:  # inf: no budget
         raise InputError(f"total minutes must be positive, got {config.total_minutes}")
-    if not (math.isfinite(config.leak_hold_s) and config.leak_hold_s > 0):
-        raise InputError(f"leak-test hold must be positive, got {config.leak_hold_s} s")
+    if not LEAK_HOLD_RANGE_S[0] <= config.leak_hold_s <= LEAK_HOLD_RANGE_S[1]:  # also NaN
+        raise InputError(f"leak-test hold must be {LEAK_HOLD_RANGE_S[0]:g}..{LEAK_HOLD_RANGE_S[1]:g} s, got "
+                         f"{config.leak_hold_s:g} s")
     if config.base_model is not None:
         check_model_arg(str(config.base_model), "--base-model")
         load_metadata(config.base_model)

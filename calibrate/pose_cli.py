@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from collect.output_files import check_json_output, check_parent_dirs, output_path, write_json_result
+from collect.output_files import check_json_output, check_parent_dirs, named_path, write_json_result
 
 #: Largest contact threshold (mm): presses dent the bubble by about 10 mm at most.
 MAX_THRESHOLD_MM = 20.0
@@ -20,11 +20,11 @@ def register(subparsers) -> None:
                     "(e_x = ||p1-p2|| mm at the shape's centre, e_theta = 1-|q1.q2|); simulated sessions are also compared "
                     "with the true pose.",
     )
-    p.add_argument("--model", required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
-    p.add_argument("--data", required=True, metavar="S.h5", help="session file")
+    p.add_argument("--model", type=named_path, required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
+    p.add_argument("--data", type=named_path, required=True, metavar="S.h5", help="session file")
     p.add_argument("--object", default="mug", help="object to estimate (default: mug)")
-    p.add_argument("--json", type=output_path, metavar="OUT.json", help="write the results (e_x_mm, e_theta, hz, per frame) here")
-    p.add_argument("--plots", type=output_path, metavar="DIR", help="write error histograms (PNG) here")
+    p.add_argument("--json", type=named_path, metavar="OUT.json", help="write the results (e_x_mm, e_theta, hz, per frame) here")
+    p.add_argument("--plots", type=named_path, metavar="DIR", help="write error histograms (PNG) here")
     p.add_argument("--threshold-mm", type=float, default=1.5, help="contact: depth below the reference by more than this (mm)")
     p.add_argument("--points", type=int, default=1500, help="points per contact patch (default 1500)")
     p.add_argument("--seed", type=int, default=0, help="seed of the prior's perturbation")
@@ -36,8 +36,12 @@ def _run(args) -> int:
     from collect.errors import InputError
     from trainer.cli import check_model_arg
 
-    if not 0 < args.threshold_mm <= MAX_THRESHOLD_MM or args.points < 1 or args.seed < 0:
-        raise InputError(f"--threshold-mm must be within (0, {MAX_THRESHOLD_MM:g}], --points >= 1 and --seed >= 0")
+    if not 0 < args.threshold_mm <= MAX_THRESHOLD_MM:
+        raise InputError(f"--threshold-mm must be within (0, {MAX_THRESHOLD_MM:g}], got {args.threshold_mm:g}")
+    if args.points < 1:
+        raise InputError(f"--points must be at least 1, got {args.points}")
+    if args.seed < 0:
+        raise InputError(f"--seed must be 0 or more, got {args.seed}")
     check_model_arg(args.model, "--model")
     if args.json is not None:
         check_json_output(args.json, "bubble pose")
@@ -45,7 +49,7 @@ def _run(args) -> int:
         if os.path.exists(args.plots) and not os.path.isdir(args.plots):
             raise InputError(f"--plots {args.plots} is a file, not a directory")
         check_parent_dirs(Path(args.plots) / "pose_errors.png")
-    result = run_pose_check(args.model, args.data, args.object, threshold_m=1e-3 * args.threshold_mm,
+    result = run_pose_check(args.model, args.data, args.object.strip(), threshold_m=1e-3 * args.threshold_mm,
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
     print(result.summary())
     if args.json is not None:

@@ -9,7 +9,7 @@ from pathlib import Path
 from calibrate.commission_cli import add_run_options, run_config
 from calibrate.stop_signals import exit_code, stop_signals_handled
 from collect.errors import InputError
-from collect.output_files import output_path
+from collect.output_files import named_path
 
 
 def register(subparsers) -> None:
@@ -19,7 +19,7 @@ def register(subparsers) -> None:
         description="Terminal UI that drives the bench. Keys: c commission (asks first), s/space STOP the arm, "
         "1-4 tabs, r reload registry, q quit (stops the arm and closes the session first).",
     )
-    p.add_argument("--out", type=output_path, metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
+    p.add_argument("--out", type=named_path, metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
     add_run_options(p)
     p.set_defaults(func=run_tui)
 

@@ -8,6 +8,7 @@ import threading
 
 from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
+from collect.output_files import named_path
 
 #: ``--objects`` default of the commands that press objects: every object of the fixture plate.
 DEFAULT_OBJECTS_ARG = ",".join(DEFAULT_OBJECTS)
@@ -21,8 +22,8 @@ def register(subparsers) -> None:
         "IR, depth, arm pose, wrench and pressure into one HDF5 session (docs/session_format.md).",
     )
     p.add_argument("--sim", action="store_true", help="use the simulated bench (default: the real 'ur' bench of --bench)")
-    p.add_argument("--bench", metavar="BENCH.yaml", help="real bench settings (robot_ip, home_pose, serial_port, ...)")
-    p.add_argument("--sensor", metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
+    p.add_argument("--bench", type=named_path, metavar="BENCH.yaml", help="real bench settings (robot_ip, home_pose, serial_port, ...)")
+    p.add_argument("--sensor", type=named_path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
     p.add_argument("--objects", help=f"comma-separated built-in objects (default: {DEFAULT_OBJECTS_ARG})")
     p.add_argument("--object-mesh", nargs="+", action="extend", default=[], metavar="PATH",
                    help="mesh files (STL/OBJ/PLY, m, +z up) on the plate; alone, only the meshes are used")
@@ -34,13 +35,13 @@ def register(subparsers) -> None:
                    help="simulated clock speed factor (default 1 = real time)")
     p.add_argument("--resume", action="store_true", help="append to an existing session, skipping completed poses")
     p.add_argument("--quiet", action="store_true", help="no live progress display")
-    p.add_argument("--out", required=True, metavar="FILE.h5", help="session file to write")
+    p.add_argument("--out", type=named_path, required=True, metavar="FILE.h5", help="session file to write")
     p.set_defaults(func=run_collect)
 
     p = subparsers.add_parser("info", help="summarize a recorded session file",
                               description="Print what a session holds: sensor, frames per object and phase, "
                               "duration, frame rate, dropped frames, storage sizes.")
-    p.add_argument("file", metavar="FILE.h5")
+    p.add_argument("file", type=named_path, metavar="FILE.h5")
     p.set_defaults(func=run_info)
 
 

@@ -23,9 +23,9 @@ _NAME_MAX = os.pathconf("/", "PC_NAME_MAX")
 WRITTEN_BY = "written_by"
 
 
-def output_path(text: str) -> str:
-    """argparse ``type`` of an option that names a file or folder to write: refuses an empty name,
-    which would otherwise write into the current folder or nowhere."""
+def named_path(text: str) -> str:
+    """argparse ``type`` of an option or argument that names a file or folder, to read or to write:
+    refuses an empty name, which would otherwise name the current folder, or nothing."""
     if not text.strip():
         raise argparse.ArgumentTypeError("is empty: name a file or folder")
     return text

@@ -40,6 +40,8 @@ from collect.transforms import linear_path_m
 
 #: TCP orientation pressing straight down (TCP +z along base -z), yaw 0.
 DOWN = Rotation.from_rotvec([np.pi, 0.0, 0.0])
+#: Most contact poses per object a plan takes (1000 presses of one object are hours of bench time).
+MAX_POSES_PER_OBJECT = 1000
 
 
 @dataclass(frozen=True)
@@ -64,8 +66,8 @@ class PlanSettings:
     reference_s: float = 0.4
 
     def __post_init__(self):
-        if not 1 <= int(self.poses_per_object) <= 1000:
-            raise InputError(f"poses per object must be 1..1000, got {self.poses_per_object}")
+        if not 1 <= int(self.poses_per_object) <= MAX_POSES_PER_OBJECT:
+            raise InputError(f"poses per object must be 1..{MAX_POSES_PER_OBJECT}, got {self.poses_per_object}")
         lo, hi = self.press_force_n
         if not 0 < lo <= hi:
             raise InputError(f"press force range must satisfy 0 < min <= max, got {self.press_force_n}")

@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 
 from collect.errors import InputError
+from collect.output_files import named_path
 
 #: Deepest press the preview accepts (mm).
 MAX_PREVIEW_PRESS_MM = 30.0
@@ -25,14 +26,14 @@ def register(subparsers) -> None:
     new = sim_sub.add_parser("new-sensor", help="draw a plausible new simulated sensor from a seed")
     new.add_argument("--seed", type=int, required=True, help="sensor seed (>= 0); same seed, same sensor")
     new.add_argument("--defect", choices=("leak", "dead-pixels", "no-dots"), help="make a faulty sensor")
-    new.add_argument("--out", required=True, help="sensor spec YAML to write")
+    new.add_argument("--out", type=named_path, required=True, help="sensor spec YAML to write")
     new.set_defaults(func=_new_sensor)
 
     prev = sim_sub.add_parser("preview", help="render IR, ToF depth, true depth and depth error to a PNG")
-    prev.add_argument("--sensor", required=True, help="sensor spec YAML")
+    prev.add_argument("--sensor", type=named_path, required=True, help="sensor spec YAML")
     prev.add_argument("--object", required=True, help="mug, wine_glass, box, fingers or a mesh file (STL/OBJ/PLY)")
     prev.add_argument("--press-mm", type=float, default=5.0, help="press depth below first touch of the top (mm)")
-    prev.add_argument("--out", required=True, help="PNG to write")
+    prev.add_argument("--out", type=named_path, required=True, help="PNG to write")
     prev.set_defaults(func=_preview)
 
 

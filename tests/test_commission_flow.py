@@ -320,6 +320,9 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
         (None, ["--objects", "mug,box,mug"], "object names must be unique, got mug twice"),
         ("version: 1\nchecks: {heldout_a1: {min: x}}\n", ["--thresholds", "{tmp}/given"], "finite number"),
         (None, ["--poses-per-object", "0"], "poses per object"),
+        (None, ["--poses-per-object", "1001"], "poses per object must be 2..1000 (one or more is held out), got 1001"),
+        (None, ["--leak-hold-s", "1e12"], "leak-test hold must be 1..600 s, got 1e+12 s"),  # was: a leak test without end
+        (None, ["--leak-hold-s", "1e-9"], "leak-test hold must be 1..600 s, got 1e-09 s"),  # was: a refusal after it
         (None, ["--total-minutes", "0"], "total minutes"),
     ],
 )

@@ -62,8 +62,11 @@ def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert "no object 'cup'" in err[1] and "no usable hold frame" in err[2]
     assert "not an earlier `bubble pose --json` result; refusing to overwrite" in err[3] and session.read_bytes() == recorded
     # 1e308 mm overflowed the patch threshold: warnings before the error line
-    for option, value in (("--threshold-mm", "0"), ("--threshold-mm", "nan"), ("--threshold-mm", "1e308"),
-                          ("--points", "0")):
-        assert cli.main(["pose", "--model", str(model), "--data", str(session), option, value]) == 2
-        err = capsys.readouterr().err.splitlines()
-        assert err == ["bubble: error: --threshold-mm must be within (0, 20], --points >= 1 and --seed >= 0"]
+    for option, value, message in (("--threshold-mm", "0", "--threshold-mm must be within (0, 20], got 0"),
+                                   ("--threshold-mm", "nan", "--threshold-mm must be within (0, 20], got nan"),
+                                   ("--threshold-mm", "1e308", "--threshold-mm must be within (0, 20], got 1e+308"),
+                                   ("--points", "0", "--points must be at least 1, got 0"),
+                                   ("--seed=-1", None, "--seed must be 0 or more, got -1")):  # was: one line for all
+        argv = ["pose", "--model", str(model), "--data", str(session), option] + ([value] if value else [])
+        assert cli.main(argv) == 2
+        assert capsys.readouterr().err.splitlines() == [f"bubble: error: {message}"]

@@ -298,3 +298,61 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
         assert len(err) == 1 and err[0].startswith("bubble: error:"), (argv, err)
     assert session.read_bytes() == recorded and (model / WEIGHTS_FILE).read_bytes() == weights
     assert (model / METADATA_FILE).read_bytes() == metadata
+
+
+def test_train_and_evaluate_options_that_crashed_or_were_ignored(bubble, trained, session, tmp_path, capsys):
+    """Each now one line and exit 2, nothing written; before: a traceback in torch (seed, threads), a
+    model trained at a learning rate of 1e12, a finished model trained again from scratch over itself
+    (--resume without a checkpoint), a training from scratch (--init ''), one validation choice
+    silently ignored, or a copy of the training session validated on (or evaluated twice)."""
+    model = trained[0].model_dir
+    copy = tmp_path / "copy.h5"
+    shutil.copy(session, copy)
+    train = ("train", "--data", session, "--epochs", "0.1", "--no-onnx", "--width", "0.125")
+    cases = [
+        (train + ("--out", tmp_path / "a", "--seed", "99999999999999999999999"), "seed must be 0..4294967295, got 9999"),
+        (train + ("--out", tmp_path / "a", "--threads", "100000"), "threads must be 1.."),
+        (train + ("--out", tmp_path / "a", "--lr", "1e12"), "learning rate must be a number in (0, 1], got 1000000000000.0"),
+        (train + ("--out", model, "--resume"), f"cannot resume {model}: its training finished (a model, no checkpoint)"),
+        (train + ("--out", tmp_path / "a", "--resume"), "it holds no checkpoint of an interrupted training"),
+        (train + ("--out", tmp_path / "a", "--init", ""), "--init is empty: name a model directory"),
+        (train + ("--out", tmp_path / "a", "--val-data", copy, "--holdout-object", "box"),
+         "--val-data and --holdout-object each choose the validation frames; give one of them"),
+        (train + ("--out", tmp_path / "a", "--split", "frames", "--holdout-object", "box"),
+         "--holdout-object and --split each choose the validation frames"),
+        (train + ("--out", tmp_path / "a", "--val-data", copy), f"sessions {session} and {copy} (--data and --val-data) "
+                                                                  "are copies of one recording; give it once"),
+        (("evaluate", "--model", model, "--data", session, copy), "(--data) are copies of one recording"),
+        (train + ("--out", tmp_path / "a", "--frame-stride", "100000"),
+         "of the 1 frame that --frame-stride 100000 keeps; record more poses, or lower --frame-stride"),
+        (("train", "--data", "", "--out", tmp_path / "a"), "argument --data: is empty: name a file or folder"),
+    ]
+    weights = (model / WEIGHTS_FILE).read_bytes()
+    for argv, message in cases:
+        capsys.readouterr()
+        assert bubble(*argv) == 2, argv
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith("bubble: error:") and message in err[0], (argv, err)
+    assert (model / WEIGHTS_FILE).read_bytes() == weights and not (tmp_path / "a").exists()
+
+
+def test_a_diverged_training_writes_no_model(session, tmp_path, monkeypatch):
+    """Was: a model written with NaN weights and NaN validation metrics, exit 0."""
+    import trainer.training
+
+    def poisoned_step(optimizer, closure=None):  # what a far too large step leaves in the weights
+        for group in optimizer.param_groups:
+            for p in group["params"]:
+                p.data.fill_(float("nan"))
+
+    with monkeypatch.context() as patch:
+        patch.setattr(torch.optim.Adam, "step", poisoned_step)
+        with pytest.raises(InputError, match=r"training diverged after 1 step \(its depth on the validation frames "
+                                             r"is not finite\) at learning rate 1; lower --lr, the model was not written"):
+            train_model(_config([session], tmp_path / "m", lr=1.0, epochs=0.01, export_onnx=False))
+    assert not (tmp_path / "m" / WEIGHTS_FILE).exists()
+    nan_loss = trainer.training.masked_l1
+    monkeypatch.setattr(trainer.training, "masked_l1", lambda *a, **k: nan_loss(*a, **k) * float("nan"))
+    with pytest.raises(InputError, match=r"training diverged after 1 step \(the loss is nan\)"):
+        train_model(_config([session], tmp_path / "n", export_onnx=False))
+    assert not (tmp_path / "n" / WEIGHTS_FILE).exists()

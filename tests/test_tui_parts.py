@@ -184,7 +184,7 @@ def test_step_lines_are_fixed_width_columns():
 @pytest.mark.parametrize(
     "args, fragment",
     [
-        (["--sim", "--poses-per-object", "1"], "poses per object must be at least 2"),
+        (["--sim", "--poses-per-object", "1"], "poses per object must be 2..1000"),
         (["--sim", "--total-minutes", "-1"], "total minutes must be positive"),
         (["--sim", "--sensor", "missing.yaml"], "cannot read sensor spec missing.yaml: No such file or directory"),
         (["--sim", "--sensor", "."], "cannot read sensor spec .: Is a directory"),

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext, suppress
 from pathlib import Path
 
-from collect.output_files import (check_json_output, check_parent_dirs, output_folder_lock, output_path,
+from collect.output_files import (check_json_output, check_parent_dirs, output_folder_lock, named_path,
                                   write_json_result)
 from trainer.training_defaults import (
     ARCH_NAMES,
@@ -72,28 +72,28 @@ def training_options(args: argparse.Namespace) -> dict:
 
 def register(subparsers) -> None:
     train = subparsers.add_parser("train", help="train or fine-tune a depth network on session files")
-    train.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5", help="training session files")
-    train.add_argument("--out", type=output_path, required=True, metavar="MODEL_DIR", help="model directory to write")
+    train.add_argument("--data", type=named_path, nargs="+", required=True, metavar="SESSION.h5", help="training session files")
+    train.add_argument("--out", type=named_path, required=True, metavar="MODEL_DIR", help="model directory to write")
     add_training_options(train, init_help="fine-tune from this model directory ('base' = the shipped base model)",
                          minutes=DEFAULT_MINUTES, frame_stride=1)
     train.add_argument("--holdout-object", metavar="NAME", help="leave this object out for validation")
-    train.add_argument("--split", choices=("poses", "frames"), default="poses",
+    train.add_argument("--split", choices=("poses", "frames"),
                        help="in-class 70/30 split of contact poses (default) or of frames (the paper's)")
-    train.add_argument("--val-data", nargs="+", default=[], metavar="SESSION.h5", help="validate on these sessions instead of a split")
+    train.add_argument("--val-data", type=named_path, nargs="+", default=[], metavar="SESSION.h5", help="validate on these sessions instead of a split")
     train.add_argument("--objects", help="comma-separated objects to train on (default: all)")
     train.add_argument("--inverse-depth-loss", action="store_true", help="L1 on inverse depth instead of depth")
     train.add_argument("--no-augment", action="store_true", help="no IR augmentation")
     train.add_argument("--no-onnx", action="store_true", help="skip the ONNX export (torch inference)")
     train.add_argument("--threads", type=int, help="torch CPU threads")
-    train.add_argument("--json", type=output_path, metavar="OUT.json", help="also write the final validation metrics here")
+    train.add_argument("--json", type=named_path, metavar="OUT.json", help="also write the final validation metrics here")
     train.set_defaults(func=run_train)
 
     evaluate = subparsers.add_parser("evaluate", help="the paper's metrics of a model on session files")
-    evaluate.add_argument("--model", required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
-    evaluate.add_argument("--data", nargs="+", required=True, metavar="SESSION.h5")
+    evaluate.add_argument("--model", type=named_path, required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
+    evaluate.add_argument("--data", type=named_path, nargs="+", required=True, metavar="SESSION.h5")
     evaluate.add_argument("--objects", help="comma-separated objects to evaluate on (default: all)")
     evaluate.add_argument("--runtime", choices=("onnx", "torch"), help="inference runtime (default: the model's)")
-    evaluate.add_argument("--json", type=output_path, metavar="OUT.json", help="write the metrics (keys at top level) here")
+    evaluate.add_argument("--json", type=named_path, metavar="OUT.json", help="write the metrics (keys at top level) here")
     evaluate.set_defaults(func=run_evaluate)
 
 
@@ -110,9 +110,12 @@ def _objects(text: str | None) -> list[str] | None:
 
 
 def check_model_arg(value: str | None, option: str) -> None:
-    """Raise InputError when a model option (``--model``, ``--init``) names a file: a model is a directory."""
+    """Raise InputError when a model option (``--model``, ``--init``) is empty or names a file: a model is a
+    directory."""
     from collect.errors import InputError
 
+    if value is not None and not value.strip():
+        raise InputError(f"{option} is empty: name a model directory, or 'base' (the shipped base model)")
     if value is not None and value != "base" and Path(value).is_file():
         raise InputError(f"{option} {value} is a file, not a model directory (give the directory that holds "
                          f"metadata.json)")
@@ -156,6 +159,7 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from collect.errors import InputError
+    from trainer.checkpoint import has_checkpoint
     from trainer.model_dir import WEIGHTS_FILE
     from trainer.training import TrainConfig, train_model
 
@@ -166,13 +170,17 @@ def run_train(args: argparse.Namespace) -> int:
     options = training_options(args)
     if args.holdout_object is not None and not args.holdout_object.strip():
         raise InputError("--holdout-object is empty: name the object to leave out, or drop the option")
+    chosen = [option for option, given in (("--val-data", args.val_data), ("--holdout-object", args.holdout_object),
+                                           ("--split", args.split)) if given]
+    if len(chosen) > 1:
+        raise InputError(f"{' and '.join(chosen)} each choose the validation frames; give one of them")
     if args.json is not None:
         check_json_output(args.json, "bubble train")
     config = TrainConfig(
         data=args.data,
         out=args.out,
-        split=args.split,
-        holdout_object=args.holdout_object,
+        split=args.split or "poses",
+        holdout_object=args.holdout_object and args.holdout_object.strip(),
         val_data=args.val_data,
         objects=_objects(args.objects),
         inverse_depth_loss=args.inverse_depth_loss,
@@ -208,8 +216,12 @@ def run_train(args: argparse.Namespace) -> int:
     try:
         with _model_dir_held(out):
             if not args.resume and (out / WEIGHTS_FILE).exists():
-                raise InputError(f"{out} already holds a model; use --resume to continue its training or choose "
-                                 "another --out")
+                raise InputError(f"{out} already holds a model; choose another --out (with --init {out} to train "
+                                 "it further)")
+            if args.resume and not has_checkpoint(out):  # was: a fresh training, over a finished model too
+                left = ("its training finished (a model, no checkpoint)" if (out / WEIGHTS_FILE).exists()
+                        else "it holds no checkpoint of an interrupted training")
+                raise InputError(f"cannot resume {out}: {left}; choose another --out, or drop --resume")
             result = train_model(config, progress_callback=on_progress)
     finally:
         if task is not None:  # stopping a bar never started prints an empty line before the error

@@ -115,6 +115,20 @@ def check_each_session_once(paths_by_option: dict[str, list[str | Path]]) -> Non
             given[key] = option
 
 
+def check_each_recording_once(sources_by_option: dict[str, list[SessionSource]]) -> None:
+    """Raise ``InputError`` when two session files hold the same recording (one SHA-256: a copy under
+    another name), within one option's list or in two of them (``check_each_session_once``'s options)."""
+    given: dict[str, tuple[str, str]] = {}
+    for option, sources in sources_by_option.items():
+        for source in sources:
+            if source.sha256 in given:
+                first, first_option = given[source.sha256]
+                where = option if first_option == option else f"{first_option} and {option}"
+                raise InputError(f"sessions {first} and {source.path} ({where}) are copies of one recording; "
+                                 "give it once")
+            given[source.sha256] = (source.path, option)
+
+
 def file_sha256(path: str | Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as fh:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from collect.errors import InputError
-from trainer.dataset import CONTACT_PHASES, check_each_session_once, load_frames
+from trainer.dataset import CONTACT_PHASES, check_each_recording_once, check_each_session_once, load_frames
 from trainer.inference import DepthEstimator
 from trainer.metrics import depth_metrics
 
@@ -81,6 +81,7 @@ def evaluate_model(
     estimator = DepthEstimator.load(model_dir, runtime=runtime)
     meta = estimator.metadata
     frames = load_frames(paths, objects=objects, phases=CONTACT_PHASES, free_fraction=0.0)
+    check_each_recording_once({"--data": frames.sources})
     if frames.size != estimator.native_size:
         raise InputError(
             f"sessions hold {frames.size[1]}x{frames.size[0]} frames, the model was trained on "

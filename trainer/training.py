@@ -17,6 +17,7 @@ schedule following whichever budget binds first.
 from __future__ import annotations
 
 import math
+import os
 import resource
 import sys
 import threading
@@ -32,7 +33,14 @@ from torch import nn
 from collect.errors import InputError
 from trainer.augmentation import augment_ir
 from trainer.checkpoint import CHECKPOINT_STATE, CHECKPOINT_WEIGHTS, has_checkpoint, load_checkpoint, save_checkpoint
-from trainer.dataset import FrameSet, NetworkTensors, check_each_session_once, load_frames, to_network_tensors
+from trainer.dataset import (
+    FrameSet,
+    NetworkTensors,
+    check_each_recording_once,
+    check_each_session_once,
+    load_frames,
+    to_network_tensors,
+)
 from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
@@ -49,6 +57,8 @@ from trainer.training_defaults import (
     DEFAULT_MIN_DEPTH,
     DEFAULT_MINUTES,
     DEFAULT_WIDTHS,
+    MAX_LR,
+    MAX_SEED,
 )
 
 #: The learning rate halves after every this fraction of the budget (paper: every 40 of 100 epochs).
@@ -168,8 +178,19 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
         train_idx, val_idx = split_in_class(frames, by=config.split, seed=config.seed)
         info = {"kind": f"in-class-{config.split}", "train_fraction": TRAIN_FRACTION, "seed": config.seed}
     if len(train_idx) == 0 or len(val_idx) == 0:
-        raise InputError(f"the {info['kind']} split leaves no training or no validation frames; record more poses")
+        n = len(frames)
+        kept = f" of the {n} frame{'' if n == 1 else 's'} that --frame-stride {config.frame_stride} keeps" \
+            if config.frame_stride > 1 else ""
+        raise InputError(f"the {info['kind']} split leaves no training or no validation frames{kept}; record more poses"
+                         f"{', or lower --frame-stride' if kept else ''}")
     return frames.subset(train_idx), frames.subset(val_idx), info
+
+
+def _diverged(config: TrainConfig, step: int, what: str) -> InputError:
+    """The error of a training whose network diverged (``what`` says how it shows) after ``step`` steps;
+    nothing is written as the model."""
+    return InputError(f"training diverged after {step} step{'' if step == 1 else 's'} ({what}) at learning rate {config.lr:g}; "
+                      "lower --lr, the model was not written")
 
 
 def _check_config(config: TrainConfig) -> None:
@@ -179,18 +200,19 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"epochs must be a positive number, got {config.epochs}")
     if config.minutes is not None and not (math.isfinite(config.minutes) and config.minutes > 0):
         raise InputError(f"minutes must be a positive number, got {config.minutes}")
-    if not (math.isfinite(config.lr) and config.lr > 0):
-        raise InputError(f"learning rate must be a positive number, got {config.lr}")
-    if config.threads is not None and config.threads < 1:
-        raise InputError(f"threads must be at least 1, got {config.threads}")
+    if not (math.isfinite(config.lr) and 0 < config.lr <= MAX_LR):
+        raise InputError(f"learning rate must be a number in (0, {MAX_LR:g}], got {config.lr}")
+    cpus = os.cpu_count() or 1
+    if config.threads is not None and not 1 <= config.threads <= cpus:
+        raise InputError(f"threads must be 1..{cpus} (the CPUs of this machine), got {config.threads}")
     if config.deadline_s is not None and not (math.isfinite(config.deadline_s) and config.deadline_s > 0):
         raise InputError(f"the wall-time deadline must be a positive number of seconds, got {config.deadline_s}")
     if not (math.isfinite(config.contact_weight) and config.contact_weight >= 0):
         raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
     if config.batch_size < 1:
         raise InputError(f"batch size must be at least 1, got {config.batch_size}")
-    if config.seed < 0:
-        raise InputError(f"seed must be 0 or more, got {config.seed}")
+    if not 0 <= config.seed <= MAX_SEED:
+        raise InputError(f"seed must be 0..{MAX_SEED}, got {config.seed}")
     if config.width is not None:
         check_width(config.width)
     # a session given twice would weigh double, or be validated on after training on it
@@ -267,6 +289,7 @@ def train_model(
 
     frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
     train_frames, val_frames, split_info = _split(config, frames)
+    check_each_recording_once({"--data": frames.sources, "--val-data": val_frames.sources if config.val_data else []})
     if val_frames.size != train_frames.size:
         raise InputError(f"validation frames are {val_frames.size[1]}x{val_frames.size[0]}, training frames "
                          f"{train_frames.size[1]}x{train_frames.size[0]}")
@@ -382,11 +405,15 @@ def train_model(
             step_s = time.perf_counter() - t0
             train_s += step_s
             report("step")
-            stop, over, eval_due = ctx.any_flags(
+            stop, over, eval_due, diverged = ctx.any_flags(
                 stop_event is not None and stop_event.is_set(),
                 fraction_done(epoch_f, train_s) >= 1.0,
                 time.perf_counter() - last_eval >= config.eval_interval_s,
+                not math.isfinite(value),
             )
+            if diverged:
+                ctx.close()
+                raise _diverged(config, step, f"the loss is {value}")
             if stop or over:
                 stopped = not over
                 at_deadline = over and budget_fraction(epoch_f, train_s) < 1.0
@@ -403,6 +430,9 @@ def train_model(
         result = TrainResult(out_dir, {}, history, epoch_f, step, train_s, True, _peak_rss_mb())
     elif ctx.is_main:
         metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
+        if not math.isfinite(metrics["abs_rel"]):
+            ctx.close()
+            raise _diverged(config, step, "its depth on the validation frames is not finite")
         history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
                         **evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)})
         peak = _peak_rss_mb()

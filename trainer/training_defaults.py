@@ -16,5 +16,9 @@ DEFAULT_MINUTES = 3.0
 DEFAULT_CONTACT_WEIGHT = 10.0
 #: Adam's learning rate at the start (the paper's), halved during the run (``LR_HALVING_FRACTION``).
 DEFAULT_LR = 2e-4
+#: Largest learning rate accepted (5000 times the default; Adam's steps are about this large).
+MAX_LR = 1.0
+#: Largest seed accepted (torch and numpy take it as is).
+MAX_SEED = 2**32 - 1
 #: Frames per optimizer step (small: a CPU, and a few hundred frames per sensor).
 DEFAULT_BATCH_SIZE = 8
