@@ -70,12 +70,10 @@ class SensorProfile:
 
 
 _TEXT = (lambda v: isinstance(v, str), "a string")
+_ERROR = (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null")
 #: Held-out metrics: (check, what it must be); NaN / inf are written as null.
-_METRICS = {
-    "abs_rel": (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null"),
-    "rmse": (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null"),
-    "a1": (lambda v: v is None or (real_number(v) and 0 <= v <= 1), "a number from 0 to 1 or null"),
-}
+_METRICS = {"abs_rel": _ERROR, "rmse": _ERROR,
+            "a1": (lambda v: v is None or (real_number(v) and 0 <= v <= 1), "a number from 0 to 1 or null")}
 #: Fields of a profile (all optional but 'history') and of each history entry: (check, what it must be).
 _PROFILE_FIELDS = {
     "serial": _TEXT,
@@ -220,7 +218,7 @@ class SensorRegistry:
         sdir.mkdir(parents=True, exist_ok=True)
         when = when or datetime.now(timezone.utc)
         with output_folder_lock(sdir):
-            prior = self._read_profile(sdir) if (sdir / PROFILE).exists() else {"serial": serial, "history": []}
+            prior = self._read_profile(sdir) if self._has_profile(sdir) else {"serial": serial, "history": []}
             metrics = {k: acceptance.get(k) for k in _METRICS if k in acceptance}
             entry = {
                 "time": when.isoformat(timespec="seconds"),
