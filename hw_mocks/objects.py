@@ -40,6 +40,9 @@ PLATE_Z = 0.0
 #: Free space between neighbouring objects' footprints (m): more than half the bubble's long
 #: axis (60 mm) plus tilt, so a bubble pressing one object never touches its neighbour.
 PLATE_GAP = 0.09
+#: Length of the fixture plate along base y (m): 0.5 m either side of the arm's x axis, within a
+#: UR5e's 0.85 m reach at x = ``PLATE_X``. The four built-ins take 0.56 m of it.
+PLATE_LENGTH_M = 1.0
 #: Largest and smallest extent (m) of a mesh file's object; the lower bound allows float32's rounding
 #: of an STL's coordinates (a 5 mm part reads as 4.9999997 mm).
 MESH_SIZE_RANGE_M = (0.005 * (1 - 1e-6), 0.5)
@@ -315,12 +318,16 @@ def load_object(name_or_path: str | Path) -> BenchObject:
 def fixture_plate(objects: list[BenchObject]) -> list[BenchObject]:
     """Mount ``objects`` side by side along base y on one plate (centred at x = ``PLATE_X``, y = 0,
     plate top z = ``PLATE_Z``), separated by ``PLATE_GAP`` of free space; returns placed copies.
-    Each object's footprint centre sits on the row line x = ``PLATE_X``."""
+    Each object's footprint centre sits on the row line x = ``PLATE_X``. ``InputError`` when the row is
+    longer than the plate (``PLATE_LENGTH_M``)."""
     if not objects:
         return []
     bounds = [o.mesh.bounds for o in objects]
     widths = [b[1, 1] - b[0, 1] for b in bounds]
     total = sum(widths) + PLATE_GAP * (len(objects) - 1)
+    if total > PLATE_LENGTH_M:
+        raise InputError(f"the objects take {total:.3f} m of the fixture plate in a row ({PLATE_GAP * 1e3:.0f} mm apart), "
+                         f"longer than its {PLATE_LENGTH_M:g} m; press fewer or smaller objects in one session")
     placed = []
     y_edge = -total / 2
     for obj, b, w in zip(objects, bounds, widths):

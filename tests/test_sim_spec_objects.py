@@ -155,6 +155,15 @@ def test_mesh_files_that_are_repaired_or_named_wrong(tmp_path):
         load_object(tmp_path / "pipe.stl")
 
 
+def test_objects_longer_than_the_plate_are_refused(tmp_path):
+    """Was: six 0.45 m parts placed along 2.7 m of 'plate', the arm sent 1.35 m to either side."""
+    wide = [load_object(_brick(tmp_path, f"slab{i}.stl", extents=(0.05, 0.3, 0.01))) for i in range(3)]
+    assert len(fixture_plate(wide[:2])) == 2  # 0.69 m
+    with pytest.raises(InputError, match=r"the objects take 1.080 m of the fixture plate in a row \(90 mm apart\), "
+                                         r"longer than its 1 m; press fewer or smaller objects in one session"):
+        fixture_plate(wide)
+
+
 def test_fixture_plate_spacing_and_surface_points():
     objs = fixture_plate([load_object(n) for n in BUILTIN_OBJECTS])
     boxes = [o.bounds_base() for o in objs]

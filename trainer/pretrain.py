@@ -25,7 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from collect.errors import EXIT_BAD_INPUT, InputError, OneLineParser
-from collect.output_files import check_parent_dirs
+from collect.output_files import check_parent_dirs, named_path
 from trainer.augmentation import PRETRAIN_NOISE_STD
 from trainer.cli import add_training_options, training_options
 from trainer.doc_sections import update_section
@@ -196,11 +196,11 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--poses-per-object", type=int, default=8)
     c.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed factor (<= 100; lower on a busy machine)")
     c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel")
-    c.add_argument("--work", required=True, help="directory of the sessions")
+    c.add_argument("--work", type=named_path, required=True, help="directory of the sessions")
     c.set_defaults(func=run_collect)
     t = sub.add_parser("train", help="train on the sessions of --work and package the base model")
-    t.add_argument("--work", required=True)
-    t.add_argument("--out", default=str(BASE_MODEL_DIR))
+    t.add_argument("--work", type=named_path, required=True)
+    t.add_argument("--out", type=named_path, default=str(BASE_MODEL_DIR))
     t.add_argument("--val-sensors", type=int, default=2, help="last sessions held out for validation")
     add_training_options(t, init_help="continue from this model directory ('base' = the shipped base model)",
                          minutes=30.0, frame_stride=3)
