@@ -345,11 +345,16 @@ def test_a_refresh_draws_the_previews_and_the_panels_in_frames_of_their_own(in_t
             app.refresh_live()
             await wait_for(lambda: app.bench_panel.snapshot is snapshot, pilot)
             await pilot.pause()
+            live = (app.bench_panel.border_subtitle, app.live_sensor.border_subtitle)
             flow.release.set()
             await wait_for(lambda: not app.running, pilot)
-        return shown, app.collection.last
+            await pilot.pause()
+            ended = (app.bench_panel.border_subtitle, app.live_sensor.border_subtitle)
+        return shown, app.collection.last, live, ended
 
-    shown, progress = asyncio.run(scenario())
+    shown, progress, live, ended = asyncio.run(scenario())
+    assert live == ("", "")  # a live reading: not marked as the last one
+    assert ended == ("last reading", "last reading")  # was: the run over, the numbers shown as if live
     assert progress is not None and progress.frames == 1234
     assert shown[:3] == [(True, False, False), (True, True, False), (True, True, True)]
 

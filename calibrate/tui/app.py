@@ -440,6 +440,8 @@ class BenchApp(App):
         age = None if self._last_snapshot_at is None else self._clock() - self._last_snapshot_at
         connected = self._connected and self.running
         self.bench_panel.show(snapshot, age if self.running else None, connected, self._arm_state)
+        # the images of the last snapshot stay in the live view: said so once the link is down
+        self.live_sensor.border_subtitle = "last reading" if self._latest_images is not None and not connected else ""
 
     def _reset_views(self) -> None:
         self._inbox.drain()

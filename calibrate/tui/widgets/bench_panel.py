@@ -18,7 +18,8 @@ class BenchPanel(Static):
     """Connection state, mode (sim/real), live TCP pose, wrench and bubble pressure.
 
     ``arm_state`` is the app's view of the arm (``idle``, ``moving``, ``stopping``, ``stopped``);
-    the numbers come from the latest snapshot.
+    the numbers come from the latest snapshot. Once the link is down (the bench closed, a stop) they
+    stay as the last reading, dimmed, and the panel's bottom border says so.
     """
 
     def __init__(self, simulated: bool, **kwargs) -> None:
@@ -55,6 +56,7 @@ class BenchPanel(Static):
         arm_styles = {"moving": "bold green", "stopping": "bold red", "stopped": "yellow", "idle": "dim"}
         rows: list[tuple[str, Text | str]] = [
             ("mode", mode), ("link", link), ("arm", Text(self.arm_state, style=arm_styles.get(self.arm_state, "")))]
+        self.border_subtitle = "last reading" if snap is not None and not self.connected else ""
         if snap is None:
             rows.append(("", Text("no data yet", style="dim")))
             self.update(_two_columns(rows), layout=False)
@@ -70,6 +72,8 @@ class BenchPanel(Static):
         else:
             rows.append(("bubble", Text("no reading from the board", style="yellow")))
         rows.append(("camera", self._camera_line(snap)))
+        if not self.connected:
+            rows[3:] = [(label, Text(str(value), style="dim")) for label, value in rows[3:]]
         self.update(_two_columns(rows), layout=False)
 
     @staticmethod
