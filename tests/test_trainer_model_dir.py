@@ -81,6 +81,12 @@ def test_missing_mismatched_or_garbage_weights(model_dir, tmp_path):
     (model_dir / METADATA_FILE).write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
         load_network(model_dir)
+    (model_dir / METADATA_FILE).unlink()
+    with pytest.raises(InputError, match=f"has no {METADATA_FILE}"):
+        load_network(model_dir)
+    (model_dir / METADATA_FILE).mkdir()  # was: "has no metadata.json"
+    with pytest.raises(InputError, match=f"{model_dir / METADATA_FILE} is not a regular file"):
+        load_network(model_dir)
 
 
 #: (field of metadata.json, bad value; ``None``: the field removed) as a fuzzer wrote them.

@@ -188,6 +188,8 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
     path = model_dir / METADATA_FILE
     if not model_dir.is_dir():
         raise InputError(f"model directory not found: {model_dir}")
+    if path.exists() and not path.is_file():  # a folder or a pipe of that name
+        raise InputError(f"{path} is not a regular file")
     if not path.is_file():
         raise InputError(f"model directory {model_dir} has no {METADATA_FILE}")
     try:
