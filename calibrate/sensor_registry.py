@@ -266,12 +266,15 @@ class SensorRegistry:
         check_profile(profile, path)
         return profile
 
-    def _has_profile(self, sdir: Path) -> bool:
+    @staticmethod
+    def _has_profile(sdir: Path) -> bool:
         """Whether ``sdir`` is an entry to read: something named ``profile.json`` in it (a folder without
         one is a first registration under way, or one that died before writing it: the next
         registration starts the profile afresh), or ``sdir`` itself is something other than a folder."""
+        if not sdir.is_dir():
+            return sdir.exists() or sdir.is_symlink()
         profile = sdir / PROFILE
-        return profile.exists() or profile.is_symlink() or (sdir.is_symlink() or sdir.exists()) and not sdir.is_dir()
+        return profile.exists() or profile.is_symlink()
 
     def check_entry(self, serial: str) -> None:
         """Raise ``InputError`` when ``register(serial)`` would fail on the existing entry (a damaged

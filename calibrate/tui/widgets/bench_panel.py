@@ -59,11 +59,20 @@ class BenchPanel(Static):
         self.border_subtitle = "last reading" if snap is not None and not self.connected else ""
         if snap is None:
             rows.append(("", Text("no data yet", style="dim")))
-            self.update(_two_columns(rows), layout=False)
-            return
+        else:
+            reading = self._reading_rows(snap)
+            if not self.connected:
+                reading = [(label, Text(str(value), style="dim")) for label, value in reading]
+            rows += reading
+        self.update(_two_columns(rows), layout=False)
+
+    @classmethod
+    def _reading_rows(cls, snap: BenchSnapshot) -> list[tuple[str, Text | str]]:
+        """The snapshot's rows: TCP pose, force, torque, bubble pressure, camera."""
         x, y, z, rx, ry, rz = (float(v) for v in snap.tcp_pose)
-        rows += [("TCP", f"x {x * 1e3:8.1f} mm"), ("", f"y {y * 1e3:8.1f} mm"), ("", f"z {z * 1e3:8.1f} mm"),
-                 ("", f"r [{rx:+.3f} {ry:+.3f} {rz:+.3f}]")]
+        rows: list[tuple[str, Text | str]] = [
+            ("TCP", f"x {x * 1e3:8.1f} mm"), ("", f"y {y * 1e3:8.1f} mm"), ("", f"z {z * 1e3:8.1f} mm"),
+            ("", f"r [{rx:+.3f} {ry:+.3f} {rz:+.3f}]")]
         fx, fy, fz, tx, ty, tz = (float(v) for v in snap.wrench)
         force = math.sqrt(fx * fx + fy * fy + fz * fz)
         rows += [("force", f"|F| {force:6.2f} N  Fz {fz:+6.2f}"), ("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")]
@@ -71,10 +80,8 @@ class BenchPanel(Static):
             rows.append(("bubble", f"{snap.pressure_hpa:8.1f} hPa"))
         else:
             rows.append(("bubble", Text("no reading from the board", style="yellow")))
-        rows.append(("camera", self._camera_line(snap)))
-        if not self.connected:
-            rows[3:] = [(label, Text(str(value), style="dim")) for label, value in rows[3:]]
-        self.update(_two_columns(rows), layout=False)
+        rows.append(("camera", cls._camera_line(snap)))
+        return rows
 
     @staticmethod
     def _camera_line(snap: BenchSnapshot) -> Text:
