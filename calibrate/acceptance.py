@@ -6,7 +6,9 @@ the packaged values. Each evaluated check is a plain dict (the ``acceptance.json
 ``Verdict.checks`` entry)::
 
     {"name": str, "value": float | None, "threshold": float | [lo, hi], "op": ">=" | "<=" | "in",
-     "unit": str, "passed": bool, "verdict": "pass" | "fail", "reason": str}
+     "unit": str, "passed": bool, "verdict": "pass" | "fail", "gate": bool, "reason": str}
+
+``gate``: when a gate check fails, the steps after its own are not run (the run is rejected).
 """
 
 from __future__ import annotations

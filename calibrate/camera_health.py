@@ -32,8 +32,9 @@ DEAD_FRACTION = 0.02
 DOT_RATIO = 0.75
 #: Window of the local background, px (larger than a dot).
 BACKGROUND_WINDOW = 15
-#: Dot blobs smaller than this (px) are noise, larger are not dots.
-DOT_MIN_AREA, DOT_MAX_AREA = 1, 400
+#: Dot blobs (8-connected, px) smaller than the first are specks (dust, a hot-pixel's neighbour),
+#: larger than the second are not dots; a printed dot covers 4-40 px on the default camera.
+DOT_MIN_AREA, DOT_MAX_AREA = 3, 400
 
 
 @dataclass

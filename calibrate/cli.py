@@ -15,10 +15,20 @@ import argparse
 import errno
 import importlib
 import os
+import signal
 import sys
 
-from calibrate.stop_signals import INTERRUPTS, Terminated, raise_interrupt, stop_signals_handled
-from collect.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED, HardwareFault, InputError, OneLineParser
+from calibrate.stop_signals import INTERRUPTS, Terminated, exit_code, raise_interrupt, stop_signals_handled
+from collect.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_REJECTED,
+    HardwareFault,
+    InputError,
+    OneLineParser,
+)
 
 #: Modules providing ``register(subparsers)``, in the order their commands are listed.
 COMMAND_MODULES = (
@@ -31,8 +41,21 @@ COMMAND_MODULES = (
 )
 
 
+#: What ``bubble --help`` says above and below the subcommands.
+DESCRIPTION = (
+    "Commission Soft-bubble visuotactile sensors on a UR bench or its simulated twin: record IR + "
+    "depth, fine-tune a depth network, validate it, register the sensor."
+)
+EPILOG = (
+    f"exit codes: {EXIT_OK} ok / accepted, {EXIT_REJECTED} rejected, {EXIT_BAD_INPUT} bad input, "
+    f"{EXIT_FAULT} hardware fault, {EXIT_INTERRUPTED} Ctrl-C ({exit_code(signal.SIGTERM)} SIGTERM, "
+    f"{exit_code(signal.SIGHUP)} SIGHUP); "
+    "`bubble COMMAND --help` for each command"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog="bubble", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="bubble", description=DESCRIPTION, epilog=EPILOG)
     from importlib.metadata import PackageNotFoundError, version
 
     try:

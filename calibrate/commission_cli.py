@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from calibrate.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
-from collect.cli import DEFAULT_OBJECTS_ARG
+from collect.cli import DEFAULT_OBJECTS_ARG, check_sim_options
 from collect.errors import EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import named_path
 
@@ -151,8 +151,7 @@ def run_commission(args) -> int:
         from collect.bench import BenchConfig
 
         bench = BenchConfig.from_yaml(args.bench)
-    if (args.sim_fault or args.sensor is not None) and not args.sim:
-        raise InputError("--sensor and --sim-fault need --sim (they describe the simulated bench)")
+    check_sim_options(args)
     config = run_config(args, args.out, bench)
     stop, done = threading.Event(), threading.Event()
     printer = (lambda e: None) if args.quiet else ProgressPrinter()

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from calibrate import acceptance
+from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
 
 if TYPE_CHECKING:
@@ -49,7 +50,7 @@ class CommissionConfig:
     registry_dir: Path | None = None  # None -> default registry location
     base_model: Path | None = None  # None -> the packaged base model
     finetune_minutes: float = 2.5
-    objects: tuple[str, ...] = ("mug", "wine_glass", "box", "fingers")
+    objects: tuple[str, ...] = DEFAULT_OBJECTS
     #: 10 presses per object: the 70/30 pose split holds out 3 of each object's poses, so the pose
     #: check's median over the mug's held-out frames lies in the middle pose (one hard pose cannot
     #: decide the verdict; with 8 it held out 2) and the fine-tune keeps 7 (see docs/pose.md).
@@ -132,10 +133,9 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         if config.bench is None:
             raise InputError("the real bench needs its settings (--bench BENCH.yaml), or use --sim")
     else:
-        from hw_mocks.sim_bench import parse_sim_fault
+        from hw_mocks.sim_bench import check_sim_speed, parse_sim_fault
 
         for fault in config.sim_faults:
             parse_sim_fault(fault)
-        if not 0.1 <= float(config.sim_speed) <= 100.0:  # the simulated bench's own bounds
-            raise InputError(f"simulation speed {config.sim_speed} must be within 0.1..100")
+        check_sim_speed(config.sim_speed)
     return acceptance.load_thresholds(config.thresholds)

@@ -110,7 +110,7 @@ class ArmSafeStopped:
 @dataclass
 class Verdict:
     accepted: bool
-    checks: list[dict] = field(default_factory=list)  # {name, value, threshold, passed, reason}
+    checks: list[dict] = field(default_factory=list)  # acceptance.evaluate dicts (calibrate.acceptance)
     report_path: str = ""
 
 

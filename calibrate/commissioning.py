@@ -107,7 +107,7 @@ class CommissionResult:
     files and report are."""
 
     accepted: bool
-    checks: list[dict]  # {name, value, threshold, op, unit, passed, verdict, reason}
+    checks: list[dict]  # acceptance.evaluate dicts: {name, value, threshold, op, unit, passed, verdict, gate, reason}
     run_dir: Path
     report_path: Path
     stopped: bool = False  # stop_event ended the run (arm stopped + retracted, data kept)

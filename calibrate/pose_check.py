@@ -51,9 +51,6 @@ from trainer.metrics import METRIC_KEYS, depth_metrics
 #: Depth sources, in report order. ``true`` exists in simulated sessions only.
 SOURCES = ("predicted", "measured", "true")
 
-#: Frames per network call when predicting depth for the session.
-PREDICT_BATCH = 16
-
 #: Skip reasons (keys of ``PoseCheckResult.skipped``).
 SKIP_NO_CONTACT = "no_contact"  # no pixel pushed in beyond the threshold, in some source
 SKIP_TOO_FEW_POINTS = "too_few_points"  # a patch with fewer than MIN_POINTS points
@@ -211,13 +208,6 @@ def _load_estimator(model):
     return DepthEstimator.load(model)
 
 
-def _predict(estimator, session, idx: np.ndarray) -> np.ndarray:
-    """Predicted depth ``(n,H,W) float32 m`` for the IR frames ``idx``, in batches."""
-    out = [estimator.predict_batch(session.ir(idx[i:i + PREDICT_BATCH]))
-           for i in range(0, len(idx), PREDICT_BATCH)]
-    return np.concatenate(out) if out else np.zeros((0, session.height, session.width), np.float32)
-
-
 def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
                    threshold_m: float = CONTACT_THRESHOLD_M, n_points: int = N_POINTS,
                    prior_error_mm: float = 2.0, prior_error_deg: float = 2.0, seed: int = 0,
@@ -233,6 +223,7 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
     or when no frame is usable.
     """
     from collect.session_reader import Session
+    from trainer.evaluation import predict_frames
 
     estimator = _load_estimator(model)
     with Session.open(session_path) as session:
@@ -248,10 +239,10 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         if len(hold_idx) == 0:
             raise InputError(f"{session.path}: no hold frames of {object_name!r}")
         sources = [s for s in SOURCES if s != "true" or session.simulated]
-        depth = {"predicted": _predict(estimator, session, hold_idx),
+        depth = {"predicted": predict_frames(estimator, session.ir(hold_idx)),
                  "measured": session.depth_m(hold_idx)}
         metrics = depth_metrics(np.where(np.isfinite(depth["predicted"]), depth["predicted"], 0.0), depth["measured"])
-        ref_pred = _predict(estimator, session, ref_idx)
+        ref_pred = predict_frames(estimator, session.ir(ref_idx))
         references = {"predicted": reference_depth(np.where(np.isfinite(ref_pred), ref_pred, 0.0)),
                       "measured": reference_depth(session.depth_m(ref_idx))}
         if session.simulated:

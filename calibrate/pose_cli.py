@@ -25,8 +25,8 @@ def register(subparsers) -> None:
     p.add_argument("--object", default="mug", help="object to estimate (default: mug)")
     p.add_argument("--json", type=named_path, metavar="OUT.json", help="write the results (e_x_mm, e_theta, hz, per frame) here")
     p.add_argument("--plots", type=named_path, metavar="DIR", help="write error histograms (PNG) here")
-    p.add_argument("--threshold-mm", type=float, default=1.5, help="contact: depth below the reference by more than this (mm)")
-    p.add_argument("--points", type=int, default=1500, help="points per contact patch (default 1500)")
+    p.add_argument("--threshold-mm", type=float, default=1.5, help="contact: depth below the reference by more than this (mm; default %(default)s)")
+    p.add_argument("--points", type=int, default=1500, help="points per contact patch (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the prior's perturbation")
     p.set_defaults(func=_run)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trainer.contact import reference_depth
+from trainer.contact import contact_mask, reference_depth
 
 #: Held-out frames shown in the report (one per object, the most deformed).
 EXAMPLE_FRAMES = 4
@@ -88,8 +88,7 @@ def pick_examples(frames, reference: np.ndarray) -> np.ndarray:
     """Indices of up to ``EXAMPLE_FRAMES`` held-out frames (``frames``: a ``trainer.dataset.FrameSet``)
     of distinct poses, taking the objects in turn: for each pose its most deformed frame (most pixels
     pushed in by > 1 mm against the no-contact ``reference`` (H,W) float32 m), deepest poses first."""
-    ref_valid = reference > 0
-    dent = np.array([int(((reference - d > 1e-3) & (d > 0) & ref_valid).sum()) for d in frames.depth])
+    dent = contact_mask(frames.depth, reference, 1e-3).sum(axis=(1, 2))
     per_object = []
     for name in sorted(set(frames.object_name)):
         best = {}

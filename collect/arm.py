@@ -50,7 +50,7 @@ from collect.errors import HardwareFault, InputError, StopRequested
 from collect.loop_thread import LoopThread
 from collect.numbers import real_number
 from collect.safety import SafetyLimits, tool_z_axis
-from collect.transforms import rotation_between_rad
+from collect.transforms import linear_path_m, rotation_between_rad
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
 STOP_DECEL_M_S2 = 4.0
@@ -324,8 +324,7 @@ class Arm:
         target = self.limits.check_move(target, speed, accel)
         self.start()
         start = self.state()
-        distance = float(np.linalg.norm(target[:3] - start.tcp_pose[:3]))
-        budget = move_duration_s(distance, speed, accel) + MOVE_TIMEOUT_MARGIN_S
+        budget = move_duration_s(linear_path_m(start.tcp_pose, target), speed, accel) + MOVE_TIMEOUT_MARGIN_S
         known_fault = self._latest_fault
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
         t_end = self.clock() + budget
@@ -442,11 +441,7 @@ class Arm:
             target[:3] += axis * depth_m
         else:
             self.limits.check_force(force_n)
-            lo, hi = np.asarray(self.limits.workspace_min), np.asarray(self.limits.workspace_max)
-            p = start.tcp_pose[:3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                room = np.where(axis < 0, (lo - p) / axis, np.where(axis > 0, (hi - p) / axis, np.inf))
-            depth = min(s.max_press_depth_m, float(room.min()))
+            depth = self.limits.room_along(start.tcp_pose[:3], axis, s.max_press_depth_m)
             if depth <= 0:
                 return start
             target[:3] += axis * depth

@@ -119,10 +119,6 @@ class BenchConfig(ABC):
         return wrap
 
     @classmethod
-    def types(cls) -> tuple[str, ...]:
-        return tuple(cls._registry)
-
-    @classmethod
     def create(cls, type_name: str, **kwargs) -> "BenchConfig":
         """The config of registered type ``type_name`` with ``kwargs``; ``InputError`` for unknown types/fields."""
         if type_name not in cls._registry:

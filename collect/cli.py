@@ -74,6 +74,13 @@ def check_mesh_files(meshes: list[str]) -> None:
             raise InputError(f"--object-mesh {mesh} is not a mesh file: give an .stl, .obj or .ply file")
 
 
+def check_sim_options(args: argparse.Namespace) -> None:
+    """Raise InputError when an option of the simulated bench (``--sensor``, ``--sim-fault``,
+    ``--sim-speed`` other than 1) is given without ``--sim``: the real bench would ignore it."""
+    if not args.sim and (args.sensor is not None or args.sim_fault or args.sim_speed != 1.0):
+        raise InputError("--sensor, --sim-fault and --sim-speed need --sim (they describe the simulated bench)")
+
+
 def bench_config(args: argparse.Namespace):
     """The ``BenchConfig`` of the command line: 'sim' with --sim, else the real bench of --bench."""
     from collect.bench import BenchConfig
@@ -85,8 +92,7 @@ def bench_config(args: argparse.Namespace):
             raise InputError("--bench describes real hardware; drop it or --sim")
         return BenchConfig.create("sim", objects=objects, sensor=args.sensor, seed=args.seed,
                                   faults=tuple(args.sim_fault), speed=args.sim_speed)
-    if args.sensor is not None or args.sim_fault or args.sim_speed != 1.0:
-        raise InputError("--sensor, --sim-fault and --sim-speed need --sim (they describe the simulated bench)")
+    check_sim_options(args)
     if args.bench is None:
         raise InputError("the real bench needs --bench BENCH.yaml (type: ur, robot_ip, home_pose, ...); or use --sim")
     config = BenchConfig.from_yaml(args.bench)

@@ -85,7 +85,7 @@ class ContactPose:
     contact_point: np.ndarray  # (3,) planned first-contact point on the object surface
     surface_normal: np.ndarray  # (3,) unit, at the contact point
     tilt_deg: float  # angle of the pressing axis from straight down
-    yaw_deg: float  # rotation of the sensor about the pressing axis
+    yaw_deg: float  # rotation of the sensor about the vertical, before the tilt (see pressing_rotation)
     press_force_n: float  # force the press adds beyond the force at first contact
     above_pose: np.ndarray  # (6,) start and end of the press, clear above the object
     approach_travel_m: float  # guarded approach length along the pressing axis from above_pose

@@ -70,7 +70,6 @@ class SimCameraDevice:
         self._true_depth: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self._lock = threading.Lock()
         self._loop = LoopThread(self._run, "sim-camera")
-        self.frames_sent = 0
 
     def start(self) -> None:
         """Start sending frames (from the next multiple of the frame period)."""
@@ -118,7 +117,6 @@ class SimCameraDevice:
                 self._true_depth.popitem(last=False)
         _send_without_drop(self.depth_queue, depth_msg)
         _send_without_drop(self.amplitude_queue, amp_msg)
-        self.frames_sent += 1
 
 
 def _send_without_drop(queue, msg) -> None:

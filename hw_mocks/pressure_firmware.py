@@ -41,7 +41,7 @@ class PressureFirmware:
     def __init__(self, scene, *, rate_hz: float = RATE_HZ, seed: int = 0):
         self.scene = scene
         self.rate_hz = rate_hz
-        self.led = False
+        self.led = False  # the status LED (``LED 0|1``)
         self.streaming = True
         self._rng = np.random.default_rng(seed)
         self._master, self._slave = os.openpty()
@@ -50,7 +50,6 @@ class PressureFirmware:
         fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
         self.port = os.ttyname(self._slave)
         self._loop = LoopThread(self._run, "pressure-firmware", join_timeout_s=1.0)
-        self.unplugged = False
 
     def start(self) -> None:
         """Start serving the port."""
@@ -109,7 +108,6 @@ class PressureFirmware:
         pending = b""
         while not self._loop.stop_event.is_set():
             if self.scene.fault_active("serial-unplug"):
-                self.unplugged = True
                 self._close()
                 return
             readable, _, _ = select.select([self._master], [], [], 0)

@@ -104,6 +104,17 @@ def parse_sim_fault(text: str) -> SimFault:
     return SimFault(kind, seconds)
 
 
+#: Speed factors of the simulated clock (1 = real time): lower gives a busy machine time to keep up.
+SIM_SPEED_RANGE = (0.1, 100.0)
+
+
+def check_sim_speed(speed) -> None:
+    """Raise InputError unless ``speed`` is a number within ``SIM_SPEED_RANGE``."""
+    lo, hi = SIM_SPEED_RANGE
+    if not (real_number(speed) and lo <= speed <= hi):
+        raise InputError(f"simulation speed {speed!r} must be within {lo:g}..{hi:g}")
+
+
 class SimClock:
     """Simulated time in seconds since creation, running ``speed`` times faster than real time.
 
@@ -113,8 +124,7 @@ class SimClock:
     """
 
     def __init__(self, speed: float = 1.0):
-        if not (real_number(speed) and 0.1 <= speed <= 100.0):
-            raise InputError(f"simulation speed {speed!r} must be within 0.1..100")
+        check_sim_speed(speed)
         self.speed = float(speed)
         self._t0 = time.monotonic()
         self._paused = 0.0

@@ -108,6 +108,15 @@ def test_empty_object_lists(tmp_path, synthetic_session, capsys):
     assert not (tmp_path / "m").exists()
 
 
+def test_simulated_bench_options_without_sim(tmp_path, places, capsys):
+    _, _, spec = places
+    needle = "--sensor, --sim-fault and --sim-speed need --sim"
+    for command, out in (("collect", tmp_path / "s.h5"), ("commission", tmp_path / "run")):
+        for extra in (["--sim-speed", "5"], ["--sensor", spec], ["--sim-fault", "camera-stall@1"]):
+            _refused(capsys, [command, "--out", out, *extra], needle)  # was (commission): '--sim-speed' ignored
+    assert not (tmp_path / "s.h5").exists() and not (tmp_path / "run").exists()
+
+
 def test_mesh_paths_that_are_not_mesh_files(tmp_path, places, capsys):
     folder, plain, spec = places
     capsys.readouterr()

@@ -127,6 +127,15 @@ def test_camera_health_finds_dead_and_stuck_clusters_and_missing_dots():
     assert plain.dot_contrast < 0.2 and plain.dot_count == 0
 
 
+def test_single_pixel_specks_are_not_counted_as_dots():
+    rng = np.random.default_rng(5)
+    ir, depth = _synthetic_frames(rng, dots=False)
+    for y, x in zip(range(20, 80, 2), range(20, 110, 3)):  # 30 dark specks of one pixel each
+        ir[:, y, x] //= 5
+    health = assess_camera(ir, depth)
+    assert health.dot_count == 0
+
+
 def test_camera_health_rejects_too_few_frames():
     ir, depth = _synthetic_frames(np.random.default_rng(4), n=3)
     with pytest.raises(InputError, match="at least 4"):

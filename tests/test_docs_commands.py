@@ -188,3 +188,36 @@ def test_troubleshooting_lists_every_message():
         if len(fixed) >= 6 and fixed not in guide:
             missing.append(f"{where}: {pattern}")
     assert not missing, "add these messages (cause, fix) to docs/user_guide.md section 8:\n" + "\n".join(missing)
+
+
+
+def test_help_gives_the_readme_exit_codes(capsys):
+    """``bubble --help`` ends with the exit codes; the README's line gives the same codes and meanings."""
+    with pytest.raises(SystemExit) as stop:
+        main(["--help"])
+    assert stop.value.code == 0
+    epilog = " ".join(capsys.readouterr().out.split("exit codes:", 1)[1].split())
+    readme = " ".join((ROOT / "README.md").read_text().split("Exit codes:", 1)[1].split("\n\n", 1)[0].split())
+    meanings = re.findall(r"\b(\d+) (ok|rejected|bad input|hardware fault|Ctrl-C)", epilog)
+    assert [code for code, _ in meanings] == ["0", "1", "2", "3", "130"]
+    for code, meaning in meanings:
+        assert f"{code} {meaning}" in readme, (code, meaning)
+    assert set(re.findall(r"\b\d{3}\b", epilog)) == set(re.findall(r"\b\d{3}\b", readme)) == {"130", "143", "129"}
+
+
+def test_option_defaults_and_choices_are_the_library_constants(parser):
+    """Defaults and choices the command line spells out (to keep ``--help`` free of heavy imports)
+    are the constants of the modules that use them."""
+    from calibrate.contact_patch import N_POINTS
+    from trainer.contact import CONTACT_THRESHOLD_M
+    from trainer.inference import RUNTIMES
+    from trainer.splits import SPLITS
+
+    def option(command: str, dest: str):
+        sub = next(a for a in parser._subparsers._group_actions if a.dest == "command").choices[command]
+        return next(a for a in sub._actions if a.dest == dest)
+
+    assert option("pose", "threshold_mm").default == pytest.approx(CONTACT_THRESHOLD_M * 1e3)
+    assert option("pose", "points").default == N_POINTS
+    assert set(option("train", "split").choices) == set(SPLITS)
+    assert set(option("evaluate", "runtime").choices) == set(RUNTIMES)

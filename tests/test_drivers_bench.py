@@ -47,6 +47,7 @@ def test_sim_bench_streams_all_three_devices_through_the_real_driver_paths():
         assert bench.intrinsics == bench.sim.spec.intrinsics()
         assert bench.pressure.firmware_version().startswith("bubble-pb")
         bench.pressure.set_led(True)
+        assert bench._firmware.led  # the twin's LED is on
         frames = [bench.camera.get_frame() for _ in range(30)]
         bench.pressure.drain()
         bench.arm.drain_states()

@@ -175,8 +175,9 @@ def load_frames(
     ``stride`` keeps every stride-th matching frame of a session (consecutive frames of a press
     are nearly alike; pretraining on many sessions uses it to bound memory).
 
-    Raises ``InputError`` for unreadable sessions, sessions of different frame sizes, unknown
-    objects (named in no session) and sessions without any matching frame.
+    A session without any matching frame adds nothing (and is not among the sources). Raises
+    ``InputError`` for unreadable sessions, sessions of different frame sizes, unknown objects
+    (named in no session) and when no session has a matching frame.
     """
     if not paths:
         raise InputError("no session files given")
