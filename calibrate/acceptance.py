@@ -13,6 +13,8 @@ the packaged values. Each evaluated check is a plain dict (the ``acceptance.json
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +59,11 @@ class Thresholds:
 
     def __getitem__(self, name: str) -> Threshold:
         return self.checks[name]
+
+    def limits_sha256(self) -> str:
+        """SHA-256 (hex) of what judges a run: every check's name, limits and gate (not its wording)."""
+        limits = sorted((t.name, t.lo, t.hi, t.gate) for t in self.checks.values())
+        return hashlib.sha256(json.dumps(limits).encode()).hexdigest()
 
 
 #: The keys a check of a thresholds file may hold.

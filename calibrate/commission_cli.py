@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from calibrate.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
-from collect.cli import DEFAULT_OBJECTS_ARG, check_sim_options
+from collect.cli import DEFAULT_OBJECTS_ARG, check_sim_options, progress_place
 from collect.errors import EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import named_path
 
@@ -126,9 +126,9 @@ class ProgressPrinter:
         elif isinstance(event, ev.StepProgress) and event.message and self._due():
             self._print(f"[{event.step.value}] {event.fraction:4.0%} {event.message}")
         elif isinstance(event, ev.CollectionProgress) and self._due():
-            pose = "reference" if event.pose_index < 0 else f"pose {event.pose_index + 1}/{event.poses_per_object}"
+            where = progress_place(event.object_name, event.pose_index, event.poses_per_object)
             self._print(
-                f"[collect] {event.object_name} {pose} {event.phase}: {event.frames} frames, "
+                f"[collect] {where} {event.phase}: {event.frames} frames, "
                 f"{event.force_n:.1f} N, {event.pressure_hpa:.1f} hPa"
             )
         elif isinstance(event, ev.TrainingProgress) and (self._due() or event.a1 is not None):

@@ -581,7 +581,7 @@ class _Flow:
     def run(self) -> CommissionResult:
         self.started = time.monotonic()
         sensor_id = self.sensor_spec.serial if self.sensor_spec is not None else "hardware"
-        self.state = RunState.open(self.run_dir, run_settings(self.config, sensor_id))
+        self.state = RunState.open(self.run_dir, run_settings(self.config, sensor_id, self.thresholds))
         handlers = {
             Step.CONNECT: self.step_connect,
             Step.LEAK_TEST: self.step_leak_test,

@@ -21,10 +21,11 @@ from collect.json_files import JSON_READ_ERRORS, plain_json, write_json
 from collect.session_format import utc_now
 
 if TYPE_CHECKING:
+    from calibrate.acceptance import Thresholds
     from calibrate.commission_config import CommissionConfig
 
 STATE_FILE = "state.json"
-STATE_VERSION = 2  # 2: with its checksum (CHECKSUM_KEY)
+STATE_VERSION = 3  # 2: with its checksum (CHECKSUM_KEY); 3: base model and acceptance limits must match
 CHECKSUM_KEY = "sha256"
 SESSION_FILE = "session.h5"
 REFERENCE_FILE = "reference.h5"
@@ -37,13 +38,15 @@ VALIDATION_FILE = "validation.npz"
 POSE_FILE = "pose_check.json"
 PLOTS_DIR = "plots"
 
-#: Settings that must match when a run directory is resumed.
-RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed")
+#: Settings that must match when a run directory is resumed (or a finished run reported again):
+#: what was recorded, the model it starts from, and the limits that judge it. The time budgets, the
+#: simulated faults and the simulation speed may change between attempts.
+RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed", "base_model", "limits_sha256")
 
 
-def run_settings(config: CommissionConfig, sensor_id: str) -> dict:
+def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Thresholds) -> dict:
     """The settings of a run as ``state.json`` records them (``sensor_id``: the simulated sensor's
-    serial, or ``"hardware"``)."""
+    serial, or ``"hardware"``; ``thresholds``: the acceptance thresholds in force)."""
     return {
         "simulated": bool(config.simulated),
         "sensor": sensor_id,
@@ -54,6 +57,7 @@ def run_settings(config: CommissionConfig, sensor_id: str) -> dict:
         "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
         "base_model": str(config.base_model) if config.base_model else "base",
         "thresholds": str(config.thresholds) if config.thresholds else "packaged",
+        "limits_sha256": thresholds.limits_sha256(),
         "sim_faults": list(config.sim_faults),
         "sim_speed": float(config.sim_speed),
     }
@@ -87,11 +91,18 @@ class RunState:
             raise InputError(f"{path} does not match its checksum (damaged or edited by hand); use a new --out directory")
         saved = data["settings"]
         for key in RESUME_KEYS:
-            if saved.get(key) != settings.get(key):
+            if saved.get(key) == settings.get(key):
+                continue
+            if key == "limits_sha256":
                 raise InputError(
-                    f"{run_dir} holds a run with {key}={saved.get(key)!r}, not {settings.get(key)!r}; "
-                    "use a new --out directory to commission with other settings"
+                    f"{run_dir} holds a run judged by other acceptance limits (thresholds {saved.get('thresholds')!r}) "
+                    f"than --thresholds gives now ({settings.get('thresholds')!r}); use a new --out directory to "
+                    "commission with other thresholds"
                 )
+            raise InputError(
+                f"{run_dir} holds a run with {key}={saved.get(key)!r}, not {settings.get(key)!r}; "
+                "use a new --out directory to commission with other settings"
+            )
         return cls(path, data)
 
     def save(self) -> None:

@@ -165,10 +165,19 @@ class _ProgressDisplay:
     def update(self, *, object_name, pose_index, poses_per_object, phase, frames, force_n, pressure_hpa) -> None:
         if self._live is None:
             return
-        pose = f"pose {pose_index + 1}/{poses_per_object}" if pose_index >= 0 else "reference"
-        where = f"{object_name} {pose}" if object_name else "travel"
+        where = progress_place(object_name, pose_index, poses_per_object)
         self._live.update(f"[bold]{where}[/] {phase:<8} frames {frames:>6}  force {force_n:5.1f} N  "
                           f"pressure {pressure_hpa:7.1f} hPa")
+
+
+def progress_place(object_name: str, pose_index: int, poses_per_object: int) -> str:
+    """Where a collection's progress is: ``mug pose 3/10``, ``mug reference`` (its no-contact
+    frames, ``pose_index`` -1) or ``travel`` (between objects: no ``object_name``)."""
+    if not object_name:
+        return "travel"
+    if pose_index < 0:
+        return f"{object_name} reference"
+    return f"{object_name} pose {pose_index + 1}/{poses_per_object}"
 
 
 def run_info(args: argparse.Namespace) -> int:

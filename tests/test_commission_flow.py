@@ -215,6 +215,26 @@ def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
     assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 2
 
 
+def test_a_finished_run_is_not_reported_again_under_other_limits_or_another_base_model(faulted_then_resumed, tmp_path):
+    """Was: re-run with a stricter --thresholds, a finished run printed ACCEPTED under the limits it
+    was judged by, and a resumed one mixed the two; another --base-model was taken the same way."""
+    from trainer.model_dir import BASE_MODEL_DIR
+
+    config = faulted_then_resumed["config"]
+    strict = tmp_path / "strict.yaml"
+    strict.write_text(LENIENT_MODEL_CHECKS.replace("contact_rmse_mm: {max: 1000.0}", "contact_rmse_mm: {max: 0.1}"))
+    with pytest.raises(InputError, match=r"holds a run judged by other acceptance limits \(thresholds '.*lenient.yaml'\) "
+                                         r"than --thresholds gives now \('.*strict.yaml'\)"):
+        run_commissioning(dataclasses.replace(config, thresholds=strict), lambda e: None)
+    other_model = tmp_path / "other_model"
+    shutil.copytree(BASE_MODEL_DIR, other_model)
+    with pytest.raises(InputError, match="holds a run with base_model='base', not '.*other_model'"):
+        run_commissioning(dataclasses.replace(config, base_model=other_model), lambda e: None)
+    reworded = tmp_path / "reworded.yaml"  # the same limits in another file, with other wording: the same run
+    reworded.write_text(LENIENT_MODEL_CHECKS + "  leak_rate_hpa_per_min: {describe: leak rate at rest}\n")
+    assert run_commissioning(dataclasses.replace(config, thresholds=reworded), lambda e: None).accepted
+
+
 def test_a_finished_run_keeps_its_verdict_whatever_happened_to_its_acceptance_json(faulted_then_resumed, tmp_path):
     """The verdict of a finished run comes from its state.json. Was: read back from acceptance.json,
     so that ``"accepted": "no"`` there gave ACCEPTED, a damaged file a traceback, and a deleted one a
