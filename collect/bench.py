@@ -28,7 +28,7 @@ from typing import ClassVar
 import numpy as np
 
 from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings
-from collect.camera import STALL_TIMEOUT_S, ToFCamera
+from collect.camera import STALL_TIMEOUT_S, ToFCamera, check_tof_profile
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
 from collect.numbers import real_number, real_numbers
@@ -200,7 +200,8 @@ class URBenchConfig(BenchConfig):
     e-Series); camera_id: depthai device id (None = first found); camera_fps (``CAMERA_FPS_RANGE``);
     tof_profile; serial_port: the pressure board's device (e.g. /dev/ttyACM0); plate_pose (6,): the
     fixture plate origin in the base frame; home_pose (6,): safe TCP pose above the plate.
-    The rates are checked when the config is built, before any device is opened."""
+    Every field (the rates and the ToF profile's name included) is checked when the config is
+    built, before any device is opened."""
 
     robot_ip: str = ""
     rtde_hz: float = 500.0
@@ -230,6 +231,7 @@ class URBenchConfig(BenchConfig):
             value = getattr(self, name)
             if not (isinstance(value, str) or name == "camera_id" and value is None):
                 raise InputError(f"bench 'ur': {name} must be text ({what}), got {value!r}")
+        check_tof_profile(self.tof_profile, "bench 'ur'")
         _check_pose("ur", "plate_pose", self.plate_pose, "the fixture plate origin in the base frame")
         if self.home_pose is not None:
             _check_pose("ur", "home_pose", self.home_pose, "a safe TCP pose above the plate")

@@ -164,6 +164,18 @@ class QueueToFCamera(ToFCamera):
         return frame
 
 
+def check_tof_profile(profile: str, who: str) -> None:
+    """Raise ``InputError`` (``"{who}: unknown ToF profile ..."``) unless ``profile`` names a
+    ``dai.ToFConfig.Profile`` of the installed depthai. Needs no device: a bench file is checked
+    with it before anything connects, and the camera again before it opens the device."""
+    library_said: list[str] = []
+    with native_output_into(library_said):  # depthai's import warnings (no USB in a container)
+        import depthai as dai
+    names = dai.ToFConfig.Profile.__members__
+    if profile not in names:
+        raise InputError(f"{who}: unknown ToF profile '{profile}' (one of {', '.join(names)})")
+
+
 class DepthaiToFCamera(QueueToFCamera):
     """An OAK ToF camera (depthai v3, ``dai.node.ToF``): depth + amplitude outputs.
 
@@ -182,14 +194,12 @@ class DepthaiToFCamera(QueueToFCamera):
         self._intrinsics: dict | None = None
 
     def start(self) -> None:
+        check_tof_profile(self.profile, "camera")
         library_said: list[str] = []
         try:
             with native_output_into(library_said):  # depthai's import warnings and its own "no device" line
                 import depthai as dai
 
-                if self.profile not in dai.ToFConfig.Profile.__members__:
-                    raise InputError(f"camera: unknown ToF profile '{self.profile}' "
-                                     f"(one of {', '.join(dai.ToFConfig.Profile.__members__)})")
                 device = dai.Device(dai.DeviceInfo(self.device_id)) if self.device_id else dai.Device()
         except RuntimeError as err:
             raise HardwareFault("camera-missing",

@@ -242,6 +242,7 @@ BAD_BENCH_LINES = {
     "robot_ip: 10": "bench 'ur': robot_ip must be text (the UR controller's IP address or host name), got 10",
     "serial_port: 0": "bench 'ur': serial_port must be text (the pressure board's device, e.g. /dev/ttyACM0), got 0",
     "tof_profile: [LOW_RANGE]": "bench 'ur': tof_profile must be text",
+    "tof_profile: LOW": "bench 'ur': unknown ToF profile 'LOW' (one of LOW_RANGE, MID_RANGE, HIGH_RANGE)",
     "camera_id: true": "bench 'ur': camera_id must be text",
     "plate_pose: [0, 0, 0]": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers "
                              "[x, y, z, rx, ry, rz] (m, rotation vector in rad), got (0, 0, 0)",
