@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with stop_signals_handled(raise_interrupt, INTERRUPTS):
+        with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
             return int(args.func(args) or 0)
     except InputError as err:
         print(f"bubble: error: {err}", file=sys.stderr)

@@ -7,7 +7,10 @@ like Ctrl-C instead: the arm is stopped and retracted, the files are closed, and
 with ``128 + signal number`` (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP). Any of them
 arriving again while that runs is ignored (a second Ctrl-C says ``still stopping``), so that the
 safe stop and the closing of the files finish: a second Ctrl-C 20 ms after the first used to cut
-the closing short and leave the session file unclosed.
+the closing short and leave the session file unclosed. Once a stop has begun the process only
+ends: a repeat that arrives after the stop, while the process exits, is ignored too (was: a
+stop that took under 20 ms left the default handler back in place, and the second Ctrl-C killed
+the exiting process, which then reported -2 to its parent instead of 130).
 """
 
 from __future__ import annotations
@@ -50,13 +53,27 @@ class Terminated(KeyboardInterrupt):
         return exit_code(self.signum)
 
 
+#: While a ``process_ends`` block runs: the stop signals handled so far, by it or by a block nested
+#: in it (``None`` outside one). Signal dispositions are process-wide, and so is this record.
+_stops_before_exit: list[int] | None = None
+
+
 @contextmanager
-def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP_SIGNALS) -> Iterator[None]:
+def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP_SIGNALS, *,
+                         process_ends: bool = False) -> Iterator[None]:
     """Call ``on_signal(signum)`` for the first of ``signals`` that arrives during the with-block;
     later ones are ignored (a Ctrl-C prints ``STILL_STOPPING``). The previous handlers are restored
     afterwards. After SIGHUP stdout and stderr go to /dev/null first: the terminal is gone, and a
     write to it would fail in the middle of the safe stop. Outside the main thread (where no handler
-    can be set) the block runs unchanged."""
+    can be set) the block runs unchanged.
+
+    ``process_ends``: the block is the command's outermost, and the process exits after it. Once a
+    stop has begun in it (this block's signal or a nested block's), each of ``INTERRUPTS`` is only
+    acknowledged, no block inside restores a handler that would act on it, and this one leaves
+    them ignored (``SIG_IGN``:
+    the interpreter puts Python handlers back to the default as it shuts down, and the default of
+    each kills the process), so that a repeat can no longer change how the process ends."""
+    global _stops_before_exit
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -69,7 +86,9 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
                 pass
 
     def handler(signum, frame) -> None:
-        for sig in signals:
+        if _stops_before_exit is not None:  # the process ends after this stop: any signal repeats it
+            _stops_before_exit.append(signum)
+        for sig in signals if _stops_before_exit is None else INTERRUPTS:
             signal.signal(sig, still_stopping)
         if signum == signal.SIGHUP:
             null = os.open(os.devnull, os.O_WRONLY)
@@ -78,12 +97,21 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
             os.close(null)
         on_signal(signum)
 
+    outer_record = _stops_before_exit
+    if process_ends:
+        _stops_before_exit = []
     previous = {sig: signal.signal(sig, handler) for sig in signals}
     try:
         yield
     finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
+        stopping = bool(_stops_before_exit)
+        if process_ends:
+            _stops_before_exit = outer_record
+            for sig in INTERRUPTS if stopping else ():
+                signal.signal(sig, signal.SIG_IGN)
+        if not stopping:
+            for sig, old in previous.items():
+                signal.signal(sig, old)
 
 
 def raise_interrupt(signum: int) -> None:

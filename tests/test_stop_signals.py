@@ -38,3 +38,45 @@ def test_a_handler_that_only_asks_for_a_stop_is_called_once():
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGTERM):
             os.kill(os.getpid(), sig)
     assert calls == [signal.SIGTERM]
+
+
+@pytest.fixture
+def interrupt_handlers_restored():
+    """The test leaves this process's handlers as it found them (a command's outermost block leaves
+    them ignored, for the process's exit)."""
+    before = {sig: signal.getsignal(sig) for sig in INTERRUPTS}
+    yield
+    for sig, handler in before.items():
+        signal.signal(sig, handler)
+
+
+def test_once_a_command_has_stopped_a_repeat_cannot_change_how_its_process_ends(interrupt_handlers_restored, capfd):
+    """Was: the command's block put the default handlers back after a stop that took under 20 ms,
+    and a second Ctrl-C killed the exiting process (exit -2 to its parent, not 130)."""
+    with pytest.raises(KeyboardInterrupt):
+        with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
+            os.kill(os.getpid(), signal.SIGINT)
+    assert all(signal.getsignal(sig) == signal.SIG_IGN for sig in INTERRUPTS)
+    for sig in INTERRUPTS:
+        os.kill(os.getpid(), sig)  # ignored: the process goes on to exit with 130
+    assert capfd.readouterr().err == ""
+
+
+def test_a_nested_stop_leaves_every_signal_acknowledged_until_the_process_ends(interrupt_handlers_restored, capfd):
+    """`bubble tui` handles SIGTERM in its own block inside the command's: after that stop, a Ctrl-C
+    is only acknowledged (the command's own handler would raise in the exiting app)."""
+    calls = []
+    with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
+        with stop_signals_handled(calls.append):
+            os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)
+        assert capfd.readouterr().err == STILL_STOPPING.decode()
+    assert calls == [signal.SIGTERM]
+    assert all(signal.getsignal(sig) == signal.SIG_IGN for sig in INTERRUPTS)
+
+
+def test_a_command_without_a_stop_puts_the_handlers_back(interrupt_handlers_restored):
+    before = {sig: signal.getsignal(sig) for sig in INTERRUPTS}
+    with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
+        pass
+    assert {sig: signal.getsignal(sig) for sig in INTERRUPTS} == before
