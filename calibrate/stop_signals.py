@@ -70,9 +70,9 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
     ``process_ends``: the block is the command's outermost, and the process exits after it. Once a
     stop has begun in it (this block's signal or a nested block's), each of ``INTERRUPTS`` is only
     acknowledged, no block inside restores a handler that would act on it, and this one leaves
-    them ignored (``SIG_IGN``:
-    the interpreter puts Python handlers back to the default as it shuts down, and the default of
-    each kills the process), so that a repeat can no longer change how the process ends."""
+    them ignored (``SIG_IGN``: the interpreter puts Python handlers back to the default as it
+    shuts down, and the default of each kills the process), so that a repeat can no longer change
+    how the process ends."""
     global _stops_before_exit
     if threading.current_thread() is not threading.main_thread():
         yield
