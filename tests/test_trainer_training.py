@@ -300,6 +300,18 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
     assert (model / METADATA_FILE).read_bytes() == metadata
 
 
+def test_a_pose_split_that_would_validate_on_free_frames_alone_is_refused(session, tmp_path):
+    """Every object pressed in one pose: the pose split held out free frames alone, and the model
+    reported their metrics (a1 ~1 on an undented membrane) as the held-out poses'."""
+    one_pose = make_synthetic_session(tmp_path / "one_pose.h5", **{**SMALL, "poses_per_object": 1})
+    with pytest.raises(InputError, match=r"^the in-class-poses split holds out no contact frame: every object of "
+                                         r"each session was pressed in one pose only; record 2 or more poses"):
+        train_model(_config([one_pose], tmp_path / "m"))
+    assert not (tmp_path / "m").exists()
+    both = _config([one_pose, session], tmp_path / "m", epochs=0.1, export_onnx=False)  # session: 3 poses each
+    assert train_model(both).metrics["n_images"] > 0
+
+
 def test_train_and_evaluate_options_that_crashed_or_were_ignored(bubble, trained, session, tmp_path, capsys):
     """Each now one line and exit 2, nothing written; before: a traceback in torch (seed, threads), a
     model trained at a learning rate of 1e12, a finished model trained again from scratch over itself
