@@ -49,7 +49,7 @@ def unseen_meshes(work: Path) -> list[Path]:
     sphere.apply_translation([0, 0, 0.03])
     capsule = trimesh.creation.capsule(height=0.06, radius=0.018, count=[32, 32])
     capsule.apply_transform(trimesh.transformations.rotation_matrix(1.5708, [0, 1, 0]))
-    capsule.apply_translation([0, 0, 0.018 - capsule.bounds[0][2]])
+    capsule.apply_translation([0, 0, -capsule.bounds[0][2]])  # lying on the plate
     paths = []
     for name, mesh in (("sphere", sphere), ("capsule", capsule)):
         path = work / f"unseen_{name}.stl"
