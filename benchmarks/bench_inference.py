@@ -45,7 +45,7 @@ def measure(arch: str, width: float, repeats: int, workdir: Path) -> dict:
     meta = ModelMetadata(arch, width, DEFAULT_MIN_DEPTH, DEFAULT_MAX_DEPTH, InputGeometry(172, 224, 224, 224),
                          IRNormalization(mean=8.0, std=1.0))
     model_dir = save_model(workdir / f"{arch}_{width}", net, meta)
-    info = export_and_select_runtime(model_dir, repeats=5)
+    info = export_and_select_runtime(model_dir)  # as `bubble train` exports: its default repeats
     ir = np.random.default_rng(0).integers(500, 20000, (172, 224), dtype=np.uint16)
     row = {"arch": arch, "width": width, "params_m": sum(p.numel() for p in net.parameters()) / 1e6,
            "max_diff": info["onnx_max_abs_diff_m"]}
