@@ -303,7 +303,8 @@ def test_bad_inputs_exit_2(bubble, trained, session, tmp_path, capsys):
 def test_a_pose_split_that_would_validate_on_free_frames_alone_is_refused(session, tmp_path):
     """Every object pressed in one pose: the pose split held out free frames alone, and the model
     reported their metrics (a1 ~1 on an undented membrane) as the held-out poses'."""
-    one_pose = make_synthetic_session(tmp_path / "one_pose.h5", **{**SMALL, "poses_per_object": 1})
+    one_pose = make_synthetic_session(tmp_path / "one_pose.h5",  # free frames enough for the split to validate on
+                                      **{**SMALL, "poses_per_object": 1, "frames_per_phase": 8, "n_reference": 8})
     with pytest.raises(InputError, match=r"^the in-class-poses split holds out no contact frame: every object of "
                                          r"each session was pressed in one pose only; record 2 or more poses"):
         train_model(_config([one_pose], tmp_path / "m"))

@@ -177,20 +177,20 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
     else:
         train_idx, val_idx = split_in_class(frames, by=config.split, seed=config.seed)
         info = {"kind": f"in-class-{config.split}", "train_fraction": TRAIN_FRACTION, "seed": config.seed}
-        if (frames.pose_id >= 0).any() and not (frames.pose_id[val_idx] >= 0).any():
-            # Validation of free frames alone: its metrics would pass for the held-out contact frames'
-            # (a1 ~1 on an undented membrane). The pose split holds out a pose of every object of a
-            # session that has two or more.
-            why = ("every object of each session was pressed in one pose only; record 2 or more poses per object, "
-                   "or use --split frames, --holdout-object or --val-data") if config.split == "poses" \
-                else "too few frames; record more poses"
-            raise InputError(f"the {info['kind']} split holds out no contact frame: {why}")
     if len(train_idx) == 0 or len(val_idx) == 0:
         n = len(frames)
         kept = f" of the {n} frame{'' if n == 1 else 's'} that --frame-stride {config.frame_stride} keeps" \
             if config.frame_stride > 1 else ""
         raise InputError(f"the {info['kind']} split leaves no training or no validation frames{kept}; record more poses"
                          f"{', or lower --frame-stride' if kept else ''}")
+    if not config.holdout_object and (frames.pose_id >= 0).any() and not (frames.pose_id[val_idx] >= 0).any():
+        # Validation of free frames alone: its metrics would pass for the held-out contact frames'
+        # (a1 ~1 on an undented membrane). The pose split holds out a pose of every object of a
+        # session that has two or more.
+        why = ("every object of each session was pressed in one pose only; record 2 or more poses per object, "
+               "or use --split frames, --holdout-object or --val-data") if config.split == "poses" \
+            else "too few frames; record more poses"
+        raise InputError(f"the {info['kind']} split holds out no contact frame: {why}")
     return frames.subset(train_idx), frames.subset(val_idx), info
 
 
