@@ -183,7 +183,7 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
             if config.frame_stride > 1 else ""
         raise InputError(f"the {info['kind']} split leaves no training or no validation frames{kept}; record more poses"
                          f"{', or lower --frame-stride' if kept else ''}")
-    if not config.holdout_object and (frames.pose_id >= 0).any() and not (frames.pose_id[val_idx] >= 0).any():
+    if (frames.pose_id >= 0).any() and not (frames.pose_id[val_idx] >= 0).any():  # a held-out object: all contact
         # Validation of free frames alone: its metrics would pass for the held-out contact frames'
         # (a1 ~1 on an undented membrane). The pose split holds out a pose of every object of a
         # session that has two or more.
