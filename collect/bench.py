@@ -21,7 +21,7 @@ import re
 import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import ClassVar
 
@@ -123,10 +123,7 @@ class BenchConfig(ABC):
         """The config of registered type ``type_name`` with ``kwargs``; ``InputError`` for unknown types/fields."""
         if type_name not in cls._registry:
             raise InputError(f"unknown bench type '{type_name}' (one of {', '.join(cls._registry)})")
-        try:
-            return cls._registry[type_name](**kwargs)
-        except TypeError as err:
-            raise InputError(f"bench '{type_name}': {err}") from None
+        return _built(cls._registry[type_name], kwargs, f"bench '{type_name}'")
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "bench config") -> "BenchConfig":
@@ -140,10 +137,8 @@ class BenchConfig(ABC):
             if key in kwargs and kwargs[key] is not None:
                 if not isinstance(kwargs[key], dict):
                     raise InputError(f"{source}: '{key}' must be a mapping of {sub.__name__} fields")
-                try:
-                    kwargs[key] = sub(**{k: tuple(v) if isinstance(v, list) else v for k, v in kwargs[key].items()})
-                except TypeError as err:
-                    raise InputError(f"{source}: {key}: {err}") from None
+                kwargs[key] = _built(sub, {k: tuple(v) if isinstance(v, list) else v for k, v in kwargs[key].items()},
+                                     f"{source}: {key}")
         for key, value in kwargs.items():
             if isinstance(value, list):
                 kwargs[key] = tuple(value)
@@ -166,6 +161,16 @@ class BenchConfig(ABC):
     @abstractmethod
     def open(self) -> "Bench":
         """Open every device of this bench."""
+
+
+def _built(config_type: type, kwargs: dict, who: str):
+    """``config_type(**kwargs)`` for a dataclass whose fields all have defaults; ``InputError``
+    ``"{who}: unknown field '...' (fields: ...)"`` for a key that is not one of its fields."""
+    names = [f.name for f in fields(config_type) if f.init]
+    unknown = sorted(set(kwargs) - set(names), key=str)
+    if unknown:
+        raise InputError(f"{who}: unknown field '{unknown[0]}' (fields: {', '.join(names)})")
+    return config_type(**kwargs)
 
 
 def _placed_objects(names, plate_pose=None) -> list:

@@ -20,6 +20,7 @@ twin, which may run slower than real time on a loaded machine).
 
 from __future__ import annotations
 
+import sys
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -164,14 +165,26 @@ class QueueToFCamera(ToFCamera):
         return frame
 
 
+#: What depthai printed to the console while it was imported (in a container without
+#: ``/dev/bus/usb``: ``[depthai] [warning] USB protocol not available ...``): held back, and named
+#: in the fault of a device that cannot be opened, where it is the likely cause.
+DEPTHAI_IMPORT_SAID: list[str] = []
+
+
+def import_depthai():
+    """The ``depthai`` module; the first import's console lines go to ``DEPTHAI_IMPORT_SAID``
+    instead of the console (a bad bench file is then reported as one line, with nothing before it)."""
+    if "depthai" not in sys.modules:
+        with native_output_into(DEPTHAI_IMPORT_SAID, pass_on=False):
+            import depthai  # noqa: F401
+    return sys.modules["depthai"]
+
+
 def check_tof_profile(profile: str, who: str) -> None:
     """Raise ``InputError`` (``"{who}: unknown ToF profile ..."``) unless ``profile`` names a
     ``dai.ToFConfig.Profile`` of the installed depthai. Needs no device: a bench file is checked
     with it before anything connects, and the camera again before it opens the device."""
-    library_said: list[str] = []
-    with native_output_into(library_said):  # depthai's import warnings (no USB in a container)
-        import depthai as dai
-    names = dai.ToFConfig.Profile.__members__
+    names = import_depthai().ToFConfig.Profile.__members__
     if profile not in names:
         raise InputError(f"{who}: unknown ToF profile '{profile}' (one of {', '.join(names)})")
 
@@ -195,15 +208,14 @@ class DepthaiToFCamera(QueueToFCamera):
 
     def start(self) -> None:
         check_tof_profile(self.profile, "camera")
+        dai = import_depthai()
         library_said: list[str] = []
         try:
-            with native_output_into(library_said):  # depthai's import warnings and its own "no device" line
-                import depthai as dai
-
+            with native_output_into(library_said):  # depthai's own "no device" line
                 device = dai.Device(dai.DeviceInfo(self.device_id)) if self.device_id else dai.Device()
         except RuntimeError as err:
-            raise HardwareFault("camera-missing",
-                                f"camera: cannot open the OAK ToF device: {err}{folded(library_said)}") from err
+            said = folded(DEPTHAI_IMPORT_SAID + library_said)
+            raise HardwareFault("camera-missing", f"camera: cannot open the OAK ToF device: {err}{said}") from err
         tof_cams = [c for c in device.getConnectedCameraFeatures() if dai.CameraSensorType.TOF in c.supportedTypes]
         if not tof_cams:
             device.close()

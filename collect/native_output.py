@@ -4,7 +4,8 @@ ur_rtde prints ``connect: Connection refused`` (to stderr) and depthai logs ``[h
 Searched, but no actual device found ...`` (to stdout) before each raises the error the tool
 reports. A failure is reported as one line, so these lines are captured where they are written,
 at file descriptors 1 and 2 (native code bypasses ``sys.stdout`` / ``sys.stderr``), and folded
-into that line; after a connection that succeeded they are passed on unchanged.
+into that line; after a connection that succeeded they are passed on unchanged. depthai's own
+warning on import is held back either way (``collect.camera.import_depthai``).
 """
 
 from __future__ import annotations
@@ -21,11 +22,11 @@ _LOG_TIME = re.compile(r"^\[\d{4}-\d\d-\d\d [\d:.]+\]\s*")
 
 
 @contextlib.contextmanager
-def native_output_into(lines: list[str]) -> Iterator[None]:
+def native_output_into(lines: list[str], pass_on: bool = True) -> Iterator[None]:
     """Capture what is written to file descriptors 1 and 2 during the block, by native code or
     Python alike. Its non-empty lines (log time stamps dropped) are appended to ``lines`` when
-    the block ends; after a block that did not raise, the text is also written back to the
-    descriptor it was written to."""
+    the block ends; after a block that did not raise, and with ``pass_on``, the text is also
+    written back to the descriptor it was written to."""
     streams = (sys.stdout, sys.stderr)
     for stream in streams:
         stream.flush()
@@ -48,7 +49,7 @@ def native_output_into(lines: list[str]) -> Iterator[None]:
                 sink.seek(0)
                 text = sink.read().decode(errors="replace")
                 lines.extend(_LOG_TIME.sub("", line.strip()) for line in text.splitlines() if line.strip())
-                if text and not raised:
+                if text and pass_on and not raised:
                     stream.write(text)
                     stream.flush()
 

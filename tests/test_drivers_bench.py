@@ -253,6 +253,9 @@ BAD_BENCH_LINES = {
     "limits: {max_tilt_deg: .nan}": "safety: max_tilt_deg must be a positive number, got nan",
     "motion: {accel: fast}": "motion: accel must be a positive number, got 'fast'",
     "motion: {retract_m: 0}": "motion: retract_m must be a positive number, got 0",
+    # was: "URBenchConfig.__init__() got an unexpected keyword argument 'warp_drive'"
+    "warp_drive: true": "bench 'ur': unknown field 'warp_drive' (fields: objects, limits, motion, state_hz, robot_ip, "
+                        "rtde_hz, camera_id, camera_fps, tof_profile, serial_port, plate_pose, home_pose)",
 }
 SIM_BENCH = "type: sim\nobjects: [mug]\n"
 #: The same for the simulated bench's own fields (was: tracebacks from numpy's seeding, the
@@ -279,6 +282,19 @@ def test_a_bench_field_of_the_wrong_kind_is_one_line_before_anything_connects(tm
     err = capsys.readouterr().err
     assert err.startswith(f"bubble: error: {message}"), err
     assert err.count("\n") == 1 and not (tmp_path / "s.h5").exists()
+
+
+@pytest.mark.parametrize("line, says", [
+    ("limits: {force_limt_n: 3}", "limits: unknown field 'force_limt_n' (fields: workspace_min, workspace_max, "
+                                  "max_speed_m_s, max_accel_m_s2, force_limit_n, max_tilt_deg)"),
+    ("motion: {acel: 1}", "motion: unknown field 'acel' (fields: travel_speed, approach_speed,"),
+])
+def test_a_misspelt_limit_or_motion_setting_is_named_with_the_fields_there_are(tmp_path, line, says):
+    bench = tmp_path / "bench.yaml"
+    bench.write_text(SIM_BENCH + line + "\n")
+    with pytest.raises(InputError) as err:
+        BenchConfig.from_yaml(bench)
+    assert str(err.value).startswith(f"bench config {bench}: {says}"), err.value
 
 
 def test_a_numeric_camera_id_and_the_home_pose_as_a_list_are_taken_as_written(tmp_path):
