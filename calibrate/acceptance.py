@@ -23,6 +23,7 @@ import yaml
 
 from collect.errors import InputError
 from collect.numbers import real_number
+from collect.yaml_files import load_yaml
 
 #: Packaged thresholds, used when no ``--thresholds`` file is given.
 DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("acceptance_thresholds.yaml")
@@ -69,6 +70,39 @@ class Thresholds:
 #: The keys a check of a thresholds file may hold.
 CHECK_KEYS = ("min", "max", "unit", "gate", "describe")
 
+_FRACTION = (0.0, 1.0, "a fraction")
+#: The values the metric of each check can take: ``(lo, hi, what it is)``, inclusive, ``hi`` None
+#: when unbounded. A limit outside them (``heldout_a1: {min: 5}``, ``leak_rate_hpa_per_min:
+#: {max: -1}``) would reject every sensor, or means a unit mix-up, so the file is refused.
+METRIC_RANGES: dict[str, tuple[float, float | None, str]] = {
+    "leak_rate_hpa_per_min": (0.0, None, "a rate of pressure loss"),
+    "inflation_pressure_hpa": (0.0, None, "an absolute pressure"),
+    "dead_pixels": (0.0, None, "a count of pixels"),
+    "stuck_pixels": (0.0, None, "a count of pixels"),
+    "valid_depth_coverage": _FRACTION,
+    "dot_contrast": _FRACTION,  # 1 - dot/background IR of the dark printed dots
+    "dot_count": (0.0, None, "a count of dots"),
+    "poses_completed_fraction": _FRACTION,
+    "frames_dropped_fraction": _FRACTION,
+    "heldout_a1": _FRACTION,
+    "heldout_abs_rel": (0.0, None, "a relative error"),
+    "heldout_rmse_mm": (0.0, None, "an error"),
+    "contact_rmse_mm": (0.0, None, "an error"),
+    "truth_a1": _FRACTION,
+    "pose_e_x_median_mm": (0.0, None, "a distance"),
+    "pose_e_theta_median": (0.0, 1.0, "1 - |q1.q2| of unit quaternions"),
+}
+
+
+def _check_range(where: str, name: str, key: str, value: float) -> None:
+    """``InputError`` unless limit ``key`` = ``value`` of check ``name`` is a value its metric can take."""
+    if name not in METRIC_RANGES:
+        return
+    lo, hi, what = METRIC_RANGES[name]
+    if value < lo or hi is not None and value > hi:
+        span = f">= {lo:g}" if hi is None else f"in {lo:g}..{hi:g}"
+        raise InputError(f"{where}: check {name!r}: {key} must be {span} ({name} is {what}), got {value!r}")
+
 
 def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) -> dict[str, Threshold]:
     if not isinstance(raw, dict) or not raw:
@@ -88,6 +122,8 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
         for key, val in (("min", lo), ("max", hi)):
             if val is not None and not real_number(val):
                 raise InputError(f"{where}: check {name!r}: {key} must be a finite number, got {val!r}")
+            if val is not None:
+                _check_range(where, name, key, val)
         if lo is None and hi is None:
             raise InputError(f"{where}: check {name!r} needs min and/or max")
         if lo is not None and hi is not None and lo > hi:
@@ -112,7 +148,7 @@ def _read_yaml(path: Path) -> dict:
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"cannot read thresholds file {path}: {getattr(err, 'strerror', None) or err}") from None
     try:
-        raw = yaml.safe_load(text)
+        raw = load_yaml(text)
     except yaml.YAMLError as err:
         raise InputError(f"thresholds file {path} is not valid YAML: {str(err).splitlines()[0]}") from None
     if not isinstance(raw, dict) or "version" not in raw or "checks" not in raw:
@@ -132,6 +168,9 @@ def load_thresholds(path: Path | None = None) -> Thresholds:
     if path is None:
         return Thresholds(version, checks, str(DEFAULT_THRESHOLDS_PATH))
     raw = _read_yaml(Path(path))
+    if isinstance(raw["version"], str):  # version: "1" in quotes is text
+        raise InputError(f"thresholds file {path}: version must be the number {version} (without quotes), "
+                         f"got the text {raw['version']!r}")
     if raw["version"] != version or isinstance(raw["version"], bool):
         raise InputError(f"thresholds file {path} has version {raw['version']!r}; this bubble expects version {version}")
     checks = _parse_checks(raw["checks"], str(path), checks)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from calibrate import acceptance
 from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
+from trainer.training_defaults import MAX_MINUTES
 
 if TYPE_CHECKING:
     from collect.bench import BenchConfig
@@ -89,7 +90,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
     from calibrate.run_directory import SESSION_FILE
-    from calibrate.sensor_registry import SensorRegistry
+    from calibrate.sensor_registry import PROFILE, SensorRegistry
     from collect.output_files import check_parent_dirs
     from collect.pose_planner import MAX_POSES_PER_OBJECT, check_unique_names
     from collect.session_writer import check_free_space
@@ -113,8 +114,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
                          f"{config.poses_per_object}")
     if int(config.seed) < 0:
         raise InputError(f"seed must be >= 0, got {config.seed}")
-    if not (math.isfinite(config.finetune_minutes) and config.finetune_minutes > 0):
-        raise InputError(f"fine-tune minutes must be positive, got {config.finetune_minutes}")
+    if not (math.isfinite(config.finetune_minutes) and 0 < config.finetune_minutes <= MAX_MINUTES):
+        raise InputError(f"fine-tune minutes must be in (0, {MAX_MINUTES:g}] (a week), got {config.finetune_minutes}")
     if config.total_minutes is not None and not config.total_minutes > 0:  # inf: no budget
         raise InputError(f"total minutes must be positive, got {config.total_minutes}")
     if not LEAK_HOLD_RANGE_S[0] <= config.leak_hold_s <= LEAK_HOLD_RANGE_S[1]:  # also NaN
@@ -126,7 +127,9 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
     if config.registry_dir is not None:
         registry = SensorRegistry(config.registry_dir)  # InputError: not a directory
-        check_parent_dirs(registry.root / "profile.json")  # the run registers the sensor at its end
+        # the run registers the sensor at its end, in a folder named as its serial (not known yet on
+        # the real bench): the message names that file (was: <registry>/profile.json, a file never written)
+        check_parent_dirs(registry.root / "<serial>" / PROFILE)
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")

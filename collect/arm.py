@@ -49,7 +49,7 @@ import numpy as np
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.loop_thread import LoopThread
 from collect.numbers import real_number
-from collect.safety import SafetyLimits, tool_z_axis
+from collect.safety import MAX_FORCE_LIMIT_N, MAX_TCP_ACCEL_M_S2, MAX_TCP_SPEED_M_S, SafetyLimits, tool_z_axis
 from collect.transforms import linear_path_m, rotation_between_rad
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
@@ -85,6 +85,29 @@ class ArmState:
 #: Arm state sampling rates accepted (Hz); 125-500 recommended.
 STATE_HZ_RANGE = (1.0, 500.0)
 
+#: Deepest press (m) a ``motion.max_press_depth_m`` may allow: 30 mm, about the height of the
+#: bubble's dome (30-50 mm; ``bubble sim preview --press-mm`` stops there too); deeper, the object
+#: meets the rigid frame behind the membrane.
+MAX_PRESS_DEPTH_M = 0.03
+#: Longest guarded approach (``max_contact_travel_m``) and retract (``retract_m``), m: 10 cm, a few
+#: times the 5 cm and 3 cm defaults; a contact this far off means a wrong plate pose, not a far object.
+MAX_CONTACT_TRAVEL_M = 0.10
+MAX_RETRACT_M = 0.10
+#: field -> (upper bound, unit) of every ``MotionSettings`` value. The speeds, the acceleration and
+#: the forces share the bounds of ``SafetyLimits`` (see ``collect.safety``); a bench's own limits,
+#: usually lower, are then checked against each motion when the arm is built (``check_motion_settings``).
+MOTION_BOUNDS = {
+    "travel_speed": (MAX_TCP_SPEED_M_S, "m/s"),
+    "approach_speed": (MAX_TCP_SPEED_M_S, "m/s"),
+    "press_speed": (MAX_TCP_SPEED_M_S, "m/s"),
+    "accel": (MAX_TCP_ACCEL_M_S2, "m/s^2"),
+    "contact_force_n": (MAX_FORCE_LIMIT_N, "N"),
+    "max_preload_n": (MAX_FORCE_LIMIT_N, "N"),
+    "max_contact_travel_m": (MAX_CONTACT_TRAVEL_M, "m"),
+    "max_press_depth_m": (MAX_PRESS_DEPTH_M, "m"),
+    "retract_m": (MAX_RETRACT_M, "m"),
+}
+
 
 @dataclass(frozen=True)
 class MotionSettings:
@@ -109,6 +132,9 @@ class MotionSettings:
             value = getattr(self, f.name)
             if not (real_number(value) and value > 0):
                 raise InputError(f"motion: {f.name} must be a positive number, got {value!r}")
+            bound, unit = MOTION_BOUNDS[f.name]
+            if value > bound:
+                raise InputError(f"motion: {f.name} must be within (0, {bound:g}] {unit}, got {value!r}")
 
 
 def move_duration_s(distance_m: float, speed: float, accel: float) -> float:

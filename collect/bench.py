@@ -102,6 +102,8 @@ class BenchConfig(ABC):
             raise InputError(f"bench '{self.type}': objects must be a list of object names or mesh paths, "
                              f"got {self.objects!r}")
         self.objects = tuple(os.fspath(o) for o in self.objects)
+        if not self.objects:  # a bench file's `objects: []` (was: "--objects is empty", a flag never given)
+            raise InputError(f"bench '{self.type}': objects is empty: name at least one object or mesh path")
         lo, hi = STATE_HZ_RANGE
         if not _within(self.state_hz, lo, hi):
             raise InputError(f"bench '{self.type}': state_hz {self.state_hz!r} is outside {lo:g}..{hi:g} Hz "
@@ -149,9 +151,11 @@ class BenchConfig(ABC):
         """Read a config YAML file (see ``from_dict``); ``InputError`` for a missing or bad file."""
         import yaml
 
+        from collect.yaml_files import load_yaml
+
         path = Path(path)
         try:
-            data = yaml.safe_load(path.read_text())
+            data = load_yaml(path.read_text())
         except (OSError, UnicodeDecodeError) as err:
             raise InputError(f"cannot read bench config {path}: {getattr(err, 'strerror', None) or err}") from None
         except yaml.YAMLError as err:

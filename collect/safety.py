@@ -24,6 +24,31 @@ from collect.errors import InputError
 from collect.numbers import real_number, real_numbers
 
 
+#: Upper bounds of the limits themselves: a ``limits`` setting above one is refused when the bench
+#: config is built (a typo such as ``max_tilt_deg: 1000`` must not switch a check off). They are what
+#: a UR e-Series arm pressing a ~5 kPa soft bubble (a few tens of N over its ~50 cm^2 at full
+#: contact) may sensibly be allowed, well inside the controller's own safety configuration:
+#: * TCP speed 1 m/s: below the UR "Default" safety preset's 1.5 m/s tool speed; the bench's moves
+#:   are short (a box of well under 1 m) and from 1 m/s the stopL (4 m/s^2) still stops in 12.5 cm.
+#: * TCP acceleration 2.5 m/s^2: Universal Robots' advice for moves without nuisance protective
+#:   stops (the URScript default is 1.2 m/s^2), and below that stopL deceleration.
+#: * force 150 N: the UR "Default" preset's force limit; the simulated controller (like a real one
+#:   so configured) goes into protective stop above it, far beyond what the bubble survives.
+#: * tilt 90 deg: the pressing axis (TCP +z) may at most lie horizontal; beyond that the sensor
+#:   would press upwards, away from the fixture plate.
+MAX_TCP_SPEED_M_S = 1.0
+MAX_TCP_ACCEL_M_S2 = 2.5
+MAX_FORCE_LIMIT_N = 150.0
+MAX_TILT_DEG = 90.0
+#: field -> (upper bound, unit) of the scalar limits
+LIMIT_BOUNDS = {
+    "max_speed_m_s": (MAX_TCP_SPEED_M_S, "m/s"),
+    "max_accel_m_s2": (MAX_TCP_ACCEL_M_S2, "m/s^2"),
+    "force_limit_n": (MAX_FORCE_LIMIT_N, "N"),
+    "max_tilt_deg": (MAX_TILT_DEG, "deg"),
+}
+
+
 class SafetyViolation(InputError):
     """A motion request that breaks a ``SafetyLimits`` limit; never sent to the robot."""
 
@@ -48,6 +73,7 @@ class SafetyLimits:
     max_speed_m_s, max_accel_m_s2: caps on the TCP speed and acceleration of any move.
     force_limit_n: largest contact force (N) a press may request or the arm may measure.
     max_tilt_deg: largest angle between the pressing axis and base -z.
+    Each of these four is a positive number at most its ``LIMIT_BOUNDS`` bound (``InputError``).
     """
 
     workspace_min: tuple[float, float, float] = (-0.6, -0.6, 0.0)
@@ -63,10 +89,12 @@ class SafetyLimits:
                 raise InputError(f"safety: {name} must be 3 numbers [x, y, z] (m), got {getattr(self, name)!r}")
         if not all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)):
             raise InputError(f"safety: workspace box min {self.workspace_min} must be below max {self.workspace_max}")
-        for name in ("max_speed_m_s", "max_accel_m_s2", "force_limit_n", "max_tilt_deg"):
+        for name, (bound, unit) in LIMIT_BOUNDS.items():
             value = getattr(self, name)
             if not (real_number(value) and value > 0):
                 raise InputError(f"safety: {name} must be a positive number, got {value!r}")
+            if value > bound:
+                raise InputError(f"safety: {name} must be within (0, {bound:g}] {unit}, got {value!r}")
 
     def room_along(self, position, direction, up_to_m: float) -> float:
         """How far (m, at most ``up_to_m``) the TCP at ``position`` (3,) m may move along the unit

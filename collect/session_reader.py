@@ -238,6 +238,8 @@ class Session:
             raise InputError(f"{self.path}: corrupt session, unknown phase value at frame {int(np.argmax(bad_phase))}")
         if ((self.object_index < -1) | (self.object_index >= len(self.objects))).any():
             raise InputError(f"{self.path}: corrupt session, frames/object out of range")
+        if (self.pose_id < -1).any():  # -1: no pose
+            raise InputError(f"{self.path}: corrupt session, frames/pose_id below -1")
 
     # ------------------------------------------------------------------ opening
     @classmethod

@@ -165,13 +165,15 @@ class SensorSpec:
         """Read a spec; unreadable files, bad YAML, missing or out-of-range fields raise ``InputError``."""
         import yaml
 
+        from collect.yaml_files import load_yaml
+
         path = Path(path)
         try:
             text = path.read_text()
         except (OSError, UnicodeDecodeError) as err:
             raise InputError(f"cannot read sensor spec {path}: {getattr(err, 'strerror', None) or err}") from None
         try:
-            data = yaml.safe_load(text)
+            data = load_yaml(text)
         except yaml.YAMLError as err:
             mark = getattr(err, "problem_mark", None)
             where = f" at line {mark.line + 1}" if mark is not None else ""
@@ -180,9 +182,9 @@ class SensorSpec:
 
     def to_yaml(self, path: str | Path) -> None:
         """Write the spec as YAML (round-trips through ``from_yaml``)."""
-        import yaml
+        from collect.yaml_files import dump_yaml
 
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None))
+        Path(path).write_text(dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None))
 
     # ---- validation ----------------------------------------------------------------------------
     def validate(self, source: str = "sensor spec") -> None:

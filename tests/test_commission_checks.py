@@ -42,6 +42,19 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
                                                              r"\(known: min, max, unit, gate, describe\)"),
         ("version: 1\nchecks:\n  heldout_a1: {gate: 'false'}\n", "gate must be true or false, got 'false'"),  # was: true
         ("version: true\nchecks:\n  heldout_a1: {min: 0.9}\n", "has version True"),
+        # was: "has version '1'; this bubble expects version 1"
+        ("version: '1'\nchecks:\n  heldout_a1: {min: 0.9}\n",
+         r"version must be the number 1 \(without quotes\), got the text '1'"),
+        # limits no sensor could meet (was: accepted, then every run rejected and the rejection registered)
+        ("version: 1\nchecks:\n  heldout_a1: {min: 5}\n",
+         r"check 'heldout_a1': min must be in 0\.\.1 \(heldout_a1 is a fraction\), got 5$"),
+        ("version: 1\nchecks:\n  leak_rate_hpa_per_min: {max: -1}\n",
+         r"check 'leak_rate_hpa_per_min': max must be >= 0 \(leak_rate_hpa_per_min is a rate of pressure loss\), got -1$"),
+        ("version: 1\nchecks:\n  frames_dropped_fraction: {max: 1.5}\n", "max must be in 0..1"),
+        ("version: 1\nchecks:\n  pose_e_theta_median: {max: 2}\n", "max must be in 0..1"),
+        ("version: 1\nchecks:\n  dead_pixels: {max: -3}\n", "max must be >= 0"),
+        ("version: 1\nchecks:\n  heldout_rmse_mm: {max: -0.5}\n", "max must be >= 0"),
+        ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: -5, max: 1000}\n", "min must be >= 0"),
     ],
 )
 def test_bad_threshold_files_are_one_line_input_errors(tmp_path, text, fragment):
@@ -50,6 +63,33 @@ def test_bad_threshold_files_are_one_line_input_errors(tmp_path, text, fragment)
     with pytest.raises(InputError, match=fragment) as info:
         load_thresholds(path)
     assert "\n" not in str(info.value)
+
+
+def test_every_check_has_the_range_of_its_metric_and_the_packaged_limits_lie_in_it():
+    from calibrate.acceptance import METRIC_RANGES
+
+    th = load_thresholds()
+    assert set(METRIC_RANGES) == set(th.checks)
+    for name, (lo, hi, _) in METRIC_RANGES.items():
+        for limit in (th[name].lo, th[name].hi):
+            assert limit is None or lo <= limit and (hi is None or limit <= hi), name
+
+
+def test_limits_at_the_ends_of_a_metric_range_are_taken(tmp_path):
+    path = tmp_path / "edges.yaml"
+    path.write_text("version: 1\nchecks:\n  heldout_a1: {min: 1}\n  frames_dropped_fraction: {max: 0}\n"
+                    "  leak_rate_hpa_per_min: {max: 0}\n")
+    th = load_thresholds(path)
+    assert th["heldout_a1"].lo == 1.0 and th["frames_dropped_fraction"].hi == 0.0
+    assert th["leak_rate_hpa_per_min"].hi == 0.0
+
+
+def test_scientific_notation_limits_are_numbers(tmp_path):
+    """Was: YAML 1.1 reads 1e-3 (no decimal point) as text: "min must be a finite number, got '1e-3'"."""
+    path = tmp_path / "sci.yaml"
+    path.write_text("version: 1\nchecks:\n  heldout_abs_rel: {max: 1e-3}\n  heldout_rmse_mm: {max: 15E-1}\n")
+    th = load_thresholds(path)
+    assert th["heldout_abs_rel"].hi == 0.001 and th["heldout_rmse_mm"].hi == 1.5
 
 
 def test_missing_threshold_file_is_input_error(tmp_path):

@@ -339,11 +339,18 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
         (None, ["--objects", "teapot"], "teapot"),
         (None, ["--objects", "mug,box,mug"], "object names must be unique, got mug twice"),
         ("version: 1\nchecks: {heldout_a1: {min: x}}\n", ["--thresholds", "{tmp}/given"], "finite number"),
+        # was: accepted, the run rejected a good sensor and wrote that rejection into the registry (exit 1)
+        ("version: 1\nchecks: {heldout_a1: {min: 5}}\n", ["--thresholds", "{tmp}/given"],
+         "check 'heldout_a1': min must be in 0..1 (heldout_a1 is a fraction), got 5"),
+        ("version: 1\nchecks: {leak_rate_hpa_per_min: {max: -1}}\n", ["--thresholds", "{tmp}/given"],
+         "check 'leak_rate_hpa_per_min': max must be >= 0"),
         (None, ["--poses-per-object", "0"], "poses per object"),
         (None, ["--poses-per-object", "1001"], "poses per object must be 2..1000 (one or more is held out), got 1001"),
         (None, ["--leak-hold-s", "1e12"], "leak-test hold must be 1..600 s, got 1e+12 s"),  # was: a leak test without end
         (None, ["--leak-hold-s", "1e-9"], "leak-test hold must be 1..600 s, got 1e-09 s"),  # was: a refusal after it
         (None, ["--total-minutes", "0"], "total minutes"),
+        # was: refused by the trainer after the whole recording
+        (None, ["--finetune-minutes", "1e6"], "fine-tune minutes must be in (0, 10080] (a week), got 1000000.0"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragment):

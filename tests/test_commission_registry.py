@@ -136,6 +136,19 @@ def test_registering_on_a_file_system_without_folder_locks(tmp_path, monkeypatch
     assert [h["accepted"] for h in reg.get("SB-1").history] == [False]
 
 
+def test_an_unwritable_registry_is_refused_naming_the_file_the_run_would_write(tmp_path, capsys):
+    from calibrate.cli import main
+
+    plain = tmp_path / "plain"
+    plain.write_text("not a folder")
+    run = tmp_path / "run"
+    # was: "cannot write .../reg/profile.json", a file the registry never writes
+    assert main(["commission", "--sim", "--quiet", "--out", str(run), "--registry", str(plain / "reg")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"bubble: error: cannot write {plain}/reg/<serial>/profile.json: {plain} is a file, not a directory\n"
+    assert not run.exists()
+
+
 def test_location_from_environment(tmp_path, monkeypatch):
     monkeypatch.setenv("BUBBLE_REGISTRY", str(tmp_path / "envreg"))
     assert default_registry_dir() == tmp_path / "envreg"

@@ -253,6 +253,17 @@ BAD_BENCH_LINES = {
     "limits: {max_tilt_deg: .nan}": "safety: max_tilt_deg must be a positive number, got nan",
     "motion: {accel: fast}": "motion: accel must be a positive number, got 'fast'",
     "motion: {retract_m: 0}": "motion: retract_m must be a positive number, got 0",
+    # upper bounds (was: accepted, and the simulated bench ran them)
+    "limits: {max_tilt_deg: 1000}": "safety: max_tilt_deg must be within (0, 90] deg, got 1000",
+    "limits: {max_speed_m_s: 100.0, force_limit_n: 100000.0}":
+        "safety: max_speed_m_s must be within (0, 1] m/s, got 100.0",
+    "limits: {force_limit_n: 100000.0}": "safety: force_limit_n must be within (0, 150] N, got 100000.0",
+    "motion: {travel_speed: 50.0, approach_speed: 5.0}": "motion: travel_speed must be within (0, 1] m/s, got 50.0",
+    "motion: {max_press_depth_m: 0.5}": "motion: max_press_depth_m must be within (0, 0.03] m, got 0.5",
+    # YAML 1.2 floats (was: read as the text '1e6': "motion: contact_force_n must be a positive number, got '1e6'")
+    "motion: {contact_force_n: 1e6}": "motion: contact_force_n must be within (0, 150] N, got 1000000.0",
+    # was: "--objects is empty: ...", a flag never given
+    "objects: []": "bench 'ur': objects is empty: name at least one object or mesh path",
     # was: "URBenchConfig.__init__() got an unexpected keyword argument 'warp_drive'"
     "warp_drive: true": "bench 'ur': unknown field 'warp_drive' (fields: objects, limits, motion, state_hz, robot_ip, "
                         "rtde_hz, camera_id, camera_fps, tof_profile, serial_port, plate_pose, home_pose)",
@@ -284,6 +295,17 @@ def test_a_bench_field_of_the_wrong_kind_is_one_line_before_anything_connects(tm
     assert err.count("\n") == 1 and not (tmp_path / "s.h5").exists()
 
 
+def test_an_empty_object_list_in_a_sim_bench_file_names_the_file_field(tmp_path, capsys):
+    from calibrate.cli import main
+
+    bench = tmp_path / "bench.yaml"
+    bench.write_text("type: sim\nobjects: []\n")
+    assert main(["collect", "--bench", str(bench), "--out", str(tmp_path / "s.h5")]) == 2
+    # was: "--objects is empty: name at least one object or give --object-mesh", a flag never given
+    assert capsys.readouterr().err == ("bubble: error: bench 'sim': objects is empty: name at least one object or "
+                                       "mesh path\n")
+
+
 @pytest.mark.parametrize("line, says", [
     ("limits: {force_limt_n: 3}", "limits: unknown field 'force_limt_n' (fields: workspace_min, workspace_max, "
                                   "max_speed_m_s, max_accel_m_s2, force_limit_n, max_tilt_deg)"),
@@ -295,6 +317,16 @@ def test_a_misspelt_limit_or_motion_setting_is_named_with_the_fields_there_are(t
     with pytest.raises(InputError) as err:
         BenchConfig.from_yaml(bench)
     assert str(err.value).startswith(f"bench config {bench}: {says}"), err.value
+
+
+def test_numbers_in_scientific_notation_are_numbers(tmp_path):
+    """Was: YAML 1.1 reads an exponent without a decimal point (1e-2) as text, and the field refused it."""
+    bench = tmp_path / "bench.yaml"
+    bench.write_text(UR_BENCH + "rtde_hz: 5e2\nmotion: {press_speed: 1e-2, contact_force_n: 5E-1}\n"
+                     "limits: {workspace_min: [0.2, -0.4, 1e-2], workspace_max: [0.7, 0.4, 0.4], force_limit_n: 2e1}\n")
+    config = BenchConfig.from_yaml(bench)
+    assert config.rtde_hz == 500.0 and config.motion.press_speed == 0.01 and config.motion.contact_force_n == 0.5
+    assert config.limits.workspace_min == (0.2, -0.4, 0.01) and config.limits.force_limit_n == 20.0
 
 
 def test_a_numeric_camera_id_and_the_home_pose_as_a_list_are_taken_as_written(tmp_path):

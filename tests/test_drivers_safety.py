@@ -64,6 +64,30 @@ def test_bad_limit_values_are_input_errors():
         SafetyLimits(force_limit_n=-1.0)
 
 
+def test_limits_and_motion_settings_have_upper_bounds():
+    # was: any positive number, so `max_tilt_deg: 1000` switched the tilt check off and a bench
+    # moved at 50 m/s with a 100 kN force limit
+    too_much = {"max_tilt_deg": (1000, "safety: max_tilt_deg must be within (0, 90] deg, got 1000"),
+                "max_speed_m_s": (100.0, "safety: max_speed_m_s must be within (0, 1] m/s, got 100.0"),
+                "max_accel_m_s2": (9.81, "safety: max_accel_m_s2 must be within (0, 2.5] m/s^2, got 9.81"),
+                "force_limit_n": (1e5, "safety: force_limit_n must be within (0, 150] N, got 100000.0")}
+    for name, (value, message) in too_much.items():
+        with pytest.raises(InputError) as err:
+            SafetyLimits(**{name: value})
+        assert str(err.value) == message
+    for name, value in (("travel_speed", 50.0), ("approach_speed", 5.0), ("press_speed", 1.5), ("accel", 3.0),
+                        ("contact_force_n", 200.0), ("max_preload_n", 151.0), ("max_contact_travel_m", 0.5),
+                        ("max_press_depth_m", 0.05), ("retract_m", 1.0)):
+        with pytest.raises(InputError, match=rf"^motion: {name} must be within \(0, [0-9.]+\] (m/s|m/s\^2|N|m), "
+                                             rf"got {value}$"):
+            MotionSettings(**{name: value})
+    # the bounds themselves, the defaults and the documented examples are accepted
+    SafetyLimits(max_speed_m_s=1.0, max_accel_m_s2=2.5, force_limit_n=150.0, max_tilt_deg=90.0)
+    MotionSettings(travel_speed=1.0, approach_speed=1.0, press_speed=1.0, accel=2.5, contact_force_n=150.0,
+                   max_preload_n=150.0, max_contact_travel_m=0.1, max_press_depth_m=0.03, retract_m=0.1)
+    SafetyLimits(), MotionSettings(), LIMITS, MOTION
+
+
 class _Still:
     """A scene whose raw wrench on the sensor is ``force`` (6,) N, N m wherever the TCP is (zero:
     nothing to touch)."""

@@ -119,6 +119,9 @@ CASES = {
                                 "objects/meshes/box/vertices does not hold (7 vertices)"),
     "mesh-face-index-negative": (lambda f: f[f"{sf.OBJECTS_MESH_GROUP}/box/faces"].__setitem__((0, 0), -1),
                                  "corrupt session, objects/meshes/box/faces names vertices that"),
+    # was: read as a good session, and a traceback from bubble pose's per-pose random seed
+    "pose-id-below-minus-one": (lambda f: f[sf.FRAMES_POSE_ID].__setitem__(0, -5),
+                                "corrupt session, frames/pose_id below -1"),
 }
 
 

@@ -24,6 +24,24 @@ def test_spec_yaml_round_trip(tmp_path):
     assert -0.1 < back.camera_in_tcp[2] < -0.085
 
 
+def test_spec_numbers_in_scientific_notation_and_text_that_looks_like_one(tmp_path):
+    """The spec reads YAML with the bench's and the thresholds' loader (collect.yaml_files): 1e3 is
+    a number (was: the text '1e3', refused by the whole-number field dot_seed), and text that
+    looks like a number (serial 1e6) is written quoted, so that it reads back as text."""
+    data = draw_sensor(2).to_dict()
+    text = yaml.safe_dump(data).replace(f"dot_seed: {data['dot_seed']}", "dot_seed: 1e3")
+    text = text.replace(f"leak_hpa_per_s: {data['leak_hpa_per_s']!r}", "leak_hpa_per_s: 4e-05")
+    assert "dot_seed: 1e3" in text and "leak_hpa_per_s: 4e-05" in text
+    path = tmp_path / "sci.yaml"
+    path.write_text(text)
+    spec = SensorSpec.from_yaml(path)
+    assert spec.dot_seed == 1000 and isinstance(spec.dot_seed, int) and spec.leak_hpa_per_s == 4e-05
+    spec.serial = "1e6"
+    spec.to_yaml(path)
+    assert "serial: '1e6'" in path.read_text()
+    assert SensorSpec.from_yaml(path) == spec
+
+
 def test_draw_sensor_is_deterministic_and_varied():
     assert draw_sensor(3) == draw_sensor(3)
     specs = [draw_sensor(s) for s in range(8)]

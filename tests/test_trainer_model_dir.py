@@ -64,6 +64,38 @@ def test_pickle_weights_are_refused(model_dir):
         load_network(model_dir)
 
 
+def test_safetensors_whose_header_length_begins_as_a_pickle_are_loaded(model_dir):
+    """A safetensors file begins with its header's length, little-endian: where that length is
+    0x..80, its first byte is a pickle's (was: a model of bts width 0.3, written by bubble train,
+    refused by every command as "a pickle file"), and where it is 0x4b50, torch.save's "PK"."""
+    from safetensors.torch import save_file
+
+    state = build_network("resnet", 0.125, 0.04, 0.12).state_dict()
+    path = model_dir / WEIGHTS_FILE
+    plain = int.from_bytes(path.read_bytes()[:8], "little")
+    for head, modulus in ((b"\x80", 0x100), (b"PK", 0x10000)):
+        target = int.from_bytes(head, "little")
+        gap = (target - plain) % modulus  # metadata characters to add (the header is padded to 8 bytes)
+        for pad in range(max(gap - 40, 0), gap + 8):
+            save_file(state, str(path), metadata={"pad": "x" * pad})
+            if path.read_bytes().startswith(head):
+                break
+        assert path.read_bytes().startswith(head)
+        net, _ = load_network(model_dir)
+        assert all(torch.equal(v, state[k]) for k, v in net.state_dict().items())
+
+
+def test_weights_of_integers_where_the_network_holds_floats_are_refused(model_dir):
+    """Was: cast to float and loaded, a model of whole-number weights evaluated as if it were one."""
+    from safetensors.torch import save_file
+
+    state = {k: v.to(torch.int32) if v.is_floating_point() else v
+             for k, v in build_network("resnet", 0.125, 0.04, 0.12).state_dict().items()}
+    save_file(state, str(model_dir / WEIGHTS_FILE))
+    with pytest.raises(InputError, match=r"weight \S+ in .* is int32, the network holds float32 there"):
+        load_network(model_dir)
+
+
 def test_missing_mismatched_or_garbage_weights(model_dir, tmp_path):
     meta = json.loads((model_dir / METADATA_FILE).read_text())
     meta["width"] = 0.25
@@ -74,6 +106,10 @@ def test_missing_mismatched_or_garbage_weights(model_dir, tmp_path):
     with pytest.raises(InputError, match="cannot read weights"):
         load_network(model_dir)
     (model_dir / WEIGHTS_FILE).unlink()
+    (model_dir / WEIGHTS_FILE).mkdir()  # was: "has no model.safetensors"
+    with pytest.raises(InputError, match="model.safetensors is not a regular file"):
+        load_network(model_dir)
+    (model_dir / WEIGHTS_FILE).rmdir()
     with pytest.raises(InputError, match="has no model.safetensors"):
         load_network(model_dir)
     with pytest.raises(InputError, match="not found"):

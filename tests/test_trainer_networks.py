@@ -60,3 +60,13 @@ def test_unknown_arch_and_bad_width_are_input_errors():
         build_network("vgg", 1.0, 0.04, 0.12)
     with pytest.raises(InputError):
         build_network("resnet", 0.0, 0.04, 0.12)
+
+
+@pytest.mark.parametrize("arch", sorted(ARCHITECTURES))
+@pytest.mark.parametrize("width", [0.3, 0.6, 1.3])
+def test_every_width_the_command_line_accepts_builds(arch, width):
+    """Was: packnet at width 0.3, 0.4, 0.6 or 0.8 failed in torch's GroupNorm (76 channels are not
+    16 groups), a traceback from bubble train --arch packnet --width 0.3."""
+    net = build_network(arch, width, 0.04, 0.12).eval()
+    with torch.inference_mode():
+        assert net(torch.zeros(1, 1, 64, 64)).shape == (1, 1, 64, 64)

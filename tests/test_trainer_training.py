@@ -326,6 +326,10 @@ def test_train_and_evaluate_options_that_crashed_or_were_ignored(bubble, trained
         (train + ("--out", tmp_path / "a", "--seed", "99999999999999999999999"), "seed must be 0..4294967295, got 9999"),
         (train + ("--out", tmp_path / "a", "--threads", "100000"), "threads must be 1.."),
         (train + ("--out", tmp_path / "a", "--lr", "1e12"), "learning rate must be a number in (0, 1], got 1000000000000.0"),
+        # were: a training that diverged and blamed --lr, and one with an ETA of 1.6 million hours
+        (train + ("--out", tmp_path / "a", "--contact-weight", "1e308"), "contact weight must be a number in [0, 1000], got 1e+308"),
+        (("train", "--data", session, "--epochs", "1e9", "--out", tmp_path / "a"), "epochs must be a number in (0, 10000], got 1000000000.0"),
+        (("train", "--data", session, "--minutes", "1e6", "--out", tmp_path / "a"), "minutes must be a number in (0, 10080] (a week), got 1000000.0"),
         (train + ("--out", model, "--resume"), f"cannot resume {model}: its training finished (a model, no checkpoint)"),
         (train + ("--out", tmp_path / "a", "--resume"), "it holds no checkpoint of an interrupted training"),
         (train + ("--out", tmp_path / "a", "--init", ""), "--init is empty: name a model directory"),

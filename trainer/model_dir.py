@@ -201,17 +201,34 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
     return ModelMetadata.from_dict(data, model_dir)
 
 
+def _looks_like_safetensors(path: Path) -> bool:
+    """True when ``path`` begins as a safetensors file: an 8-byte little-endian header length,
+    then that many bytes of a JSON object."""
+    with path.open("rb") as fh:
+        size = int.from_bytes(fh.read(8), "little")
+        if not 2 <= size <= path.stat().st_size - 8:
+            return False
+        header = fh.read(size)
+    try:
+        return isinstance(json.loads(header), dict)
+    except (ValueError, UnicodeDecodeError):
+        return False
+
+
 def _looks_like_pickle(path: Path) -> bool:
-    """True for pickle streams (protocol 2+) and torch.save zip archives."""
+    """True for pickle streams (protocol 2+) and torch.save zip archives that are not safetensors
+    (whose header length may begin with the same bytes: 0x80, or "PK")."""
     with path.open("rb") as fh:
         head = fh.read(2)
-    return head[:1] == b"\x80" or head == b"PK"
+    return (head[:1] == b"\x80" or head == b"PK") and not _looks_like_safetensors(path)
 
 
 def load_weights(model_dir: str | Path) -> dict[str, torch.Tensor]:
     """The safetensors state dict of ``model_dir``; refuses pickle files with ``InputError``."""
     model_dir = resolve_model_dir(model_dir)
     path = model_dir / WEIGHTS_FILE
+    if path.exists() and not path.is_file():
+        raise InputError(f"{path} is not a regular file")
     if not path.is_file():
         pickles = sorted(p.name for p in model_dir.iterdir() if p.suffix in PICKLE_SUFFIXES) if model_dir.is_dir() else []
         if pickles:
@@ -245,6 +262,9 @@ def load_network(model_dir: str | Path) -> tuple[nn.Module, ModelMetadata]:
                 f"weight {key} has shape {tuple(tensor.shape)}, the {metadata.arch} of width "
                 f"{metadata.width} needs {tuple(expected[key].shape)}"
             )
+        if tensor.is_floating_point() != expected[key].is_floating_point():  # was: cast and loaded
+            raise InputError(f"weight {key} in {resolve_model_dir(model_dir)} is {str(tensor.dtype).removeprefix('torch.')}, "
+                             f"the network holds {str(expected[key].dtype).removeprefix('torch.')} there")
         if tensor.is_floating_point() and not torch.isfinite(tensor).all():
             raise InputError(f"weight {key} in {resolve_model_dir(model_dir)} holds NaN or inf")
     network.load_state_dict(state)

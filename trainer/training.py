@@ -57,7 +57,10 @@ from trainer.training_defaults import (
     DEFAULT_MIN_DEPTH,
     DEFAULT_MINUTES,
     DEFAULT_WIDTHS,
+    MAX_CONTACT_WEIGHT,
+    MAX_EPOCHS,
     MAX_LR,
+    MAX_MINUTES,
     MAX_SEED,
 )
 
@@ -204,10 +207,10 @@ def _diverged(config: TrainConfig, step: int, what: str) -> InputError:
 def _check_config(config: TrainConfig) -> None:
     if config.epochs is not None and config.minutes is not None:
         raise InputError("give either epochs or minutes, not both")
-    if config.epochs is not None and not (math.isfinite(config.epochs) and config.epochs > 0):
-        raise InputError(f"epochs must be a positive number, got {config.epochs}")
-    if config.minutes is not None and not (math.isfinite(config.minutes) and config.minutes > 0):
-        raise InputError(f"minutes must be a positive number, got {config.minutes}")
+    if config.epochs is not None and not (math.isfinite(config.epochs) and 0 < config.epochs <= MAX_EPOCHS):
+        raise InputError(f"epochs must be a number in (0, {MAX_EPOCHS:g}], got {config.epochs}")
+    if config.minutes is not None and not (math.isfinite(config.minutes) and 0 < config.minutes <= MAX_MINUTES):
+        raise InputError(f"minutes must be a number in (0, {MAX_MINUTES:g}] (a week), got {config.minutes}")
     if not (math.isfinite(config.lr) and 0 < config.lr <= MAX_LR):
         raise InputError(f"learning rate must be a number in (0, {MAX_LR:g}], got {config.lr}")
     cpus = os.cpu_count() or 1
@@ -215,8 +218,8 @@ def _check_config(config: TrainConfig) -> None:
         raise InputError(f"threads must be 1..{cpus} (the CPUs of this machine), got {config.threads}")
     if config.deadline_s is not None and not (math.isfinite(config.deadline_s) and config.deadline_s > 0):
         raise InputError(f"the wall-time deadline must be a positive number of seconds, got {config.deadline_s}")
-    if not (math.isfinite(config.contact_weight) and config.contact_weight >= 0):
-        raise InputError(f"contact weight must be 0 or more, got {config.contact_weight}")
+    if not (math.isfinite(config.contact_weight) and 0 <= config.contact_weight <= MAX_CONTACT_WEIGHT):
+        raise InputError(f"contact weight must be a number in [0, {MAX_CONTACT_WEIGHT:g}], got {config.contact_weight}")
     if config.batch_size < 1:
         raise InputError(f"batch size must be at least 1, got {config.batch_size}")
     if not 0 <= config.seed <= MAX_SEED:

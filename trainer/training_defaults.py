@@ -18,6 +18,12 @@ DEFAULT_CONTACT_WEIGHT = 10.0
 DEFAULT_LR = 2e-4
 #: Largest learning rate accepted (5000 times the default; Adam's steps are about this large).
 MAX_LR = 1.0
+#: Largest contact weight accepted (100 times the default; a contact pixel then weighs 1001 free ones).
+MAX_CONTACT_WEIGHT = 1000.0
+#: Largest budgets accepted: 10000 epochs (a fine-tune takes about 6 in its 3 minutes) and a week
+#: of training, minutes.
+MAX_EPOCHS = 10000.0
+MAX_MINUTES = 7 * 24 * 60.0
 #: Largest seed accepted (torch and numpy take it as is).
 MAX_SEED = 2**32 - 1
 #: Frames per optimizer step (small: a CPU, and a few hundred frames per sensor).

@@ -20,13 +20,21 @@ from trainer.networks.depth_head import BoundedInverseDepth
 PACKING_DEPTH = 4
 
 
+def group_norm(channels: int) -> nn.GroupNorm:
+    """GroupNorm over ``channels`` in up to 16 groups of at least 4 channels: the largest number of
+    groups within that which divides ``channels`` (a width such as 0.3 gives 76 channels: 4 groups
+    of 19, where 16 would not divide them)."""
+    groups = max(g for g in range(1, max(min(16, channels // 4), 1) + 1) if channels % g == 0)
+    return nn.GroupNorm(groups, channels)
+
+
 class Conv2D(nn.Module):
     """Conv + GroupNorm + ELU (PackNet's Conv2D unit): ``(N,Cin,H,W) -> (N,Cout,H/stride,W/stride)``."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel: int = 3, stride: int = 1):
         super().__init__()
         self.conv = nn.Conv2d(in_channels, out_channels, kernel, stride, kernel // 2)
-        self.norm = nn.GroupNorm(min(16, out_channels // 4), out_channels)
+        self.norm = group_norm(out_channels)
         self.act = nn.ELU(inplace=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -40,7 +48,7 @@ class ResidualBlock(nn.Module):
         super().__init__()
         self.conv1 = Conv2D(in_channels, out_channels, 3, stride)
         self.conv2 = nn.Conv2d(out_channels, out_channels, 3, 1, 1)
-        self.norm = nn.GroupNorm(min(16, out_channels // 4), out_channels)
+        self.norm = group_norm(out_channels)
         self.shortcut = nn.Conv2d(in_channels, out_channels, 1, stride)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
