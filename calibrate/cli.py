@@ -6,7 +6,8 @@ subcommand sets ``func(args) -> int`` (the exit code). Handlers import their hea
 
 Errors: ``InputError`` prints one line ``bubble: error: ...`` and exits 2; ``HardwareFault``
 prints ``bubble: fault: ...`` and exits 3; Ctrl-C exits 130, SIGTERM and SIGHUP end a command the
-same way (``calibrate.stop_signals``) and exit 143 and 129. No tracebacks for any of them.
+same way (``calibrate.stop_signals``) and exit 143 and 129; a closed stdout (``| head``) exits 141.
+No tracebacks for any of them.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import sys
 from calibrate.stop_signals import INTERRUPTS, Terminated, exit_code, raise_interrupt, stop_signals_handled
 from collect.errors import (
     EXIT_BAD_INPUT,
+    EXIT_BROKEN_PIPE,
     EXIT_FAULT,
     EXIT_INTERRUPTED,
     EXIT_OK,
@@ -49,7 +51,7 @@ DESCRIPTION = (
 EPILOG = (
     f"exit codes: {EXIT_OK} ok / accepted, {EXIT_REJECTED} rejected, {EXIT_BAD_INPUT} bad input, "
     f"{EXIT_FAULT} hardware fault, {EXIT_INTERRUPTED} Ctrl-C ({exit_code(signal.SIGTERM)} SIGTERM, "
-    f"{exit_code(signal.SIGHUP)} SIGHUP); "
+    f"{exit_code(signal.SIGHUP)} SIGHUP), {EXIT_BROKEN_PIPE} output's reader gone (`| head`); "
     "`bubble COMMAND --help` for each command"
 )
 
@@ -89,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader of stdout went away (`bubble info S.h5 | head`): nothing to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so that exit's flush does not fail
-        return 1
+        return EXIT_BROKEN_PIPE
     except OSError as err:
         if err.errno == errno.ENAMETOOLONG:  # a path given to the command, read before any recording
             print(f"bubble: error: {err.filename}: a name in this path is longer than the file system's "

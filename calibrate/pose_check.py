@@ -213,7 +213,8 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
                    prior_error_mm: float = 2.0, prior_error_deg: float = 2.0, seed: int = 0,
                    pose_ids=None, plots_dir: str | Path | None = None) -> PoseCheckResult:
     """Run the pose check over every hold frame of ``object_name`` in the session (of the contact
-    poses ``pose_ids`` only, when given: e.g. the poses the model was not trained on).
+    poses ``pose_ids`` only, when given: e.g. the poses the model was not trained on; the session's
+    ``frames/pose_id``, numbered over the whole session, not within each object).
 
     ``model``: a model directory (or ``"base"``), or a loaded estimator with
     ``predict_batch(ir (N,H,W) uint16) -> (N,H,W) float32 m`` (``trainer.inference.DepthEstimator``).
@@ -237,7 +238,10 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         hold_idx = session.select(object=object_name, phase="hold",
                                   pose_id=None if pose_ids is None else [int(p) for p in pose_ids])
         if len(hold_idx) == 0:
-            raise InputError(f"{session.path}: no hold frames of {object_name!r}")
+            among = "" if pose_ids is None else (
+                f" among pose_ids {sorted(int(p) for p in pose_ids)} (its poses: "
+                f"{sorted(set(session.pose_id[session.select(object=object_name, phase='hold')].tolist()))})")
+            raise InputError(f"{session.path}: no hold frames of {object_name!r}{among}")
         sources = [s for s in SOURCES if s != "true" or session.simulated]
         depth = {"predicted": predict_frames(estimator, session.ir(hold_idx)),
                  "measured": session.depth_m(hold_idx)}

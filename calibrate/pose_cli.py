@@ -51,7 +51,7 @@ def _run(args) -> int:
         check_parent_dirs(Path(args.plots) / "pose_errors.png")
     result = run_pose_check(args.model, args.data, args.object.strip(), threshold_m=1e-3 * args.threshold_mm,
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
-    print(result.summary())
-    if args.json is not None:
+    if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)
         write_json_result(args.json, "bubble pose", result.to_dict())
+    print(result.summary())
     return 0

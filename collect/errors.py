@@ -16,6 +16,9 @@ EXIT_REJECTED = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 3
 EXIT_INTERRUPTED = 130
+#: The reader of stdout went away (``bubble info S.h5 | head``): 128 + SIGPIPE, as a shell reports a
+#: process that signal ended; not 1, which is a rejected sensor.
+EXIT_BROKEN_PIPE = 141
 
 
 class InputError(Exception):

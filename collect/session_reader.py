@@ -299,10 +299,12 @@ class Session:
         return np.flatnonzero(keep).astype(np.int64)
 
     def reference_frames(self, object: str) -> np.ndarray:
-        """Indices ``(n,) int64`` of the no-contact (``free``) frames of ``object`` recorded before its first press."""
+        """Indices ``(n,) int64`` of the no-contact (``free``) frames of ``object`` recorded before its
+        first contact pose. The safe-stop retract of a reference cut short by a fault or a stop is
+        no pose (pose_id -1): the reference recorded again on resume, after it, counts too."""
         oid = self.object_id(object)
         mine = self.object_index == oid
-        pressed = np.flatnonzero(mine & (self.phase != sf.PHASE_FREE))
+        pressed = np.flatnonzero(mine & (self.phase != sf.PHASE_FREE) & (self.pose_id >= 0))
         first = pressed[0] if len(pressed) else self.n_frames
         free = np.flatnonzero(mine & (self.phase == sf.PHASE_FREE))
         return free[free < first].astype(np.int64)

@@ -306,4 +306,29 @@ def test_output_read_by_a_pipe_that_closes_early_is_no_traceback(synthetic_sessi
     proc.stdout.close()  # closed before the tool writes: its first write breaks the pipe
     err = proc.stderr.read().decode()
     proc.stderr.close()
-    assert proc.wait() == 1 and err == "", err
+    assert proc.wait() == 141 and err == "", err  # 128 + SIGPIPE (was: 1, the code of a rejected sensor)
+
+
+def test_the_json_result_is_written_though_the_reader_of_stdout_went_away(tmp_path, make_synthetic_session):
+    """``bubble evaluate --json E.json ... | head``: was: the table's write broke the pipe before the
+    JSON file was written, so it was lost, and the exit code was a rejected sensor's."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from trainer.model_dir import ModelMetadata, save_model
+    from trainer.networks import build_network
+    from trainer.preprocessing import InputGeometry, IRNormalization
+
+    session = make_synthetic_session(tmp_path / "s.h5", height=48, width=64)
+    save_model(tmp_path / "m", build_network("resnet", 0.125, 0.04, 0.12),
+               ModelMetadata(arch="resnet", width=0.125, min_depth=0.04, max_depth=0.12,
+                             geometry=InputGeometry(48, 64, 64, 64), normalization=IRNormalization(mean=7.0, std=1.5)))
+    proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", "evaluate", "--model", str(tmp_path / "m"), "--data",
+                             str(session), "--runtime", "torch", "--json", str(tmp_path / "r.json")],
+                            cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    proc.stderr.close()
+    assert proc.wait() == 141 and err == "", err
+    assert json.loads((tmp_path / "r.json").read_text())["written_by"] == "bubble evaluate"

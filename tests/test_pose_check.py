@@ -165,5 +165,7 @@ def test_pose_check_counts_skipped_frames_and_fails_with_no_usable_frame(tmp_pat
     assert result.n_used == 4 and not result.vs_true and result.skipped[SKIP_NON_FINITE] == 0
     held_out = run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[int(result.frames[-1].pose_id)])
     assert held_out.n_hold_frames == 2 and {f.pose_id for f in held_out.frames} == {result.frames[-1].pose_id}
-    with pytest.raises(InputError, match="no hold frames"):
+    with pytest.raises(InputError, match=r"no hold frames of 'mug' among pose_ids \[\] \(its poses: \[0, 1\]\)"):
         run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[])
+    with pytest.raises(InputError, match=r"among pose_ids \[7\] \(its poses: \[0, 1\]\)"):  # was: as if none held
+        run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[7])

@@ -36,6 +36,38 @@ def test_pose_command_writes_json_and_plots(tmp_path, monkeypatch, capsys):
     assert "predicted vs measured depth: e_x median" in capsys.readouterr().out
 
 
+def test_the_json_result_is_written_though_the_reader_of_stdout_went_away(tmp_path, monkeypatch):
+    """``bubble pose --json P.json ... | head``: was: the summary's write broke the pipe before the JSON
+    file was written (lost), and the exit code was 1, a rejected sensor's."""
+    import io
+    import os
+    import sys
+
+    import trainer.inference
+
+    class ClosedPipe(io.TextIOBase):
+        def __init__(self, fd):
+            self.fd = fd
+
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def fileno(self):
+            return self.fd
+
+    session = write_cylinder_session(tmp_path / "s.h5", n_poses=1, hold_frames=2)
+    monkeypatch.setattr(trainer.inference.DepthEstimator, "load", classmethod(lambda cls, d: DecodingEstimator()))
+    fd = os.open(tmp_path / "stdout", os.O_WRONLY | os.O_CREAT)
+    monkeypatch.setattr(sys, "stdout", ClosedPipe(fd))
+    out = tmp_path / "pose.json"
+    try:
+        code = cli.main(["pose", "--model", str(tmp_path / "m"), "--data", str(session), "--object", "mug",
+                         "--json", str(out)])
+    finally:
+        os.close(fd)
+    assert code == 141 and json.loads(out.read_text())["n_used"] == 2
+
+
 def _untrained_model(model_dir):
     from trainer.model_dir import ModelMetadata, save_model
     from trainer.networks import build_network

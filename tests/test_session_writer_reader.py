@@ -88,6 +88,16 @@ def test_round_trip_format_and_selection(synthetic_session):
             s.select(phase="squeeze")
 
 
+def test_a_reference_recorded_again_after_a_safe_stop_retract_counts(synthetic_session):
+    """A fault during the mug's reference retracts the arm (phase retract, no pose); the resumed run
+    records the reference again. Was: only the free frames before that retract were the reference."""
+    with h5py.File(synthetic_session, "a") as f:
+        f[sf.FRAMES_PHASE][1] = sf.PHASES["retract"]  # frames 0-3: the mug's reference, pose_id -1
+    with Session.open(synthetic_session) as s:
+        assert s.pose_id[1] == -1 and s.object_index[1] == 0
+        assert list(s.reference_frames("mug")) == [0, 2, 3]
+
+
 def test_not_simulated_session_has_no_true_depth(tmp_path, make_synthetic_session):
     path = make_synthetic_session(tmp_path / "real.h5", objects=("box",), poses_per_object=1, simulated=False,
                                   height=H, width=W)

@@ -133,6 +133,16 @@ def test_a_stop_without_write_on_stop_returns_at_once(session, tmp_path):
     assert "done" not in events and not (tmp_path / "m" / WEIGHTS_FILE).exists()
 
 
+def test_a_stop_before_the_first_step_writes_no_model_even_past_the_deadline(session, tmp_path):
+    """Commissioning stopped while its fine-tune loaded the data: the deadline had passed by the first
+    step. Was: that one step, then a validated model written and the fine-tune counted as done."""
+    stop = threading.Event()
+    stop.set()
+    result = train_model(_config([session], tmp_path / "m", deadline_s=1e-3, write_on_stop=False), None, stop)
+    assert result.stopped and result.steps == 0 and not result.ended_at_deadline
+    assert not (tmp_path / "m" / WEIGHTS_FILE).exists()
+
+
 def test_deadline_bounds_the_whole_call_and_drives_the_schedule(session, tmp_path):
     events = []
     start = time.perf_counter()

@@ -7,6 +7,7 @@ nccl on GPU) runs the same command in every process.
 from __future__ import annotations
 
 import argparse
+import errno
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext, suppress
@@ -228,11 +229,11 @@ def run_train(args: argparse.Namespace) -> int:
             bar.stop()
     if result is None:  # a non-zero torchrun rank
         return 0
+    if args.json is not None:
+        write_json_result(args.json, "bubble train", result.metrics)
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))
     console.print(f"model written to {result.model_dir} ({result.steps} steps, {result.train_s / 60:.1f} min training, "
                   f"peak RSS {result.peak_rss_mb:.0f} MB)")
-    if args.json is not None:
-        write_json_result(args.json, "bubble train", result.metrics)
     return 0
 
 
@@ -245,7 +246,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.json is not None:
         check_json_output(args.json, "bubble evaluate")
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
-    console = Console()
+    if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)
+        write_json_result(args.json, "bubble evaluate", result)
+    class StdoutConsole(Console):
+        def on_broken_pipe(self) -> None:  # the command line's exit code for it (rich's own: exit 1, "rejected")
+            raise BrokenPipeError(errno.EPIPE, "the reader of stdout went away")
+
+    console = StdoutConsole()
     rows = {**result["per_object"], "all (vs ToF)": result}
     if "vs_true" in result:
         vs = result["vs_true"]
@@ -256,6 +263,4 @@ def run_evaluate(args: argparse.Namespace) -> int:
             rows["model vs true, dropouts"] = vs["model_on_tof_dropout"]
     console.print(metrics_table(f"{result['arch']} on {len(args.data)} session(s)", rows))
     console.print(f"latency {result['latency_ms']:.2f} ms per frame (batch 1, {result['runtime']})")
-    if args.json is not None:
-        write_json_result(args.json, "bubble evaluate", result)
     return 0

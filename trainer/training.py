@@ -385,7 +385,10 @@ def train_model(
     if not history:  # the curve starts with the untrained (or init) model
         validate_and_checkpoint(checkpoint=False)
     model.train()
-    (done,) = ctx.any_flags(fraction_done(epoch_f, train_s) >= 1.0)
+    # a stop requested while the data loaded or the init model was validated ends the call before a step
+    # (was: one step, then, with the deadline passed meanwhile, a model written as if it had finished)
+    over, stopped = ctx.any_flags(fraction_done(epoch_f, train_s) >= 1.0, stop_event is not None and stop_event.is_set())
+    done = over or stopped
     loop_start = time.perf_counter()
     while not done:
         epoch = int(epoch_f)
@@ -426,8 +429,8 @@ def train_model(
                 ctx.close()
                 raise _diverged(config, step, f"the loss is {value}")
             if stop or over:
-                stopped = not over
-                at_deadline = over and budget_fraction(epoch_f, train_s) < 1.0
+                stopped = stop  # a stop request wins over a budget or deadline spent at the same step
+                at_deadline = over and not stop and budget_fraction(epoch_f, train_s) < 1.0
                 done = True
                 break
             if eval_due:
