@@ -248,6 +248,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
     if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)
         write_json_result(args.json, "bubble evaluate", result)
+
     class StdoutConsole(Console):
         def on_broken_pipe(self) -> None:  # the command line's exit code for it (rich's own: exit 1, "rejected")
             raise BrokenPipeError(errno.EPIPE, "the reader of stdout went away")
