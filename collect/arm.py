@@ -42,14 +42,15 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.loop_thread import LoopThread
 from collect.numbers import real_number
-from collect.safety import MAX_FORCE_LIMIT_N, MAX_TCP_ACCEL_M_S2, MAX_TCP_SPEED_M_S, SafetyLimits, tool_z_axis
+from collect.safety import (MAX_FORCE_LIMIT_N, MAX_TCP_ACCEL_M_S2, MAX_TCP_SPEED_M_S, SafetyLimits,
+                            check_within_bounds, tool_z_axis)
 from collect.transforms import linear_path_m, rotation_between_rad
 
 #: Deceleration (m/s^2) of stopL when the arm must stop: short stopping distance, not a planned move.
@@ -128,13 +129,7 @@ class MotionSettings:
     retract_m: float = 0.03
 
     def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not (real_number(value) and value > 0):
-                raise InputError(f"motion: {f.name} must be a positive number, got {value!r}")
-            bound, unit = MOTION_BOUNDS[f.name]
-            if value > bound:
-                raise InputError(f"motion: {f.name} must be within (0, {bound:g}] {unit}, got {value!r}")
+        check_within_bounds("motion", self, MOTION_BOUNDS)  # every field has its bound there
 
 
 def move_duration_s(distance_m: float, speed: float, accel: float) -> float:

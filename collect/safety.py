@@ -49,6 +49,17 @@ LIMIT_BOUNDS = {
 }
 
 
+def check_within_bounds(who: str, settings, bounds: dict[str, tuple[float, str]]) -> None:
+    """``InputError`` ``"{who}: NAME must be a positive number"`` / ``"... must be within (0, BOUND]
+    UNIT"`` for the first field of ``settings`` named in ``bounds`` (name -> (bound, unit)) that is not."""
+    for name, (bound, unit) in bounds.items():
+        value = getattr(settings, name)
+        if not (real_number(value) and value > 0):
+            raise InputError(f"{who}: {name} must be a positive number, got {value!r}")
+        if value > bound:
+            raise InputError(f"{who}: {name} must be within (0, {bound:g}] {unit}, got {value!r}")
+
+
 class SafetyViolation(InputError):
     """A motion request that breaks a ``SafetyLimits`` limit; never sent to the robot."""
 
@@ -89,12 +100,7 @@ class SafetyLimits:
                 raise InputError(f"safety: {name} must be 3 numbers [x, y, z] (m), got {getattr(self, name)!r}")
         if not all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)):
             raise InputError(f"safety: workspace box min {self.workspace_min} must be below max {self.workspace_max}")
-        for name, (bound, unit) in LIMIT_BOUNDS.items():
-            value = getattr(self, name)
-            if not (real_number(value) and value > 0):
-                raise InputError(f"safety: {name} must be a positive number, got {value!r}")
-            if value > bound:
-                raise InputError(f"safety: {name} must be within (0, {bound:g}] {unit}, got {value!r}")
+        check_within_bounds("safety", self, LIMIT_BOUNDS)
 
     def room_along(self, position, direction, up_to_m: float) -> float:
         """How far (m, at most ``up_to_m``) the TCP at ``position`` (3,) m may move along the unit

@@ -272,3 +272,13 @@ def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
     finally:
         receive.fail = False
         arm.close()
+
+
+def test_every_motion_setting_and_scalar_limit_has_an_upper_bound():
+    import dataclasses
+
+    from collect.arm import MOTION_BOUNDS, MotionSettings
+    from collect.safety import LIMIT_BOUNDS
+
+    assert list(MOTION_BOUNDS) == [f.name for f in dataclasses.fields(MotionSettings)]
+    assert set(LIMIT_BOUNDS) == {f.name for f in dataclasses.fields(SafetyLimits)} - {"workspace_min", "workspace_max"}
