@@ -2,7 +2,8 @@
 
 ``bubble commission`` exits 0 when the sensor is accepted, 1 when rejected (a failed check or a
 hardware fault; the data recorded so far stays in RUN_DIR and a re-run resumes), 2 for bad input,
-130 when stopped with Ctrl-C (the arm is stopped and retracted first).
+3 when the recorder stopped (this computer's disk: nothing is registered), 130 when stopped with
+Ctrl-C (143 SIGTERM, 129 SIGHUP; the arm is stopped and retracted first).
 """
 
 from __future__ import annotations

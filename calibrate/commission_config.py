@@ -89,7 +89,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
-    from calibrate.run_directory import SESSION_FILE
+    from calibrate.run_directory import SESSION_FILE, recording_done
     from calibrate.sensor_registry import PROFILE, SensorRegistry
     from collect.output_files import check_parent_dirs
     from collect.pose_planner import MAX_POSES_PER_OBJECT, check_unique_names
@@ -102,7 +102,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"run directory {run_dir} exists and is not a directory")
     check_parent_dirs(run_dir / SESSION_FILE)
-    check_free_space(run_dir / SESSION_FILE)  # the recorder's own refusal would come after the arm's first moves
+    if not recording_done(run_dir):  # the recorder's own refusal would come after the arm's first moves
+        check_free_space(run_dir / SESSION_FILE)
     if not config.objects:
         raise InputError("no objects to press; give at least one")
     # InputError for an unknown object, a bad mesh, or one named twice (the run would reach the

@@ -35,7 +35,10 @@ step and its results; running again with the same ``run_dir`` skips them
 ``run_commissioning`` of a directory that a run (in this or another process) holds is refused.
 Faults: a ``HardwareFault`` safe-stops the arm (stop + retract), keeps every file, and ends the
 run rejected with the fault as the reason; the failed step is not recorded, so a re-run
-retries it. ``stop_event`` does the same but ends with ``result.stopped`` (no verdict).
+retries it. The recorder's fault (the host's disk full, the session file deleted) says nothing of
+the sensor: it safe-stops the arm the same way, then is raised, with no verdict and nothing
+registered. ``stop_event`` safe-stops the arm too, and ends with ``result.stopped`` (no verdict);
+a stop that comes after the last step's start is honoured before the verdict.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -82,7 +86,8 @@ from calibrate.run_directory import (
 )
 from calibrate.run_report import write_run_report
 from calibrate.run_statistics import collection_stats, nocontact_maps, pick_examples, registry_reference
-from collect.errors import HardwareFault, InputError, StopRequested
+from collect.atomic_files import remove_leftovers
+from collect.errors import RECORDER_FAULT, HardwareFault, InputError, StopRequested
 from collect.json_files import plain_json, write_json
 from collect.loop_thread import LoopThread
 from collect.output_files import output_folder_lock
@@ -97,6 +102,8 @@ HEALTH_FRAMES = 16
 REFERENCE_FRAMES = 30
 #: Bench snapshots per second while the bench is connected.
 SNAPSHOT_HZ = 4.0
+#: ``state.json`` key of the registry entry's id while the run registers (``_Flow.finish``).
+REGISTRATION_KEY = "registration_id"
 #: Steps that need the bench.
 BENCH_STEPS = (Step.CONNECT, Step.LEAK_TEST, Step.CAMERA_HEALTH, Step.REFERENCE, Step.COLLECT)
 
@@ -151,24 +158,28 @@ class _Flow:
         period = 1.0 / SNAPSHOT_HZ
         while not self._snapshots.stop_event.wait(period):
             bench = self.bench
-            if bench is None:
-                continue
-            try:
-                arm = bench.arm.state()
-                reading = bench.pressure.latest()
-            except HardwareFault:
-                continue  # the flow thread raises it from its own calls
-            frame = self._latest_frame
-            self.emit(
-                BenchSnapshot(
-                    simulated=bool(bench.simulated),
-                    tcp_pose=[float(v) for v in arm.tcp_pose],
-                    wrench=[float(v) for v in arm.tcp_wrench],
-                    pressure_hpa=float(reading.hpa) if reading is not None else float("nan"),
-                    ir=None if frame is None else frame.ir,
-                    depth_m=None if frame is None else frame.depth.astype(np.float32) * DEPTH_UNIT_M,
-                )
+            if bench is not None:
+                self._emit_snapshot(bench)
+
+    def _emit_snapshot(self, bench) -> None:
+        """A ``BenchSnapshot`` of ``bench``: the arm's state, the latest pressure reading and camera
+        frame (none when the arm or the board is at fault: the flow thread raises that fault)."""
+        try:
+            arm = bench.arm.state()
+            reading = bench.pressure.latest()
+        except HardwareFault:
+            return
+        frame = self._latest_frame
+        self.emit(
+            BenchSnapshot(
+                simulated=bool(bench.simulated),
+                tcp_pose=[float(v) for v in arm.tcp_pose],
+                wrench=[float(v) for v in arm.tcp_wrench],
+                pressure_hpa=float(reading.hpa) if reading is not None else float("nan"),
+                ir=None if frame is None else frame.ir,
+                depth_m=None if frame is None else frame.depth.astype(np.float32) * DEPTH_UNIT_M,
             )
+        )
 
     def _grab(self, n: int, step: Step, message: str) -> list:
         """``n`` consecutive camera frames (kept as the latest frame for the snapshots)."""
@@ -209,7 +220,8 @@ class _Flow:
         self._latest_frame = frame
 
     def close_bench(self, safe_stop: bool) -> None:
-        """Stop the snapshots, then (``safe_stop``: stop and retract the arm and) close every device."""
+        """Stop the snapshots, then (``safe_stop``: stop and retract the arm and) send a last snapshot
+        (the arm as the bench leaves it) and close every device."""
         self._snapshots.stop()
         bench, self.bench = self.bench, None
         if bench is None:
@@ -220,6 +232,7 @@ class _Flow:
                 retracted = bench.safe_stop()
                 z_after, force_after = _arm_z_and_force(bench)
                 self.emit(ArmSafeStopped(bool(retracted), z_before, z_after, force_after))
+            self._emit_snapshot(bench)
         finally:
             self._bench_cm.__exit__(None, None, None)  # retracts a still-running arm, closes the devices
 
@@ -526,7 +539,12 @@ class _Flow:
 
     # ------------------------------------------------------------------ verdict
     def finish(self, fault: str | None = None, stopped: bool = False) -> CommissionResult:
-        """acceptance.json, report.html and (unless stopped) the registry entry."""
+        """acceptance.json, report.html, (unless stopped) the registry entry and (a verdict reached:
+        neither fault nor stop) the verdict step in ``state.json``.
+
+        The registry entry carries an id that ``state.json`` keeps from before the registration until
+        the run's end is recorded there: a run killed in between and run again replaces its entry
+        instead of adding a second one."""
         from calibrate.sensor_registry import SensorRegistry
 
         checks = self.state.checks()
@@ -559,8 +577,12 @@ class _Flow:
         serial = self.state.data.get("serial")
         if not stopped and serial:
             connect = self.state.get(Step.CONNECT)
+            if REGISTRATION_KEY not in self.state.data:
+                self.state.data[REGISTRATION_KEY] = uuid.uuid4().hex
+                self.state.save()
             SensorRegistry(self.config.registry_dir).register(
                 serial,
+                entry_id=self.state.data[REGISTRATION_KEY],
                 accepted=accepted,
                 run_dir=self.run_dir,
                 intrinsics=connect.get("intrinsics", {}),
@@ -571,6 +593,12 @@ class _Flow:
                 model_dir=self.run_dir / MODEL_DIR if accepted else None,
                 reference=registry_reference(self.run_dir / VALIDATION_FILE) if accepted else None,
             )
+        self.state.data.pop(REGISTRATION_KEY, None)  # saved with the run's end: one save, no gap
+        if fault is None and not stopped:
+            self.state.record(Step.VERDICT, {"ok": accepted, "summary": "accepted" if accepted else reason,
+                                             "reason": reason, "fault": fault})
+        else:
+            self.state.save()
         self.emit(Verdict(accepted, checks, str(report_path)))
         return CommissionResult(accepted, checks, self.run_dir, report_path, stopped=stopped, fault=fault, reason=reason)
 
@@ -621,20 +649,21 @@ class _Flow:
                 rec = handlers[step]()
                 rec.setdefault("ok", all(c["passed"] for c in rec.get("checks", [])))
                 self.state.record(step, rec)
-                self.emit(StepFinished(step, rec["ok"], rec["summary"], skipped=bool(rec.get("skipped"))))
                 gate_failure = _gate_failure(rec)
                 if step == Step.COLLECT or gate_failure is not None:
-                    self.close_bench(safe_stop=False)
+                    self.close_bench(safe_stop=False)  # before the step's end: its last snapshot shows the arm parked
+                self.emit(StepFinished(step, rec["ok"], rec["summary"], skipped=bool(rec.get("skipped"))))
             self.close_bench(safe_stop=False)
+            self.check_stop()  # a stop during the last step (was: acknowledged, then a verdict registered)
             self.emit(StepStarted(Step.VERDICT))
             result = self.finish()
-            self.state.record(Step.VERDICT, {"ok": result.accepted, "summary": "accepted" if result.accepted else result.reason,
-                                             "reason": result.reason, "fault": result.fault})
             self.emit(StepFinished(Step.VERDICT, result.accepted, "accepted" if result.accepted else result.reason))
             return result
         except HardwareFault as fault:
             self.emit(FaultRaised(fault.kind, str(fault)))
             self.close_bench(safe_stop=True)
+            if fault.kind == RECORDER_FAULT:  # the host's disk, not the sensor: no verdict (was: rejected, registered)
+                raise
             return self.finish(fault=f"{fault.kind}: {fault}")
         except StopRequested:
             self.close_bench(safe_stop=True)
@@ -711,7 +740,8 @@ def run_commissioning(
 
     Raises ``InputError`` for bad settings, specs or paths (before anything moves, or when the
     run directory belongs to another run or another run is writing it). Hardware faults do not
-    raise: they end the run rejected (``result.fault``).
+    raise: they end the run rejected (``result.fault``); the recorder's fault (the host's disk)
+    raises, after the arm's safe stop.
     """
     thresholds = validate_config(config)
     spec = _load_sensor_spec(config) if config.simulated else None
@@ -723,4 +753,5 @@ def run_commissioning(
     flow = _Flow(config, on_event, stop_event or threading.Event(), thresholds, spec)
     flow.run_dir.mkdir(parents=True, exist_ok=True)
     with output_folder_lock(flow.run_dir, "bubble commission (or bubble tui)"):
+        remove_leftovers(flow.run_dir)  # of a run killed while it wrote a file
         return flow.run()

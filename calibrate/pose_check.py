@@ -42,6 +42,7 @@ from calibrate.pose_estimation import (
     position_error,
     shape_from_object,
 )
+from collect.atomic_files import replacing
 from collect.errors import InputError
 from collect.json_files import write_json
 from collect.transforms import pose_to_matrix
@@ -354,8 +355,7 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
     fig.suptitle(f"{result.object_name}: pose from predicted vs measured depth ({result.n_used} frames)")
     fig.tight_layout()
     written.append(plots_dir / "pose_errors.png")
-    fig.savefig(written[-1], dpi=100)
-    plt.close(fig)
+    _save_figure(fig, written[-1])
     if result.vs_true:
         fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
         for ax, key, label in ((axes[0], "e_x_mm", "position error vs true pose (mm)"),
@@ -368,6 +368,16 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
         fig.suptitle(f"{result.object_name}: each depth source vs the true pose")
         fig.tight_layout()
         written.append(plots_dir / "pose_vs_true.png")
-        fig.savefig(written[-1], dpi=100)
-        plt.close(fig)
+        _save_figure(fig, written[-1])
     return written
+
+
+def _save_figure(fig, path: Path) -> None:
+    """Write ``fig`` to the PNG file ``path`` atomically (``collect.atomic_files.replacing``) and close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        with replacing(path) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+    finally:
+        plt.close(fig)

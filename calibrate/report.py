@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from collect.atomic_files import replacing
+
 #: The paper's table columns: (metric key, header, format).
 PAPER_COLUMNS = (
     ("abs_rel", "Abs.Rel", "{:.4f}"),
@@ -385,7 +387,9 @@ def render_html(data: ReportData) -> str:
 
 
 def write_report(data: ReportData, path: Path) -> Path:
-    """Render ``data`` to ``path`` (HTML, self-contained); returns ``path``."""
+    """Render ``data`` to ``path`` (HTML, self-contained; atomically: ``collect.atomic_files.replacing``);
+    returns ``path``."""
     path = Path(path)
-    path.write_text(render_html(data), encoding="utf-8")
+    with replacing(path) as tmp:
+        tmp.write_text(render_html(data), encoding="utf-8")
     return path

@@ -63,6 +63,18 @@ def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Threshold
     }
 
 
+def recording_done(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds a run that records nothing more: its ``state.json`` has the
+    collection step done, or the verdict (a failed hardware check ends a run before collection).
+    False for no run, or an unreadable one (``RunState.open`` says what is wrong with it)."""
+    try:
+        data = json.loads((Path(run_dir) / STATE_FILE).read_text())
+    except JSON_READ_ERRORS:
+        return False
+    steps = data.get("steps") if isinstance(data, dict) else None
+    return isinstance(steps, dict) and (Step.COLLECT.value in steps or Step.VERDICT.value in steps)
+
+
 class RunState:
     """``RUN_DIR/state.json``: the settings of the run and the results of its completed steps."""
 

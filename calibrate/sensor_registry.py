@@ -206,13 +206,16 @@ class SensorRegistry:
         model_dir: Path | None = None,
         reference: dict[str, np.ndarray] | None = None,
         when: datetime | None = None,
+        entry_id: str | None = None,
     ) -> SensorProfile:
         """Record one commissioning of ``serial``; returns the updated profile.
 
         ``acceptance``: the ``acceptance.json`` content. ``model_dir`` and ``reference``
         (``depth_m`` (H,W) float32 m, ``ir`` (H,W) float32 and ``valid_count`` (H,W) arrays) are
-        stored only when ``accepted``. Another process registering ``serial`` at the same time
-        waits until this one is done, and the other way round.
+        stored only when ``accepted``. ``entry_id``: the commissioning's id; a history entry with
+        the same id (the same commissioning, registered again after its process was killed) is
+        replaced, not repeated. Another process registering ``serial`` at the same time waits
+        until this one is done, and the other way round.
         """
         sdir = self._sensor_dir(serial)
         sdir.mkdir(parents=True, exist_ok=True)
@@ -226,6 +229,7 @@ class SensorRegistry:
                 "accepted": bool(accepted),
                 "reason": reason,
                 **metrics,
+                **({"id": entry_id} if entry_id is not None else {}),
             }
             profile = dict(prior)
             profile.update(
@@ -246,7 +250,8 @@ class SensorRegistry:
                     profile["reference"] = "reference.npz"
                 profile["accepted_at"] = entry["time"]
                 profile["accepted_metrics"] = metrics
-            profile["history"] = list(prior.get("history", [])) + [entry]
+            history = [e for e in prior.get("history", []) if entry_id is None or e.get("id") != entry_id]
+            profile["history"] = history + [entry]
             write_json(sdir / "acceptance.json", acceptance)
             write_json(sdir / PROFILE, profile)
             return SensorProfile(serial, sdir, profile)

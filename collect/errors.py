@@ -25,6 +25,11 @@ class InputError(Exception):
     """Bad user input; ``str(err)`` is the one line shown to the user."""
 
 
+#: Kind of the ``HardwareFault`` of the session recorder once it stopped writing (a full disk, the
+#: file deleted): the host's fault, not a device's (``collect.session_writer``).
+RECORDER_FAULT = "recorder"
+
+
 class HardwareFault(Exception):
     """A device fault detected by a driver.
 

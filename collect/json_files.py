@@ -6,11 +6,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from collect.atomic_files import replacing
 
 #: What reading a JSON file that a user may have damaged can raise: OSError (the file system),
 #: ValueError (not UTF-8, not JSON, or an int of more than 4300 digits) and RecursionError
@@ -48,32 +48,9 @@ def shown_json(value, limit: int = 40) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _new_file_mode() -> int:
-    """The permissions ``open()`` gives a new file under this process's umask (read once, at import)."""
-    umask = os.umask(0o022)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
-#: Permissions of any new file under this process's umask, given to the files whose writer alone
-#: would make them 0600 (``mkstemp``'s JSON files here, safetensors weights), which other users of
-#: the bench could then not read.
-NEW_FILE_MODE = _new_file_mode()
-
-
 def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
-    """Write ``plain_json(value)`` to ``path`` (indent 2, trailing newline) atomically: a temporary
-    file in the same directory, flushed to disk, then renamed over ``path``."""
-    path = Path(path)
+    """Write ``plain_json(value)`` to ``path`` (indent 2, trailing newline) atomically
+    (``collect.atomic_files.replacing``)."""
     text = json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        os.fchmod(fd, NEW_FILE_MODE)
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with replacing(path) as tmp:
+        tmp.write_text(text)

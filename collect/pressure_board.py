@@ -17,8 +17,10 @@ line: a glitch (the partial line read on opening, a few corrupt lines) is surviv
 ``check()`` raises ``HardwareFault('serial-garbage')`` once ``MAX_CORRUPT_RUN`` corrupt lines came
 in a row (a tenth of a second of the stream: noise on the cable, a wrong baud rate),
 ``HardwareFault('serial-unplug')`` once the port vanished (read error), and
-``HardwareFault('serial-timeout')`` when no valid reading came for ``stale_timeout_s`` on the
-bench clock.
+``HardwareFault('serial-timeout')`` when no valid reading came for ``stale_timeout_s``, both on
+the bench clock and on the host's (the same clock on real hardware; on the simulated bench, whose
+clock runs ``--sim-speed`` times faster, a reader thread the OS holds back for a quarter of a
+second is not a silent board).
 """
 
 from __future__ import annotations
@@ -102,7 +104,8 @@ class PressureBoard:
         self._readings: list[PressureReading] = []
         self._replies: list[list[str]] = []
         self._fault: HardwareFault | None = None
-        self._last_valid = 0.0
+        self._last_valid = 0.0  # bench clock, s
+        self._last_valid_host = 0.0  # time.monotonic(), s
         self._bad_run = 0
         self.stats = {"readings": 0, "replies": 0, "bad_checksum": 0, "malformed": 0, "overlong": 0, "seq_gaps": 0}
 
@@ -117,7 +120,7 @@ class PressureBoard:
                                  "it has finished, or check serial_port") from err
             raise HardwareFault("serial-missing", f"pressure board: cannot open {self.port}: {err}") from err
         self._serial.reset_input_buffer()
-        self._last_valid = self._clock()
+        self._last_valid, self._last_valid_host = self._clock(), time.monotonic()
         self._reader_loop.start()
 
     def close(self) -> None:
@@ -196,7 +199,7 @@ class PressureBoard:
                                   f"(noise on the cable or a wrong baud rate)"))
 
     def _good(self) -> None:
-        self._last_valid = self._clock()
+        self._last_valid, self._last_valid_host = self._clock(), time.monotonic()
         if self._bad_run:
             if self._fault is None:  # after a serial-garbage fault the run is over: no "recovered"
                 log.warning("pressure board: recovered after %d corrupt lines", self._bad_run)
@@ -211,8 +214,10 @@ class PressureBoard:
     # ------------------------------------------------------------------ API
     def check(self) -> None:
         """Raise the fault of the board: a run of corrupt lines, unplugged, or no valid reading for
-        ``stale_timeout_s``."""
-        if self._fault is None and self._reader_loop.running and self._clock() - self._last_valid > self.stale_timeout_s:
+        ``stale_timeout_s`` on the bench clock and on the host's."""
+        if (self._fault is None and self._reader_loop.running
+                and self._clock() - self._last_valid > self.stale_timeout_s
+                and time.monotonic() - self._last_valid_host > self.stale_timeout_s):
             self._set_fault(HardwareFault(
                 "serial-timeout", f"pressure board: no valid reading for {self.stale_timeout_s:.1f} s on {self.port}"))
         if self._fault is not None:

@@ -344,7 +344,7 @@ class Session:
         if not self.simulated:
             raise InputError(f"{self.path}: not a simulated session, it holds no true depth")
         values = self._load(sf.SIM_TRUE_DEPTH, idx)
-        _check_finite(self.path, sf.SIM_TRUE_DEPTH, values)
+        _check_finite(self.path, sf.SIM_TRUE_DEPTH, values, rows=np.arange(self.n_frames)[idx])
         return values
 
     def tcp_pose(self, idx) -> np.ndarray:
@@ -513,13 +513,19 @@ def _check_layout(path: str, name: str, dataset, layout: tuple) -> None:
         raise InputError(f"{path}: corrupt session, {name} must hold {what}, got shape {shape} of {dtype}")
 
 
-def _check_finite(path: str, name: str, values) -> None:
+def _check_finite(path: str, name: str, values, rows=None) -> None:
+    """Refuse NaN/inf in ``values``, naming the dataset row of the first one. ``rows``: the rows of
+    ``name`` that ``values`` holds (an int for one row read alone; default: every row from 0)."""
     if values is None or values.dtype.kind != "f":
         return
     bad = ~np.isfinite(values)
     if bad.any():
-        first = int(np.argwhere(bad)[0][0])
-        raise InputError(f"{path}: corrupt session, NaN/inf in {name} (row {first})")
+        if rows is not None and np.ndim(rows) == 0:
+            row = int(rows)
+        else:
+            first = int(np.argwhere(bad)[0][0])
+            row = first if rows is None else int(rows[first])
+        raise InputError(f"{path}: corrupt session, NaN/inf in {name} (row {row})")
 
 
 def _read_objects(f: h5py.File) -> list[SessionObject]:

@@ -59,7 +59,7 @@ import h5py
 import numpy as np
 
 from collect import session_format as sf
-from collect.errors import HardwareFault, InputError
+from collect.errors import RECORDER_FAULT, HardwareFault, InputError
 from collect.json_files import plain_json
 from collect.output_files import check_parent_dirs, exclusive_lock
 from collect.session_reader import h5_error_text, in_use_error, open_h5
@@ -440,7 +440,7 @@ class SessionWriter:
     def _raise_if_failed(self) -> None:
         if self._error is not None:
             reason = str(self._error) if isinstance(self._error, _StoppedWriting) else h5_error_text(self._error)
-            raise HardwareFault("recorder", f"cannot write {self.path}: {reason}") from self._error
+            raise HardwareFault(RECORDER_FAULT, f"cannot write {self.path}: {reason}") from self._error
 
     def _run(self) -> None:
         last_flush = time.monotonic()

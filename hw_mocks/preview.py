@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from collect.atomic_files import replacing
 from collect.errors import InputError
 from collect.session_format import DEPTH_UNIT_M
 from hw_mocks.bubble_sim import BubbleSim
@@ -70,7 +71,8 @@ def render_preview(spec: SensorSpec, object_name: str, press_m: float, out: Path
     )
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=110)
+        with replacing(out) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
     except OSError as err:
         raise InputError(f"cannot write {out}: {err.strerror or err}") from None
     finally:

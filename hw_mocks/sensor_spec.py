@@ -181,10 +181,13 @@ class SensorSpec:
         return cls.from_dict(data, source=f"sensor spec {path}")
 
     def to_yaml(self, path: str | Path) -> None:
-        """Write the spec as YAML (round-trips through ``from_yaml``)."""
+        """Write the spec as YAML (round-trips through ``from_yaml``; atomically:
+        ``collect.atomic_files.replacing``)."""
+        from collect.atomic_files import replacing
         from collect.yaml_files import dump_yaml
 
-        Path(path).write_text(dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None))
+        with replacing(path) as tmp:
+            tmp.write_text(dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None))
 
     # ---- validation ----------------------------------------------------------------------------
     def validate(self, source: str = "sensor spec") -> None:

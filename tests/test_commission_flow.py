@@ -156,6 +156,15 @@ def test_live_events_reach_the_consumer(faulted_then_resumed):
     assert any(e.force_n > 0.5 for e in collection if e.phase == "hold")
     training = [e for e in events if isinstance(e, TrainingProgress)]
     assert training and all(np.isfinite(e.loss) for e in training)
+    # the bench's last snapshot shows the arm as the bench leaves it: after the fault's safe stop, and
+    # just before collection's end (the TUI's bench panel ends on it; was: on the last one the
+    # snapshot loop had sent, the arm still moving)
+    first, resumed = faulted_then_resumed["first_events"], faulted_then_resumed["events"]
+    last_snapshot = [max(k for k, e in enumerate(run) if isinstance(e, BenchSnapshot)) for run in (first, resumed)]
+    assert last_snapshot[0] > next(k for k, e in enumerate(first) if isinstance(e, ArmSafeStopped))
+    collected = next(k for k, e in enumerate(resumed) if isinstance(e, StepFinished) and e.step == Step.COLLECT)
+    assert not resumed[collected].resumed and last_snapshot[1] == collected - 1
+    assert np.linalg.norm(resumed[collected - 1].wrench[:3]) < 0.5  # parked: the bubble touches nothing
 
 
 def test_run_directory_holds_the_contract_files(faulted_then_resumed):
@@ -432,3 +441,110 @@ def test_an_interrupt_during_commissioning_stops_the_arm_and_keeps_the_data(tmp_
     assert json.loads((run / "acceptance.json").read_text())["stopped"] is True
     with Session.open(run / "session.h5") as s:
         assert s.closed_cleanly and s.n_frames > 0
+
+
+def _finished_run_without_its_verdict(faulted_then_resumed, tmp_path):
+    """A copy of the accepted run and its registry, with ``state.json`` as it was before the verdict
+    step was recorded (every other step done)."""
+    from calibrate.run_directory import RunState
+
+    config = faulted_then_resumed["config"]
+    config = dataclasses.replace(config, run_dir=tmp_path / "run", registry_dir=tmp_path / "registry")
+    shutil.copytree(faulted_then_resumed["config"].run_dir, config.run_dir)
+    shutil.copytree(faulted_then_resumed["config"].registry_dir, config.registry_dir)
+    state = RunState(config.run_dir / "state.json", json.loads((config.run_dir / "state.json").read_text()))
+    del state.data["steps"]["verdict"]
+    state.save()
+    return config
+
+
+def test_a_run_killed_after_it_registered_replaces_its_entry_when_run_again(faulted_then_resumed, tmp_path, monkeypatch):
+    """The process dies after the registry write and before state.json records the verdict (a kill, a
+    power cut): the re-run registers the same commissioning again in place (was: a second entry)."""
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    register = SensorRegistry.register
+
+    class Killed(BaseException):
+        pass
+
+    def register_then_die(self, *args, **kwargs):
+        register(self, *args, **kwargs)
+        raise Killed
+
+    monkeypatch.setattr(SensorRegistry, "register", register_then_die)
+    with pytest.raises(Killed):
+        run_commissioning(config, lambda e: None)
+    monkeypatch.undo()
+    assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 3
+    assert run_commissioning(config, lambda e: None).accepted
+    (profile,) = SensorRegistry(config.registry_dir).survey().profiles
+    assert [h["accepted"] for h in profile.history] == [False, True, True]
+    assert len({h["id"] for h in profile.history}) == 3  # the fault's, the copied run's, this one's
+    state = json.loads((config.run_dir / "state.json").read_text())
+    assert state["steps"]["verdict"]["ok"] and "registration_id" not in state
+
+
+def test_a_stop_during_the_last_step_is_honoured_before_the_verdict(faulted_then_resumed, tmp_path):
+    """Was: the stop acknowledged ("stopping the arm and closing the run ..."), then a verdict written
+    and registered and exit 0/1 instead of the signal's code."""
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    stop = threading.Event()
+    stop.set()
+    result = run_commissioning(config, lambda e: None, stop)
+    assert result.stopped and not result.accepted
+    assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 2
+    assert "verdict" not in json.loads((config.run_dir / "state.json").read_text())["steps"]
+    assert run_commissioning(config, lambda e: None).accepted  # the re-run reaches the verdict
+
+
+def test_a_recorder_fault_stops_the_arm_and_registers_nothing(tmp_path, capsys, monkeypatch):
+    """The host's disk (here: the session file deleted mid-recording) says nothing of the sensor: the
+    arm safe-stops, the run ends with the fault (exit 3) and the registry is untouched (was: the
+    sensor registered as rejected, an accepted one flipped to rejected)."""
+    from collect.session_writer import SessionWriter
+
+    append_frame = SessionWriter.append_frame
+    appended = []
+
+    def append_then_delete(writer, *args, **kwargs):
+        append_frame(writer, *args, **kwargs)
+        if writer.path.endswith("session.h5"):
+            appended.append(1)
+            if len(appended) == 40:
+                os.remove(writer.path)
+
+    monkeypatch.setattr(SessionWriter, "append_frame", append_then_delete)
+    config = tiny_config(tmp_path)
+    argv = ["commission", "--sim", "--objects", "box", "--poses-per-object", "2", "--seed", "3", "--sim-speed", "2",
+            "--leak-hold-s", "2", "--finetune-minutes", "0.05", "--thresholds", str(config.thresholds),
+            "--out", str(config.run_dir), "--registry", str(config.registry_dir), "--quiet"]
+    assert main(argv) == 3
+    err = capsys.readouterr().err
+    assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
+    assert not config.registry_dir.exists() or SensorRegistry(config.registry_dir).survey().profiles == []
+    state = json.loads((config.run_dir / "state.json").read_text())
+    assert "reference" in state["steps"] and "collect" not in state["steps"]
+    with Session.open(config.run_dir / "session.h5") as s:
+        assert s.closed_cleanly and s.n_frames >= 30
+
+
+def test_a_run_removes_the_temporary_files_a_killed_run_left(faulted_then_resumed, tmp_path):
+    """Was: a run killed while it wrote acceptance.json left ``acceptance.json.<random>.tmp`` for good."""
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    leftovers = [config.run_dir / "acceptance.json.qnn9fi55.tmp", config.run_dir / "model" / "model.onnx.x1y2z3w4.tmp"]
+    for path in leftovers:
+        path.write_text("{\"accepted\": tr")
+    assert run_commissioning(config, lambda e: None).accepted
+    assert not any(path.exists() for path in leftovers)
+
+
+def test_a_run_whose_recording_is_done_resumes_on_a_disk_too_full_to_record(faulted_then_resumed, tmp_path, monkeypatch):
+    """The recorder's 200 MB reserve is for recording (was: a run with only its verdict left refused
+    with "recording needs at least 200 MB", also after the user guide's "free some space")."""
+    import collect.session_writer as session_writer
+
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", shutil.disk_usage(tmp_path).free + 2**40)
+    assert run_commissioning(config, lambda e: None).accepted
+    with pytest.raises(InputError, match="recording needs at least"):  # a new run still is refused
+        run_commissioning(dataclasses.replace(config, run_dir=tmp_path / "new"), lambda e: None)

@@ -141,6 +141,30 @@ def test_silence_is_a_timeout_fault(pty_board):
     assert err.value.kind == "serial-timeout"
 
 
+def test_silence_counts_on_the_host_clock_too():
+    """A bench clock that runs ahead (the simulated bench at --sim-speed N) while the reader thread
+    is held back is not a silent board: the fault needs the timeout on both clocks (was: a false
+    serial-timeout under load, one run in three of `bubble tui --sim --sim-speed 4`)."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    bench_time = [100.0]
+    board = PressureBoard(os.ttyname(slave), clock=lambda: bench_time[0], stale_timeout_s=0.3)
+    board.open()
+    try:
+        os.write(master, encode_line("P,0,1000.00"))
+        assert wait_until(lambda: board.latest() is not None)
+        bench_time[0] += 5.0  # the simulated clock ran 5 s, the host's some milliseconds
+        board.check()
+        time.sleep(0.4)  # now both clocks passed the timeout in silence
+        with pytest.raises(HardwareFault) as err:
+            board.check()
+        assert err.value.kind == "serial-timeout"
+    finally:
+        board.close()
+        os.close(master)
+        os.close(slave)
+
+
 def test_unplug_is_detected(pty_board):
     board, master = pty_board
     board.stale_timeout_s = 60.0  # an unplug is its own fault, not a silence that lasted too long

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from calibrate.cli import main
+from collect.errors import InputError
+from collect.session_reader import Session
 from collect import session_format as sf
 from conftest import make_synthetic_session
 
@@ -137,3 +139,14 @@ def test_info_refuses_a_damaged_session_with_one_line(tmp_path, small_session, c
     assert err.startswith(f"bubble: error: {path}: ") and err.count("\n") == 1 and "Traceback" not in err, err
     assert needle in err, err
     assert hashlib.sha256(path.read_bytes()).hexdigest() == digest
+
+
+@pytest.mark.parametrize("idx", [[3, 9, 17], slice(5, 20), 17], ids=["list", "slice", "int"])
+def test_nan_in_true_depth_names_its_frame_row(tmp_path, small_session, idx):
+    """The row named is the dataset's, not the position among the frames read (was: row 1 for [3, 9, 17])."""
+    path = tmp_path / "nan.h5"
+    shutil.copyfile(small_session, path)
+    with h5py.File(path, "a") as f:
+        f[sf.SIM_TRUE_DEPTH][17, 4, 6] = np.nan
+    with Session.open(path) as session, pytest.raises(InputError, match=r"NaN/inf in sim/true_depth \(row 17\)$"):
+        session.true_depth(idx)

@@ -110,10 +110,13 @@ class ScriptedFlow:
 
     ``finish`` events are emitted after the release (not after a stop); ``result`` builds the
     return value from (config, stopped); ``error`` is raised instead of returning when set.
+    ``safe_stop`` is emitted on a stop or before the error, as the flow does while it holds the
+    bench (None: the bench is closed by then).
     """
 
-    def __init__(self, events, finish=(), result=None, error=None):
-        self.events, self.finish, self.error = list(events), list(finish), error
+    def __init__(self, events, finish=(), result=None, error=None,
+                 safe_stop: ArmSafeStopped | None = ArmSafeStopped(True, 0.0408, 0.0608, 0.0)):
+        self.events, self.finish, self.error, self.safe_stop = list(events), list(finish), error, safe_stop
         self.result = result or (lambda config, stopped: CommissionResult(
             accepted=False, checks=[], run_dir=config.run_dir, report_path=config.run_dir / "report.html",
             stopped=stopped))
@@ -135,6 +138,8 @@ class ScriptedFlow:
         if not self.saw_stop:
             for event in self.finish:
                 on_event(event)
+        if (self.saw_stop or self.error is not None) and self.safe_stop is not None:
+            on_event(self.safe_stop)
         if self.error is not None:
             raise self.error
         return self.result(config, self.saw_stop)
@@ -369,7 +374,7 @@ def test_hardware_fault_from_the_flow_shows_a_fault_banner(in_tmp):
             await wait_for(lambda: app.error is not None, pilot)
             banner = app.query_one(Banner)
             assert banner.level == "fault" and "camera-stall" in str(banner.content)
-            assert app.steps.row(Step.COLLECT).status == "stopped" and app.arm_state == "stopped"
+            assert app.steps.row(Step.COLLECT).status == "failed" and app.arm_state == "stopped"
 
     asyncio.run(scenario())
 
@@ -709,3 +714,113 @@ def test_warm_up_draws_every_tab_once_and_ends_on_the_first(in_tmp):
     finally:
         gc.unfreeze()
         gc.enable()
+
+
+def test_a_tab_key_during_the_warm_up_ends_it_on_that_tab(in_tmp):
+    """Was: the warm-up went on through every tab and ended on the first, the key lost."""
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]), warm_up_tabs=True)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("3")
+            await wait_for(lambda: app.started_up, pilot)
+            await pilot.pause(0.3)
+            return app.tabs.active, app.tabs_warmed_up
+
+    active, warmed_up = asyncio.run(scenario())
+    assert active == "tab-acceptance" and len(warmed_up) < 4
+
+
+def test_a_second_stop_leaves_a_stopped_arm_stopped(in_tmp):
+    """Was: a stop key after the flow's safe stop put the panel back to "stopping" until the run ended."""
+    class SlowToEnd(ScriptedFlow):
+        def __call__(self, config, on_event, stop_event):
+            result = super().__call__(config, on_event, stop_event)  # emits the safe stop on the stop
+            self.ended.wait(10)
+            return result
+
+    async def scenario():
+        flow = SlowToEnd(mid_run_events())
+        flow.ended = threading.Event()
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("s")
+            await wait_for(lambda: app.arm_state == "stopped", pilot)
+            await pilot.press("s")
+            states = [app.arm_state, app.bench_panel.arm_state]
+            flow.ended.set()
+            await wait_for(lambda: app.result is not None, pilot)
+            return states + [app.arm_state]
+
+    assert asyncio.run(scenario()) == ["stopped", "stopped", "stopped"]
+
+
+def test_a_fault_verdict_says_why_and_a_stopped_run_shows_its_report(in_tmp):
+    """Was: "REJECTED 7/7 checks passed" with no reason after a fault, and no report line after a stop
+    although report.html was written."""
+    checks = [{"name": "leak_rate_hpa_per_min", "value": 0.01, "threshold": 0.5, "op": "<=", "passed": True}]
+
+    async def scenario(fault):
+        Path("run").mkdir(exist_ok=True)
+        Path("run/report.html").write_text("<html></html>")
+        flow = ScriptedFlow(mid_run_events(), result=lambda config, stopped: CommissionResult(
+            accepted=False, checks=checks, run_dir=config.run_dir, report_path=config.run_dir / "report.html",
+            stopped=stopped, fault=fault))
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            if fault:
+                flow.release.set()
+            else:
+                await pilot.press("s")
+            await wait_for(lambda: app.result is not None, pilot)
+            await pilot.pause()
+            return (str(app.acceptance.verdict_line.render()), str(app.acceptance.report_line.render()),
+                    app.steps.row(Step.COLLECT).status)
+
+    verdict, report, collect = asyncio.run(scenario("force-spike: |F| 61.2 N"))
+    assert "REJECTED" in verdict and "(hardware fault force-spike: |F| 61.2 N)" in verdict, verdict
+    assert report == "report: run/report.html" and collect == "failed"
+    verdict, report, collect = asyncio.run(scenario(None))
+    assert "stopped by operator" in verdict and report == "report: run/report.html" and collect == "stopped"
+
+
+def test_the_bench_panel_ends_on_the_flows_last_snapshot(in_tmp):
+    """The flow sends a snapshot of the parked arm just before collection's end; the panel shows it
+    (was: the last one the refresh timer had taken, the arm still pressing)."""
+    ir, depth = bench_images()
+    pressing = BenchSnapshot(True, [0.45, 0.0, 0.037, 3.1416, 0.0, 0.0], [0.0, 0.0, -9.86, 0, 0, 0], 1067.0, ir, depth)
+    parked = BenchSnapshot(True, [0.45, 0.0, 0.068, 3.1416, 0.0, 0.0], [0.0] * 6, 1065.5, ir, depth)
+
+    async def scenario():
+        flow = ScriptedFlow([StepStarted(Step.COLLECT, 40.0), pressing])
+        app = BenchApp(make_config(), flow=flow, clock=FixedClock(), refresh_hz=0.01)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)  # shows the pressing arm
+            shown = app.bench_panel.snapshot
+            app._on_flow_event(parked)
+            app._on_flow_event(StepFinished(Step.COLLECT, True, "3 poses"))
+            await wait_for(lambda: not app.bench_panel.connected and app.bench_panel.snapshot is parked, pilot)
+            flow.release.set()
+            await wait_for(lambda: not app.running, pilot)
+            return shown, app.bench_panel.snapshot, app.arm_state
+
+    shown, last, arm = asyncio.run(scenario())
+    assert shown is pressing and last is parked and arm == "idle"
+
+
+def test_a_run_refused_before_the_bench_opened_leaves_the_arm_idle(in_tmp):
+    """Was: "arm stopped" beside "no data yet" for a run directory refused before anything connected."""
+    from collect.errors import InputError
+
+    async def scenario():
+        flow = ScriptedFlow([], error=InputError("run holds a run with sensor='SB-SIM-000003'"), safe_stop=None)
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.error is not None, pilot)
+            await pilot.pause()
+            return app.arm_state, app.bench_panel.arm_state, app.banner.level
+
+    assert asyncio.run(scenario()) == ("idle", "idle", "fault")

@@ -28,7 +28,8 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from collect.errors import InputError
-from collect.json_files import JSON_READ_ERRORS, NEW_FILE_MODE, shown_json, write_json
+from collect.atomic_files import NEW_FILE_MODE, replacing
+from collect.json_files import JSON_READ_ERRORS, shown_json, write_json
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, MAX_WIDTH, build_network
 from trainer.preprocessing import MAX_LOG_IR, MIN_IR_STD, InputGeometry, IRNormalization
 
@@ -151,20 +152,18 @@ def resolve_model_dir(name: str | Path) -> Path:
 
 
 def write_safetensors(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str] | None = None) -> None:
-    """Write ``tensors`` (contiguous, CPU) to the safetensors file ``path`` atomically: a temporary
-    file beside it, renamed over ``path``, with the permissions of any new file. A failed write (a
+    """Write ``tensors`` (contiguous, CPU) to the safetensors file ``path`` atomically
+    (``collect.atomic_files.replacing``), with the permissions of any new file. A failed write (a
     full disk) leaves ``path`` as it was and is raised as ``OSError`` with the system's reason and
     ``path``."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        save_file(tensors, str(tmp), metadata=metadata)
-    except SafetensorError as err:  # an I/O error reads "... I/O error: No space left on device (os error 28)"
-        tmp.unlink(missing_ok=True)
-        code = re.search(r"os error (\d+)", str(err))
-        number = int(code.group(1)) if code else errno.EIO
-        raise OSError(number, os.strerror(number), str(path)) from None
-    tmp.chmod(NEW_FILE_MODE)  # safetensors writes 0600
-    tmp.replace(path)
+    with replacing(path) as tmp:
+        try:
+            save_file(tensors, str(tmp), metadata=metadata)
+        except SafetensorError as err:  # an I/O error reads "... I/O error: No space left on device (os error 28)"
+            code = re.search(r"os error (\d+)", str(err))
+            number = int(code.group(1)) if code else errno.EIO
+            raise OSError(number, os.strerror(number), str(path)) from None
+        tmp.chmod(NEW_FILE_MODE)  # safetensors writes 0600
 
 
 def save_model(model_dir: str | Path, network: nn.Module, metadata: ModelMetadata) -> Path:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from collect.atomic_files import replacing
 from trainer.inference import DepthEstimator, ort_session
 from trainer.model_dir import ONNX_FILE, load_network, write_metadata
 
@@ -24,15 +25,16 @@ ONNX_OPSET = 17
 
 
 def export_onnx(network: torch.nn.Module, input_size: tuple[int, int], path: str | Path) -> Path:
-    """Export ``network`` for input ``(B,1,h,w)`` (``input_size`` = (h, w), any batch B) to ``path``."""
+    """Export ``network`` for input ``(B,1,h,w)`` (``input_size`` = (h, w), any batch B) to ``path``
+    (atomically: ``collect.atomic_files.replacing``)."""
     path = Path(path)
     example = torch.zeros(1, 1, *input_size)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), replacing(path) as tmp:
         warnings.simplefilter("ignore")
         torch.onnx.export(
             network.eval(),
             (example,),
-            str(path),
+            str(tmp),
             dynamo=False,
             input_names=["ir"],
             output_names=["depth"],

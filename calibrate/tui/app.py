@@ -144,6 +144,7 @@ class BenchApp(App):
         self.gc_collector = FrameGapCollector() if tune_gc else None
         self._warm_up_tabs = warm_up_tabs
         self.tabs_warmed_up: list[str] = []  # tab ids drawn by the start-up warm-up, in order
+        self._tab_chosen: str | None = None  # a tab key pressed during the warm-up: it ends there
         self.started_up = False  # the first frames are drawn, the warm-up (if any) is over, the collector runs
         self._inbox = EventInbox()
         self._runner: FlowRunner | None = None
@@ -219,11 +220,15 @@ class BenchApp(App):
 
     def _show_tabs_once(self, order: list[str], polls: int = 0) -> None:
         """Start-up (``warm_up_tabs``): show each tab until it has been laid out (drawn), ending on
-        the first one.
+        the first one, or on the operator's tab as soon as a tab key is pressed.
 
         A pane's first display costs up to ~90 ms more than later ones (the large sensor view:
         docs/tui.md); paying it at start-up keeps it out of the operator's first key presses.
         """
+        if self._tab_chosen is not None:  # was: the warm-up went on and ended on the first tab
+            self.tabs.active = self._tab_chosen
+            self.call_after_refresh(self._finish_start_up)
+            return
         self.tabs.active = order[0]
         drawn = self.tabs.get_pane(order[0]).size.area > 0
         if not drawn and polls < WARM_UP_MAX_POLLS:
@@ -329,7 +334,7 @@ class BenchApp(App):
 
     def _request_stop(self, message: str) -> None:
         self._runner.request_stop()
-        if self._bench_open:
+        if self._bench_open and self._arm_state != "stopped":  # a second stop after the safe stop: stays stopped
             self._arm_state = "stopping"
         self.banner.show(message, "warning")
         self._update_bench_panel(None)
@@ -346,6 +351,8 @@ class BenchApp(App):
 
     def action_show_tab(self, tab: str) -> None:
         self.tabs.active = tab
+        if not self.started_up:
+            self._tab_chosen = tab
 
     def action_reload_registry(self) -> None:
         self.registry.reload()
@@ -390,11 +397,18 @@ class BenchApp(App):
 
     def _close_bench_view(self) -> None:
         """The flow has closed the bench (collection over): the arm is parked, no more snapshots."""
+        snapshot = self._closing_snapshot()
         self._bench_open = False
         self._connected = False
         if self._arm_state == "moving":
             self._arm_state = "idle"
+        self._update_bench_panel(snapshot)
         self.collection.complete()
+
+    def _closing_snapshot(self):
+        """The snapshot waiting while the bench closes (the flow sends one of the arm as it left it, parked
+        or safe-stopped), or None; later snapshots are dropped by ``refresh_live``."""
+        return self._inbox.take_snapshot() if self._bench_open else None
 
     def refresh_live(self) -> None:
         """Timer (``refresh_hz``): the latest bench snapshot's images in the live preview, then in the
@@ -466,17 +480,17 @@ class BenchApp(App):
         if event.state == WorkerState.SUCCESS:
             self.result = result = event.worker.result
             if result.stopped or result.fault:
-                self.steps.interrupt(now)
-            self._arm_state = "stopped" if (result.stopped or result.fault) and self._bench_open else "idle"
+                self.steps.interrupt(now, "stopped" if result.stopped else "failed")
             session = Path(result.run_dir) / "session.h5"
+            report = str(result.report_path) if Path(result.report_path).is_file() else ""
             if result.stopped:
                 banner.show(f"Stopped by operator: {self._arm_outcome()}. Recorded data kept in {session}", "warning")
-                self.acceptance.show(None, result.checks, "", "stopped by operator")
+                self.acceptance.show(None, result.checks, report, "stopped by operator")
             elif result.fault:
                 reported = self._fault_text or f"FAULT {result.fault}"
                 banner.show(f"{reported} | {self._arm_outcome()} | run rejected; c retries (completed steps are kept)",
                             "fault")
-                self.acceptance.show(result.accepted, result.checks, str(result.report_path))
+                self.acceptance.show(result.accepted, result.checks, report, f"hardware fault {result.fault}")
             else:
                 verdict = "ACCEPTED" if result.accepted else "REJECTED"
                 if result.reason and not result.accepted:
@@ -485,16 +499,19 @@ class BenchApp(App):
                 self.acceptance.show(result.accepted, result.checks, str(result.report_path))
         else:
             self.error = err = event.worker.error
-            self.steps.interrupt(now)
-            self._arm_state = "stopped" if self._bench_open else "idle"
+            self.steps.interrupt(now, "failed")
             if isinstance(err, HardwareFault):
                 banner.show(f"FAULT {err.kind}: {err}", "fault")
             elif isinstance(err, InputError):
                 banner.show(f"Input error: {err}", "fault")
             else:
                 banner.show(f"Internal error: {type(err).__name__}: {err}", "fault")
+        # stopped: the flow safe-stopped the arm (ArmSafeStopped); a run that ended before the bench
+        # opened, or after collection closed it, left the arm parked
+        self._arm_state = "stopped" if self.safe_stop is not None else "idle"
+        snapshot = self._closing_snapshot()
         self._bench_open = False
-        self._update_bench_panel(None)
+        self._update_bench_panel(snapshot)
         self.registry.reload()
         if self._quit_requested:
             self.exit()

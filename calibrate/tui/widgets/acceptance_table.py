@@ -62,7 +62,8 @@ class AcceptanceTable(Vertical):
         self.table.update("")
 
     def show(self, accepted: bool | None, checks: list[dict], report_path: str, note: str = "") -> None:
-        """Show the checks; ``accepted`` None means the run ended without a verdict (``note`` says why)."""
+        """Show the checks; ``accepted`` None means the run ended without a verdict. ``note`` says why
+        the run ended early (a stop, a hardware fault), after the verdict."""
         self.showing = True
         if accepted is None:
             line = Text(f" NO VERDICT  {note}", style="bold black on yellow")
@@ -73,6 +74,8 @@ class AcceptanceTable(Vertical):
         if accepted is not None:
             failed = sum(1 for check in checks if not check.get("passed"))
             line.append(f"  {len(checks) - failed}/{len(checks)} checks passed")
+            if note:
+                line.append(f"  ({note})", style="bold red")
         self.verdict_line.update(line)
         self.checks = list(checks)
         table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, row_styles=["", "on grey11"])

@@ -125,11 +125,12 @@ class StepsPanel(Static):
             self.rows = pending
             self._redraw()
 
-    def interrupt(self, now: float) -> None:
-        """The run ended (stop or fault): a running step is marked stopped."""
+    def interrupt(self, now: float, status: str = "stopped") -> None:
+        """The run ended early: a running step is marked ``status`` (``stopped`` by the operator,
+        ``failed`` by a fault or an error)."""
         for row in self.rows.values():
             if row.status == "running":
-                row.status, row.finished_at = "stopped", now
+                row.status, row.finished_at = status, now
         self.tick(now)
 
     def tick(self, now: float) -> None:
