@@ -6,9 +6,11 @@ e-Series, or ``hw_mocks.fake_rtde.FakeRTDEControl`` / ``FakeRTDEReceive`` for th
 
 Calls made (the twin implements exactly these, a test checks them against the installed ur_rtde):
 control ``moveL(pose, speed, acceleration, asynchronous)``, ``stopL(a, asynchronous)``,
-``zeroFtSensor()``, ``disconnect()``; receive ``getActualTCPPose()``, ``getActualTCPForce()``,
-``getActualTCPSpeed()``, ``isProtectiveStopped()``, ``getSafetyMode()``, ``isConnected()``,
-``disconnect()``.
+``zeroFtSensor()``, ``setWatchdog(min_frequency)``, ``kickWatchdog()``, ``disconnect()``; receive
+``getActualTCPPose()``, ``getActualTCPForce()``, ``getActualTCPSpeed()``, ``getSafetyStatusBits()``,
+``isConnected()``, ``disconnect()``. ur_rtde raises ``RuntimeError`` from a call whose reconnect
+failed (the robot unreachable): every call is made through ``_LinkGuard``, which turns that into
+``HardwareFault('arm-disconnected')``, and ``stop`` never raises.
 
 Poses are ``[x, y, z, rx, ry, rz]`` (m + rotation vector) of the TCP (the membrane apex) in the
 base frame; wrenches ``[Fx, Fy, Fz, Tx, Ty, Tz]`` (N, N m) on the sensor in the base frame.
@@ -16,7 +18,12 @@ The pressing axis is the TCP +z axis.
 
 A monitor thread samples pose and wrench at ``state_hz`` (125-500 Hz) on the bench clock, keeps
 the arm stream for the recorder (``drain_states``), and watches two things in every sample:
-the robot's protective stop and the measured force against ``SafetyLimits.force_limit_n``.
+the robot's safety stops (``getSafetyStatusBits``: a protective stop is
+``HardwareFault('protective-stop')``, an emergency or safeguard stop, a safety violation or fault
+``HardwareFault('safety-stop')``) and the measured force against ``SafetyLimits.force_limit_n``.
+Each sample also kicks the controller's watchdog (``setWatchdog`` at ``watchdog_hz``, set when the
+monitor starts): should this host hang or the link die mid-move, the robot stops by itself
+instead of finishing an asynchronous move unsupervised.
 Over the limit it sends ``stopL`` at once and records ``HardwareFault('force-spike')`` when the
 force jumped past the limit within one sample (by more than half the limit: a collision or a
 sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running motion raises
@@ -66,6 +73,51 @@ REAL_TIME_SLACK = 10.0
 #: After a force excursion the monitor watches for a new one once the force has fallen below this
 #: fraction of the limit (hysteresis: sensor noise at the limit is not a string of new faults).
 FORCE_REARM_FRACTION = 0.8
+#: Slowest kick rate the controller's watchdog accepts (Hz; ``setWatchdog``), at most half the
+#: monitor's rate: without a kick for 0.5 s (a hung host, a dead link) the robot stops its move. Not
+#: shorter: a loaded host may hold the monitor thread back a tenth of a second.
+WATCHDOG_HZ = 2.0
+#: ``getSafetyStatusBits()`` bits that halt the robot (ur_rtde; bits 0 and 1 are normal and
+#: reduced mode), with their names.
+SAFETY_STOP_BITS = {2: "protective stop", 3: "recovery mode", 4: "safeguard stop", 5: "system emergency stop",
+                    6: "robot emergency stop", 7: "emergency stop", 8: "safety violation", 9: "safety fault",
+                    10: "stopped due to safety"}
+PROTECTIVE_STOP_BIT = 2
+
+
+def safety_stops(bits: int) -> list[str]:
+    """Names of the halting safety states set in ``getSafetyStatusBits()``'s ``bits`` (empty: it may move)."""
+    return [name for bit, name in SAFETY_STOP_BITS.items() if int(bits) >> bit & 1]
+
+
+def safety_stop_fault(bits: int, where: str) -> HardwareFault:
+    """The fault of a robot halted by ``bits`` (``safety_stops`` not empty); ``where`` leads the
+    message, e.g. "arm: robot is in"."""
+    if int(bits) >> PROTECTIVE_STOP_BIT & 1:
+        return HardwareFault("protective-stop", f"{where} protective stop; clear it on the teach pendant")
+    return HardwareFault("safety-stop", f"{where} a safety stop ({', '.join(safety_stops(bits))}); release the "
+                                        "emergency stop or close the safeguard, then reset it on the teach pendant")
+
+
+class _LinkGuard:
+    """An ur_rtde interface whose calls raise ``HardwareFault('arm-disconnected')`` where ur_rtde
+    raises ``RuntimeError`` (its reconnect to an unreachable robot failed; was: a traceback that
+    took the place of the run's fault, and a monitor that died with it)."""
+
+    def __init__(self, interface):
+        self._interface = interface
+
+    def __getattr__(self, name: str):
+        method = getattr(self._interface, name)
+
+        def guarded(*args, **kwargs):
+            try:
+                return method(*args, **kwargs)
+            except RuntimeError as err:
+                raise HardwareFault("arm-disconnected",
+                                    f"arm: {name} failed, the robot cannot be reached ({err})") from None
+
+        return guarded
 
 
 @dataclass(frozen=True)
@@ -178,8 +230,9 @@ class Arm:
         if not (real_number(state_hz) and lo <= state_hz <= hi):
             raise InputError(f"arm: state rate {state_hz!r} Hz is outside {lo:g}..{hi:g} Hz")
         check_motion_settings(settings, limits)
-        self._ctl = control
-        self._rcv = receive
+        self._ctl = _LinkGuard(control)
+        self._rcv = _LinkGuard(receive)
+        self.watchdog_hz = min(WATCHDOG_HZ, state_hz / 2.0)
         self.limits = limits
         self.settings = settings
         self.clock = clock
@@ -199,6 +252,8 @@ class Arm:
         """Start the monitor thread (idempotent); blocks until the first sample is in."""
         if self._monitor_loop.running:
             return
+        with self._ctl_lock:
+            self._ctl.setWatchdog(self.watchdog_hz)
         self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
 
@@ -218,6 +273,9 @@ class Arm:
     def _monitor(self) -> None:
         try:
             self._watch()
+        except HardwareFault as fault:  # the link lost mid-sample
+            self._set_fault(fault)
+            self.stop()
         except Exception as err:  # a dead monitor must not leave a motion unsupervised
             self._set_fault(HardwareFault("arm-monitor", f"arm: state monitor failed ({type(err).__name__}: {err})"))
             self.stop()
@@ -226,20 +284,20 @@ class Arm:
         next_t = time.monotonic()
         prev_force = 0.0
         limit = self.limits.force_limit_n
-        was_stopped = False  # protective stop in the previous sample
+        was_stopped = False  # a safety stop in the previous sample
         over_limit = False  # within the last excursion over the force limit (until re-armed)
         while not self._monitor_loop.stop_event.is_set():
             if not self._rcv.isConnected():
                 self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
                 return
+            with self._ctl_lock:
+                self._ctl.kickWatchdog()
             sample = self._read()
             force = float(np.linalg.norm(sample.tcp_wrench[:3]))
-            stopped = self._rcv.isProtectiveStopped()
+            bits = self._rcv.getSafetyStatusBits()
+            stopped = bool(safety_stops(bits))
             if stopped and not was_stopped:
-                mode = self._rcv.getSafetyMode()
-                self._set_fault(HardwareFault(
-                    "protective-stop",
-                    f"arm: robot is in protective stop (safety mode {mode}); clear it on the teach pendant"))
+                self._set_fault(safety_stop_fault(bits, "arm: robot is in"))
             elif not stopped and force > limit and not over_limit:
                 self.stop()
                 jumped = force - prev_force > 0.5 * limit
@@ -273,6 +331,8 @@ class Arm:
         with self._cond:
             seen = self._latest
             if not self._cond.wait_for(lambda: self._latest is not seen, timeout=timeout_s):
+                if self._latest_fault is not None:  # the monitor ended on it (a lost link)
+                    raise self._latest_fault
                 raise HardwareFault("arm-timeout", f"arm: no state sample from the robot within {timeout_s} s")
             return self._latest
 
@@ -318,9 +378,14 @@ class Arm:
 
     # ------------------------------------------------------------------ motions
     def stop(self) -> None:
-        """Start decelerating the TCP to rest (asynchronous stopL); safe to call at any time, from any thread."""
-        with self._ctl_lock:
-            self._ctl.stopL(STOP_DECEL_M_S2, True)
+        """Start decelerating the TCP to rest (asynchronous stopL); safe to call at any time, from any
+        thread, and never raises: a stop the robot cannot be sent (the link is gone) is recorded as
+        the arm's fault, and the controller's watchdog stops the robot."""
+        try:
+            with self._ctl_lock:
+                self._ctl.stopL(STOP_DECEL_M_S2, True)
+        except HardwareFault as fault:
+            self._set_fault(fault)
 
     def _send_move(self, target: np.ndarray, speed: float, accel: float, check_faults: bool) -> None:
         if check_faults:
@@ -358,9 +423,8 @@ class Arm:
                 except (HardwareFault, StopRequested):
                     self.stop()
                     raise
-            elif self._rcv.isProtectiveStopped():  # the robot holds still: the move cannot finish
-                raise HardwareFault("protective-stop", "arm: robot went into protective stop during the move; "
-                                                       "clear it on the teach pendant")
+            elif safety_stops(bits := self._rcv.getSafetyStatusBits()):  # the robot holds still: no finish
+                raise safety_stop_fault(bits, "arm: during the move the robot went into")
             elif self._latest_fault is not known_fault:  # the arm was stopped there (a collision)
                 raise self._latest_fault
             if guard is not None and guard(sample):
@@ -492,9 +556,8 @@ class Arm:
         over the force limit) stops it there and is raised, and so is ``HardwareFault('protective-stop')``
         when the robot is in protective stop or goes into it on the way.
         """
-        if self._rcv.isProtectiveStopped():
-            raise HardwareFault("protective-stop",
-                                "arm: cannot retract, robot is in protective stop; clear it on the teach pendant")
+        if safety_stops(bits := self._rcv.getSafetyStatusBits()):
+            raise safety_stop_fault(bits, "arm: cannot retract, robot is in")
         now = self.state()
         if self._retract_pose is not None:
             target = self._retract_pose

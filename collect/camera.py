@@ -130,7 +130,7 @@ class QueueToFCamera(ToFCamera):
 
     def _get(self, queue, deadline: float, timeout_s: float):
         """Next message of ``queue``; ``camera-stall`` once the bench clock passes ``deadline``."""
-        msg = queue.tryGet()
+        msg = _try_get(queue)
         while msg is None:
             remaining = deadline - self.clock()
             if remaining <= 0:
@@ -138,7 +138,7 @@ class QueueToFCamera(ToFCamera):
             # Poll rather than block in depthai's timed get(): a timed get() on the host can
             # deadlock against a concurrent send() into the same non-blocking queue.
             time.sleep(min(remaining, POLL_S))
-            msg = queue.tryGet()
+            msg = _try_get(queue)
         return msg
 
     def get_frame(self, timeout_s: float | None = None) -> CameraFrame:
@@ -163,6 +163,18 @@ class QueueToFCamera(ToFCamera):
         self._last_seq, self._last_t_device = frame.seq, frame.t_device
         self.frames += 1
         return frame
+
+
+def _try_get(queue):
+    """``queue.tryGet()``; a queue that cannot be read any more is ``HardwareFault('camera-disconnected')``:
+    depthai raises ``MessageQueue.QueueException`` once the device closed its queues (unplugged,
+    crashed) and ``RuntimeError`` on a link error (was: neither stopped the arm, and the run ended
+    with a traceback)."""
+    try:
+        return queue.tryGet()
+    except Exception as err:  # noqa: BLE001 - every way a queue read fails is the camera gone
+        raise HardwareFault("camera-disconnected",
+                            f"camera: the device stopped streaming ({type(err).__name__}: {err})") from None
 
 
 #: What depthai printed to the console while it was imported (in a container without

@@ -14,7 +14,10 @@ membrane solutions interpolated to the current pose, plus an injected force spik
 offset stored by ``zeroFtSensor``. The controller enters protective stop when a force read finds
 the raw force above ``protective_force_n``, or at any call once the fault schedule injects
 ``protective-stop``; it then holds the TCP still and refuses motion (``moveL`` returns False), as
-a real UR does until the operator unlocks it on the pendant.
+a real UR does until the operator unlocks it on the pendant. Its watchdog (``setWatchdog``) runs
+on the host's clock, as the real controller's runs in real time: once armed, a move still under
+way when no kick came for ``1 / min_frequency`` s is braked to rest and later moves are refused
+(ur_rtde's "shutdown the control").
 """
 
 from __future__ import annotations
@@ -27,9 +30,12 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from collect.transforms import linear_path_m
 
-#: UR safety modes (``getSafetyMode``).
-SAFETY_MODE_NORMAL = 1
-SAFETY_MODE_PROTECTIVE_STOP = 3
+#: ``getSafetyStatusBits`` of a robot in normal mode (bit 0) and in protective stop (bits 2 and 10,
+#: "stopped due to safety").
+SAFETY_BITS_NORMAL = 1 << 0
+SAFETY_BITS_PROTECTIVE_STOP = 1 << 2 | 1 << 10
+#: Deceleration (m/s^2) with which the watchdog brakes a move.
+WATCHDOG_DECEL_M_S2 = 4.0
 
 
 class _Profile:
@@ -130,6 +136,9 @@ class SimURController:
         self._move = _LinearMove(pose, pose, scene.now(), 1.0, 1.0)
         self._ft_offset = np.zeros(6)
         self._protective = False
+        self._watchdog_s: float | None = None  # longest time between kicks (host clock), once armed
+        self._kicked = time.monotonic()
+        self.watchdog_fired = False  # the control was shut down: moves are refused
 
     def moving_until(self) -> float:
         """Simulated time (s) at which the current move ends (lock-free: read by the clock)."""
@@ -145,13 +154,19 @@ class SimURController:
         self._move = _LinearMove(pose, pose, t, 1.0, 1.0)
 
     def _update(self) -> tuple[float, np.ndarray, np.ndarray]:
-        """Advance to now: returns (t, pose (6,), velocity (6,)); applies a scheduled protective stop."""
+        """Advance to now: returns (t, pose (6,), velocity (6,)); applies a scheduled protective stop
+        and the watchdog."""
         with self._lock:
             t = self.scene.now()
             pose, _, velocity = self._move.state(t)
             if not self._protective and self.scene.fault_active("protective-stop", t):
                 self._freeze(t, pose)
                 velocity = np.zeros(6)
+            if (self._watchdog_s is not None and not self.watchdog_fired
+                    and time.monotonic() - self._kicked > self._watchdog_s):
+                self.watchdog_fired = True
+                if not self._move.done(t):
+                    self._move = self._move.stopping(t, WATCHDOG_DECEL_M_S2)
             return t, pose, velocity
 
     def _raw_wrench(self) -> np.ndarray:
@@ -169,7 +184,7 @@ class SimURController:
         m/s^2 from where the TCP is now; False (nothing moves) during a protective stop."""
         with self._lock:
             t, current, _ = self._update()
-            if self._protective:
+            if self._protective or self.watchdog_fired:
                 return False
             self._move = _LinearMove(current, np.asarray(pose, dtype=np.float64), t, speed, accel)
             return True
@@ -193,6 +208,15 @@ class SimURController:
         with self._lock:
             self._ft_offset = self._raw_wrench().copy()
 
+    def set_watchdog(self, min_frequency: float) -> None:
+        with self._lock:
+            self._watchdog_s, self._kicked = 1.0 / min_frequency, time.monotonic()
+
+    def kick_watchdog(self) -> None:
+        with self._lock:
+            self._update()  # a watchdog that ran out before this kick has fired
+            self._kicked = time.monotonic()
+
     # receive side
     def tcp_pose(self) -> list[float]:
         return self._update()[1].tolist()
@@ -203,9 +227,9 @@ class SimURController:
     def tcp_force(self) -> list[float]:
         return (self._raw_wrench() - self._ft_offset).tolist()
 
-    def protective_stopped(self) -> bool:
+    def safety_status_bits(self) -> int:
         self._update()
-        return self._protective
+        return SAFETY_BITS_PROTECTIVE_STOP if self._protective else SAFETY_BITS_NORMAL
 
 
 class FakeRTDEControl:
@@ -232,6 +256,14 @@ class FakeRTDEControl:
         self._c.zero_ft()
         return True
 
+    def setWatchdog(self, min_frequency: float = 10.0) -> bool:
+        self._c.set_watchdog(min_frequency)
+        return True
+
+    def kickWatchdog(self) -> bool:
+        self._c.kick_watchdog()
+        return True
+
     def disconnect(self) -> None:
         self._connected = False
 
@@ -252,11 +284,8 @@ class FakeRTDEReceive:
     def getActualTCPForce(self) -> list[float]:
         return self._c.tcp_force()
 
-    def isProtectiveStopped(self) -> bool:
-        return self._c.protective_stopped()
-
-    def getSafetyMode(self) -> int:
-        return SAFETY_MODE_PROTECTIVE_STOP if self._c.protective_stopped() else SAFETY_MODE_NORMAL
+    def getSafetyStatusBits(self) -> int:
+        return self._c.safety_status_bits()
 
     def isConnected(self) -> bool:
         return self._connected

@@ -157,7 +157,7 @@ def test_fault_during_a_collection_stops_the_arm_retracts_and_keeps_the_data(kin
         above = plan.poses[0].above_pose
         if kind == "protective-stop":
             assert not retracted  # a protective stop holds the arm until the operator clears it
-            assert bench.sim.arm.protective_stopped()
+            assert bench.sim.arm.safety_status_bits() & 1 << 2  # protective stop
             assert state.tcp_pose[2] < above[2] - 0.003  # still pressed in
             assert not bench.sim.arm.move_linear(state.tcp_pose + [0, 0, 0.01, 0, 0, 0], 0.05, 0.5)
         else:
@@ -362,3 +362,34 @@ def test_the_simulated_camera_makes_room_in_a_full_queue_instead_of_letting_dept
     assert queue.getSize() == 3  # the newest three, oldest first, as depthai's own drop would keep
     assert [queue.tryGet().getSequenceNum() for _ in range(3)] == [2, 3, 4]
     assert queue.tryGet() is None
+
+
+def test_a_frame_at_rest_shows_the_membrane_where_the_arm_stopped():
+    """A move stopped short of the pose the latest solution was made for (the look-ahead of a guarded
+    press): the next frame is rendered from a solution at the rest pose (was: from the look-ahead
+    one, a dent deeper than the arm ever pressed, in the first frames of some holds)."""
+    from collect.bench import _placed_objects
+    from hw_mocks.fake_camera import SimCameraDevice
+    from hw_mocks.sensor_spec import draw_sensor
+    from hw_mocks.sim_bench import SimBench, _same_pose
+
+    objects = _placed_objects(("box",))
+    top = objects[0].top_point()
+    pressed = np.array([top[0], top[1], top[2] - 0.002, np.pi, 0.0, 0.0])  # 2 mm into the box
+    scene = SimBench(draw_sensor(1), objects, seed=1, start_pose=pressed)  # no physics thread: the test solves
+    assert scene.arm.move_linear(pressed - [0, 0, 0.004, 0, 0, 0], 0.02, 1.0)
+    time.sleep(0.05)
+    scene._solve_now()  # the physics thread's solve, 30 ms ahead along the press
+    ahead = scene.latest()
+    scene.arm.stop_linear(100.0)  # the guard fires: the arm stops at once
+    time.sleep(0.05)
+    rest = scene.arm.pose_at(scene.now())
+    assert scene.arm.moving_until() <= scene.now() and not _same_pose(ahead.pose, rest)
+    seq, t = 0, scene.now()
+    _, _, true_depth = SimCameraDevice(scene).render(seq, t)
+    frame = scene.latest()
+    assert _same_pose(frame.pose, rest) and frame is not ahead
+    np.testing.assert_array_equal(true_depth, np.asarray(frame.state.true_depth, dtype=np.float32))
+    # the stale solution's dent was deeper by the look-ahead (0.4 mm here)
+    lead = abs(ahead.pose[2] - rest[2])
+    assert lead > 2e-4 and np.nanmax(np.abs(ahead.state.true_depth - frame.state.true_depth)) == pytest.approx(lead, rel=0.2)

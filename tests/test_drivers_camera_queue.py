@@ -88,3 +88,14 @@ def test_device_clock_going_backwards_is_a_fault():
     with pytest.raises(HardwareFault) as err:
         cam.get_frame()
     assert err.value.kind == "camera-clock"
+
+
+def test_a_camera_whose_queues_closed_is_a_disconnected_fault():
+    """depthai closes a device's queues when the device goes (unplugged, crashed): reading one raises
+    ``MessageQueue.QueueException``, which was neither a fault nor stopped the arm."""
+    cam = _Camera()
+    cam.start()
+    cam.depth_q.close()
+    with pytest.raises(HardwareFault) as err:
+        cam.get_frame()
+    assert err.value.kind == "camera-disconnected" and "MessageQueue was closed" in str(err.value)

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from collect.arm import Arm, MotionSettings
+from collect.arm import WATCHDOG_HZ, Arm, MotionSettings
 from collect.errors import HardwareFault, InputError
 from collect.safety import SafetyLimits, SafetyViolation, tilt_deg
 from collect.transforms import rotation_between_rad
@@ -243,19 +244,23 @@ def test_every_configured_speed_is_checked_when_the_arm_is_built():
 
 
 class _FailingReceive(FakeRTDEReceive):
-    """Reads the robot state until ``fail`` is set, then raises as a broken RTDE link might."""
+    """Reads the robot state until ``fail`` is set, then raises it."""
 
     def __init__(self, controller):
         super().__init__(controller)
-        self.fail = False
+        self.fail: Exception | None = None
 
     def getActualTCPForce(self):
-        if self.fail:
-            raise RuntimeError("RTDE receive failed")
+        if self.fail is not None:
+            raise self.fail
         return super().getActualTCPForce()
 
 
-def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
+@pytest.mark.parametrize("error, kind", [(RuntimeError("RTDE receive failed"), "arm-disconnected"),
+                                         (ValueError("not a number"), "arm-monitor")])
+def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault(error, kind):
+    """ur_rtde raises RuntimeError once its reconnect to an unreachable robot fails: a lost link;
+    anything else is the monitor's own failure."""
     start = [0.4, 0.0, 0.2, *DOWN]
     controller = SimURController(_Still(), start)
     receive = _FailingReceive(controller)
@@ -263,14 +268,96 @@ def test_a_failing_state_monitor_stops_the_arm_and_records_a_fault():
     try:
         arm.start()
         assert controller.move_linear([0.4, 0.0, 0.3, *DOWN], 0.05, 0.5)  # a long move, sent around the driver
-        receive.fail = True
+        receive.fail = error
         # the monitor records the fault, then stops the arm
         wait_until(lambda: arm.fault is not None and np.linalg.norm(controller.tcp_speed()[:3]) == 0.0, 5.0)
-        assert arm.fault is not None and arm.fault.kind == "arm-monitor"
+        assert arm.fault is not None and arm.fault.kind == kind
         # stopped at once: at rest a few mm up, where the move would have gone on for 2 s
         assert np.linalg.norm(controller.tcp_speed()[:3]) == 0.0 and controller.tcp_pose()[2] < 0.21
     finally:
-        receive.fail = False
+        receive.fail = None
+        arm.close()
+
+
+class _UnreachableControl(FakeRTDEControl):
+    """Sends commands until ``unreachable`` is set, then raises as ur_rtde does when its reconnect fails."""
+
+    unreachable = False
+
+    def stopL(self, a=10.0, asynchronous=False):
+        if self.unreachable:
+            raise RuntimeError("Failed to connect to the RTDE interface: Connection refused")
+        return super().stopL(a, asynchronous)
+
+    def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
+        if self.unreachable:
+            raise RuntimeError("Failed to connect to the RTDE interface: Connection refused")
+        return super().moveL(pose, speed, acceleration, asynchronous)
+
+
+def test_a_lost_link_is_a_fault_and_the_stop_never_raises():
+    """Was: ur_rtde's RuntimeError out of stop() and moveL(), a traceback in place of the run's fault."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    control = _UnreachableControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        control.unreachable = True
+        arm.stop()  # does not raise: the fault is recorded
+        assert arm.fault is not None and arm.fault.kind == "arm-disconnected" and "stopL" in str(arm.fault)
+        with pytest.raises(HardwareFault) as err:
+            arm.move_to([0.4, 0.0, 0.25, *DOWN])
+        assert err.value.kind == "arm-disconnected"
+    finally:
+        control.unreachable = False
+        arm.close()
+
+
+class _SafetyStopped(FakeRTDEReceive):
+    """Reports ``bits`` from ``getSafetyStatusBits`` once they are set (an emergency or safeguard stop)."""
+
+    bits: int | None = None
+
+    def getSafetyStatusBits(self):
+        return super().getSafetyStatusBits() if self.bits is None else self.bits
+
+
+@pytest.mark.parametrize("bits, name", [(1 << 4 | 1 << 10, "safeguard stop"), (1 << 7 | 1 << 6, "robot emergency stop")])
+def test_an_emergency_or_safeguard_stop_ends_the_move_at_once(bits, name):
+    """Was: only the protective stop was watched; an E-stop mid-move was an ``arm-timeout`` after the
+    move's whole time budget, and a hold went on recording."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    receive = _SafetyStopped(controller)
+    arm = Arm(FakeRTDEControl(controller), receive, LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        receive.bits = bits
+        with pytest.raises(HardwareFault) as err:
+            arm.hold(5.0)
+        assert err.value.kind == "safety-stop" and name in str(err.value), err.value
+        with pytest.raises(HardwareFault, match="cannot retract, robot is in a safety stop"):
+            arm.retract()
+    finally:
+        arm.close()
+
+
+def test_the_robot_stops_by_itself_when_the_host_stops_kicking_its_watchdog():
+    """A hung host (here: the monitor thread stopped) during an asynchronous move: the controller's
+    watchdog brakes the move within 1 / WATCHDOG_HZ s (was: the move ran to its end unsupervised)."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    arm = Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        assert arm.watchdog_hz == WATCHDOG_HZ
+        assert controller.move_linear([0.4, 0.0, 0.4, *DOWN], 0.05, 0.5)  # 4 s long
+        time.sleep(0.3)
+        assert not controller.watchdog_fired  # kicked by the monitor
+        arm._monitor_loop.stop()  # the host hangs
+        t0 = time.monotonic()
+        wait_until(lambda: np.linalg.norm(controller.tcp_speed()[:3]) == 0.0, 5.0)
+        assert controller.watchdog_fired and time.monotonic() - t0 < 1.0 / WATCHDOG_HZ + 0.3
+        assert controller.tcp_pose()[2] < 0.3 and not controller.move_linear([0.4, 0.0, 0.25, *DOWN], 0.05, 0.5)
+    finally:
         arm.close()
 
 

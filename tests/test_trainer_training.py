@@ -3,6 +3,7 @@
 import fcntl
 import json
 import os
+import re
 import shutil
 import threading
 import time
@@ -104,6 +105,24 @@ def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
     full = train_model(_config([session], tmp_path / "full", epochs=2, export_onnx=False))
     assert [e.step for e in events if e.event == "step"][0] == 4
     assert result.steps == full.steps
+
+
+@pytest.mark.parametrize("change, named", [(dict(seed=1), "--seed"), (dict(holdout_object="box"), "split (--split"),
+                                           (dict(frame_stride=2), "--frame-stride")])
+def test_a_checkpoint_resumes_only_with_the_frames_it_trained_on(session, tmp_path, change, named):
+    """Was: ``--resume --seed 1`` after a seed-0 start validated on poses the first part had trained on,
+    and wrote held-out metrics for them."""
+    out = tmp_path / "model"
+
+    def interrupt(progress):
+        if progress.step == 3 and progress.event == "eval":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_model(_config([session], out, epochs=2, export_onnx=False), progress_callback=interrupt)
+    with pytest.raises(InputError, match=f"the checkpoint in {out} was trained with other settings \\(.*{re.escape(named)}"):
+        train_model(_config([session], out, epochs=2, export_onnx=False, resume=True, **change))
+    assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
 
 
 def test_stop_event_ends_training_early(session, tmp_path):

@@ -54,14 +54,16 @@ def split_in_class(frames: FrameSet, by: str = "poses", seed: int = 0, fraction:
 
 
 def split_holdout_object(frames: FrameSet, name: str):
-    """``(train_idx, val_idx)``: the contact frames of object ``name`` validate, everything else trains."""
+    """``(train_idx, val_idx)``: the contact frames of object ``name`` validate, the frames of every
+    other object train; no frame recorded for ``name`` trains, its no-contact frames included (was:
+    those trained, and the model's metadata listed ``name`` among its training objects)."""
     if name not in set(frames.object_name):
         raise InputError(f"held-out object {name!r} is not in the data ({', '.join(sorted(set(frames.object_name) - {''}))})")
-    held = (frames.object_name == name) & (frames.pose_id >= 0)
-    free_of_held = (frames.object_name == name) & (frames.pose_id < 0)
-    train = ~held
+    of_held = frames.object_name == name
+    held = of_held & (frames.pose_id >= 0)
+    train = ~of_held
     if not held.any():
         raise InputError(f"object {name!r} has no contact frames to hold out")
-    if (train & ~free_of_held).sum() == 0:
+    if not train.any():
         raise InputError(f"holding out {name!r} leaves no other object to train on")
     return np.flatnonzero(train), np.flatnonzero(held)

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from collect.errors import InputError
+from collect.json_files import plain_json
 from trainer.augmentation import augment_ir
 from trainer.checkpoint import CHECKPOINT_STATE, CHECKPOINT_WEIGHTS, has_checkpoint, load_checkpoint, save_checkpoint
 from trainer.dataset import (
@@ -197,6 +198,38 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
     return frames.subset(train_idx), frames.subset(val_idx), info
 
 
+def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, split_info: dict, world_size: int) -> dict:
+    """What decides which frames train, which validate and in what order: a checkpoint resumes only
+    with the same (``_check_resume``)."""
+    return plain_json({
+        "data": [s.sha256 for s in frames.sources],
+        "val_data": [s.sha256 for s in val_frames.sources] if config.val_data else [],
+        "split": split_info,
+        "objects": sorted(config.objects) if config.objects else None,
+        "frame_stride": config.frame_stride,
+        "seed": config.seed,
+        "batch_size": config.batch_size,
+        "world_size": world_size,
+    })
+
+
+def _check_resume(out_dir: Path, saved: dict | None, current: dict) -> None:
+    """Refuse to resume the checkpoint in ``out_dir`` with other data, split, seed or batches (was:
+    resumed, then validated on frames the first part had trained on, with held-out metrics to match)."""
+    if saved == current:
+        return
+    if saved is None:
+        raise InputError(f"the checkpoint in {out_dir} does not record which frames it trained on (an older "
+                         "bubble); train anew, without --resume")
+    names = {"data": "--data", "val_data": "--val-data", "split": "split (--split, --holdout-object, --val-data)",
+             "objects": "--objects", "frame_stride": "--frame-stride", "seed": "--seed", "batch_size": "--batch-size",
+             "world_size": "number of processes"}
+    changed = [names.get(k, k) for k in current if saved.get(k) != current[k]]
+    raise InputError(f"the checkpoint in {out_dir} was trained with other settings ({', '.join(changed)}): resume "
+                     "with the same ones, or train anew without --resume (its validation frames could be frames "
+                     "the checkpoint trained on)")
+
+
 def _diverged(config: TrainConfig, step: int, what: str) -> InputError:
     """The error of a training whose network diverged (``what`` says how it shows) after ``step`` steps;
     nothing is written as the model."""
@@ -309,6 +342,7 @@ def train_model(
     val_t = to_network_tensors(val_frames, metadata.geometry, metadata.normalization)
     sources = [s.to_dict() for s in frames.sources]
     val_sources = [s.to_dict() for s in val_frames.sources] if config.val_data else []
+    frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size)
     serials = sorted({s.sensor_serial for s in frames.sources})
     objects = sorted(set(train_frames.object_name) - {""})
     del frames, train_frames, val_frames  # the native copies; training uses the tensors only
@@ -324,6 +358,7 @@ def train_model(
     progress = {"epoch": 0.0, "step": 0, "train_s": 0.0, "history": [], "loss": float("nan")}
     if config.resume and has_checkpoint(out_dir):
         progress = load_checkpoint(out_dir, network, optimizer)
+        _check_resume(out_dir, progress.get("frames_key"), frames_key)
         network.to(ctx.device)
 
     minutes = DEFAULT_MINUTES if config.epochs is None and config.minutes is None else config.minutes
@@ -378,7 +413,8 @@ def train_model(
             history.append(val_live)
             if checkpoint:
                 save_checkpoint(out_dir, network, optimizer,
-                                {"epoch": epoch_f, "step": step, "train_s": train_s, "history": history, "loss": running})
+                                {"epoch": epoch_f, "step": step, "train_s": train_s, "history": history, "loss": running,
+                                 "frames_key": frames_key})
             report("eval")
         ctx.barrier()
 
