@@ -90,9 +90,8 @@ def test_estimator_predicts_native_depth(trained, session):
     assert np.allclose(estimator.predict_batch(np.stack([ir, ir]))[1], depth)
 
 
-def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
-    out = tmp_path / "model"
-
+def _interrupted_after_3_steps(session, out):
+    """A 2-epoch training into ``out`` interrupted (KeyboardInterrupt) at its validation after step 3."""
     def interrupt(progress):
         if progress.step == 3 and progress.event == "eval":
             raise KeyboardInterrupt
@@ -100,6 +99,11 @@ def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         train_model(_config([session], out, epochs=2, export_onnx=False), progress_callback=interrupt)
     assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
+
+
+def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
+    out = tmp_path / "model"
+    _interrupted_after_3_steps(session, out)
     events = []
     result = train_model(_config([session], out, epochs=2, export_onnx=False, resume=True), progress_callback=events.append)
     full = train_model(_config([session], tmp_path / "full", epochs=2, export_onnx=False))
@@ -113,13 +117,7 @@ def test_a_checkpoint_resumes_only_with_the_frames_it_trained_on(session, tmp_pa
     """Was: ``--resume --seed 1`` after a seed-0 start validated on poses the first part had trained on,
     and wrote held-out metrics for them."""
     out = tmp_path / "model"
-
-    def interrupt(progress):
-        if progress.step == 3 and progress.event == "eval":
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train_model(_config([session], out, epochs=2, export_onnx=False), progress_callback=interrupt)
+    _interrupted_after_3_steps(session, out)
     with pytest.raises(InputError, match=f"the checkpoint in {out} was trained with other settings \\(.*{re.escape(named)}"):
         train_model(_config([session], out, epochs=2, export_onnx=False, resume=True, **change))
     assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
