@@ -8,7 +8,7 @@ Calls made (the twin implements exactly these, a test checks them against the in
 control ``moveL(pose, speed, acceleration, asynchronous)``, ``stopL(a, asynchronous)``,
 ``zeroFtSensor()``, ``setWatchdog(min_frequency)``, ``kickWatchdog()``, ``disconnect()``; receive
 ``getActualTCPPose()``, ``getActualTCPForce()``, ``getActualTCPSpeed()``, ``getSafetyStatusBits()``,
-``isConnected()``, ``disconnect()``. ur_rtde raises ``RuntimeError`` from a call whose reconnect
+``getTimestamp()``, ``isConnected()``, ``disconnect()``. ur_rtde raises ``RuntimeError`` from a call whose reconnect
 failed (the robot unreachable): every call is made through ``_LinkGuard``, which turns that into
 ``HardwareFault('arm-disconnected')``, and ``stop`` never raises.
 
@@ -23,7 +23,10 @@ the robot's safety stops (``getSafetyStatusBits``: a protective stop is
 ``HardwareFault('safety-stop')``) and the measured force against ``SafetyLimits.force_limit_n``.
 Each sample also kicks the controller's watchdog (``setWatchdog`` at ``watchdog_hz``, set when the
 monitor starts): should this host hang or the link die mid-move, the robot stops by itself
-instead of finishing an asynchronous move unsupervised.
+instead of finishing an asynchronous move unsupervised. A link that dies without closing its
+socket leaves ur_rtde returning its last state with ``isConnected()`` still true: a controller
+clock (``getTimestamp``) that has not moved for ``STALE_STATE_S`` of the bench clock is
+``HardwareFault('arm-disconnected')`` too, not a force check on frozen values.
 Over the limit it sends ``stopL`` at once and records ``HardwareFault('force-spike')`` when the
 force jumped past the limit within one sample (by more than half the limit: a collision or a
 sensor spike) or ``HardwareFault('force-limit')`` when it ramped up; the running motion raises
@@ -83,6 +86,9 @@ SAFETY_STOP_BITS = {2: "protective stop", 3: "recovery mode", 4: "safeguard stop
                     6: "robot emergency stop", 7: "emergency stop", 8: "safety violation", 9: "safety fault",
                     10: "stopped due to safety"}
 PROTECTIVE_STOP_BIT = 2
+#: The controller publishes its state at 125-500 Hz: a controller time (``getTimestamp``) that has
+#: not moved for this long (s, bench clock) is a dead link.
+STALE_STATE_S = 0.25
 
 
 def safety_stops(bits: int) -> list[str]:
@@ -286,9 +292,19 @@ class Arm:
         limit = self.limits.force_limit_n
         was_stopped = False  # a safety stop in the previous sample
         over_limit = False  # within the last excursion over the force limit (until re-armed)
+        controller_t, controller_t_since = None, self.clock()  # the controller's clock, and since when (bench clock)
         while not self._monitor_loop.stop_event.is_set():
             if not self._rcv.isConnected():
                 self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
+                return
+            now_t = self._rcv.getTimestamp()
+            if now_t != controller_t:
+                controller_t, controller_t_since = now_t, self.clock()
+            elif self.clock() - controller_t_since > STALE_STATE_S:
+                self._set_fault(HardwareFault(
+                    "arm-disconnected", f"arm: the robot's state has not changed for {STALE_STATE_S:g} s (its "
+                                        "clock stopped): the link is dead"))
+                self.stop()
                 return
             with self._ctl_lock:
                 self._ctl.kickWatchdog()

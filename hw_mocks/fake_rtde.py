@@ -287,6 +287,9 @@ class FakeRTDEReceive:
     def getSafetyStatusBits(self) -> int:
         return self._c.safety_status_bits()
 
+    def getTimestamp(self) -> float:
+        return self._c.scene.now()
+
     def isConnected(self) -> bool:
         return self._connected
 

@@ -369,3 +369,28 @@ def test_every_motion_setting_and_scalar_limit_has_an_upper_bound():
 
     assert list(MOTION_BOUNDS) == [f.name for f in dataclasses.fields(MotionSettings)]
     assert set(LIMIT_BOUNDS) == {f.name for f in dataclasses.fields(SafetyLimits)} - {"workspace_min", "workspace_max"}
+
+
+class _FrozenLink(FakeRTDEReceive):
+    """A link that died without closing its socket: ur_rtde keeps returning the last state once ``frozen``."""
+
+    frozen: float | None = None
+
+    def getTimestamp(self):
+        return super().getTimestamp() if self.frozen is None else self.frozen
+
+
+def test_a_robot_state_that_stops_changing_is_a_dead_link():
+    """Was: the monitor went on checking the force on frozen values, the move unsupervised."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    receive = _FrozenLink(controller)
+    arm = Arm(FakeRTDEControl(controller), receive, LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        assert controller.move_linear([0.4, 0.0, 0.3, *DOWN], 0.05, 0.5)
+        receive.frozen = receive.getTimestamp()
+        wait_until(lambda: arm.fault is not None, 2.0)
+        assert arm.fault.kind == "arm-disconnected" and "state has not changed for 0.25 s" in str(arm.fault)
+        wait_until(lambda: np.linalg.norm(controller.tcp_speed()[:3]) == 0.0, 2.0)  # and stopped it
+    finally:
+        arm.close()
