@@ -89,7 +89,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
     ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
     Returns the loaded thresholds."""
-    from calibrate.run_directory import SESSION_FILE, recording_done
+    from calibrate.run_directory import SESSION_FILE, RunState, recording_done, run_settings
     from calibrate.sensor_registry import PROFILE, SensorRegistry
     from collect.output_files import check_parent_dirs
     from collect.pose_planner import MAX_POSES_PER_OBJECT, check_unique_names
@@ -142,4 +142,18 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         for fault in config.sim_faults:
             parse_sim_fault(fault)
         check_sim_speed(config.sim_speed)
-    return acceptance.load_thresholds(config.thresholds)
+    thresholds = acceptance.load_thresholds(config.thresholds)
+    # a run folder of other settings (another sensor or seed, other objects): refused now, not once the
+    # TUI's operator has confirmed the start (the flow's own check comes after that)
+    sensor_id = load_sensor_spec(config).serial if config.simulated else "hardware"
+    RunState.check(run_dir, run_settings(config, sensor_id, thresholds))
+    return thresholds
+
+
+def load_sensor_spec(config: CommissionConfig):
+    """The simulated sensor's ``SensorSpec``: ``config.sensor_spec``'s file, or drawn from ``config.seed``."""
+    from hw_mocks.sensor_spec import SensorSpec, draw_sensor
+
+    if config.sensor_spec is not None:
+        return SensorSpec.from_yaml(config.sensor_spec)
+    return draw_sensor(config.seed)

@@ -54,7 +54,7 @@ from typing import Callable
 import numpy as np
 
 from calibrate import acceptance
-from calibrate.commission_config import CommissionConfig, validate_config
+from calibrate.commission_config import CommissionConfig, load_sensor_spec, validate_config
 from calibrate.commission_events import (
     STEPS,
     ArmSafeStopped,
@@ -723,14 +723,6 @@ class _FrameTap:
         return getattr(self._camera, name)
 
 
-def _load_sensor_spec(config: CommissionConfig):
-    from hw_mocks.sensor_spec import SensorSpec, draw_sensor
-
-    if config.sensor_spec is not None:
-        return SensorSpec.from_yaml(config.sensor_spec)
-    return draw_sensor(config.seed)
-
-
 def run_commissioning(
     config: CommissionConfig,
     on_event: Callable[[CommissionEvent], None] = lambda e: None,
@@ -744,7 +736,7 @@ def run_commissioning(
     raises, after the arm's safe stop.
     """
     thresholds = validate_config(config)
-    spec = _load_sensor_spec(config) if config.simulated else None
+    spec = load_sensor_spec(config) if config.simulated else None
     if config.base_model is None:
         from trainer.model_dir import BASE_MODEL_DIR
 

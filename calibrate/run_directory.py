@@ -91,6 +91,18 @@ class RunState:
             state = cls(path, {"version": STATE_VERSION, "settings": settings, "created": utc_now(), "steps": {}})
             state.save()
             return state
+        return cls._read(run_dir, settings)
+
+    @classmethod
+    def check(cls, run_dir: Path, settings: dict) -> None:
+        """``InputError`` now, writing nothing, where ``open`` would raise it: ``run_dir`` holds a run
+        with other settings, or a damaged ``state.json``."""
+        if (run_dir / STATE_FILE).exists():
+            cls._read(run_dir, settings)
+
+    @classmethod
+    def _read(cls, run_dir: Path, settings: dict) -> "RunState":
+        path = run_dir / STATE_FILE
         try:
             data = json.loads(path.read_text())
         except JSON_READ_ERRORS as err:

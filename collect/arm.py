@@ -8,9 +8,9 @@ Calls made (the twin implements exactly these, a test checks them against the in
 control ``moveL(pose, speed, acceleration, asynchronous)``, ``stopL(a, asynchronous)``,
 ``zeroFtSensor()``, ``setWatchdog(min_frequency)``, ``kickWatchdog()``, ``disconnect()``; receive
 ``getActualTCPPose()``, ``getActualTCPForce()``, ``getActualTCPSpeed()``, ``getSafetyStatusBits()``,
-``getTimestamp()``, ``isConnected()``, ``disconnect()``. ur_rtde raises ``RuntimeError`` from a call whose reconnect
-failed (the robot unreachable): every call is made through ``_LinkGuard``, which turns that into
-``HardwareFault('arm-disconnected')``, and ``stop`` never raises.
+``getTimestamp()``, ``isConnected()``, ``disconnect()``. ur_rtde raises ``RuntimeError`` from a
+call whose reconnect failed (the robot unreachable): every call is made through ``_LinkGuard``,
+which turns that into ``HardwareFault('arm-disconnected')``, and ``stop`` never raises.
 
 Poses are ``[x, y, z, rx, ry, rz]`` (m + rotation vector) of the TCP (the membrane apex) in the
 base frame; wrenches ``[Fx, Fy, Fz, Tx, Ty, Tz]`` (N, N m) on the sensor in the base frame.
@@ -252,6 +252,7 @@ class Arm:
         self._retract_pose: np.ndarray | None = None
         self._stop_request: threading.Event | None = None
         self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
+        self._monitor_ended = False  # the monitor thread returned (a fault, or close)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -260,6 +261,7 @@ class Arm:
             return
         with self._ctl_lock:
             self._ctl.setWatchdog(self.watchdog_hz)
+        self._monitor_ended = False
         self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
 
@@ -285,6 +287,10 @@ class Arm:
         except Exception as err:  # a dead monitor must not leave a motion unsupervised
             self._set_fault(HardwareFault("arm-monitor", f"arm: state monitor failed ({type(err).__name__}: {err})"))
             self.stop()
+        finally:
+            with self._cond:
+                self._monitor_ended = True  # on a fault: the motions waiting for a sample raise it
+                self._cond.notify_all()
 
     def _watch(self) -> None:
         next_t = time.monotonic()
@@ -346,11 +352,12 @@ class Arm:
     def _next_sample(self, timeout_s: float = 1.0) -> ArmState:
         with self._cond:
             seen = self._latest
-            if not self._cond.wait_for(lambda: self._latest is not seen, timeout=timeout_s):
-                if self._latest_fault is not None:  # the monitor ended on it (a lost link)
-                    raise self._latest_fault
-                raise HardwareFault("arm-timeout", f"arm: no state sample from the robot within {timeout_s} s")
-            return self._latest
+            self._cond.wait_for(lambda: self._latest is not seen or self._monitor_ended, timeout=timeout_s)
+            if self._latest is not seen:
+                return self._latest
+            if self._monitor_ended and self._latest_fault is not None:  # it ended on a lost link
+                raise self._latest_fault
+            raise HardwareFault("arm-timeout", f"arm: no state sample from the robot within {timeout_s} s")
 
     @property
     def running(self) -> bool:

@@ -548,3 +548,14 @@ def test_a_run_whose_recording_is_done_resumes_on_a_disk_too_full_to_record(faul
     assert run_commissioning(config, lambda e: None).accepted
     with pytest.raises(InputError, match="recording needs at least"):  # a new run still is refused
         run_commissioning(dataclasses.replace(config, run_dir=tmp_path / "new"), lambda e: None)
+
+
+def test_the_tui_refuses_a_run_folder_of_another_sensor_before_it_starts(faulted_then_resumed, capsys):
+    """Was: accepted at start-up, refused by the flow only once the operator had confirmed the start."""
+    config = faulted_then_resumed["config"]
+    argv = ["tui", "--sim", "--seed", "4", "--objects", "box", "--poses-per-object", "2", "--out", str(config.run_dir),
+            "--registry", str(config.registry_dir), "--thresholds", str(config.thresholds)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bubble: error: {config.run_dir} holds a run with sensor='SB-SIM-000003', not "
+                          "'SB-SIM-000004'") and err.count("\n") == 1, err
