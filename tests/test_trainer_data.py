@@ -36,6 +36,20 @@ def test_pose_split_never_straddles_a_pose_and_is_seeded(make_synthetic_session,
     assert abs(len(f_train) / len(frames) - 0.7) < 0.05
 
 
+def test_held_out_poses_do_not_depend_on_how_many_frames_were_recorded(make_synthetic_session, tmp_path):
+    """A re-recording of the same plan holds a few frames more or fewer: the held-out poses stay the
+    same (was: one generator for every object, whose draws for the first object's free frames moved
+    the next object's pose choice)."""
+    frames = load_frames([make_synthetic_session(tmp_path / "s.h5", poses_per_object=5)], free_fraction=0.25)
+    fewer = frames.subset(np.flatnonzero(~((frames.object_name == "box") & (frames.phase == "free")))[1:])
+
+    def held_out(fs):
+        _, val = split_in_class(fs, by="poses", seed=3)
+        return {(o, int(p)) for o, p in zip(fs.object_name[val], fs.pose_id[val]) if p >= 0}
+
+    assert len(fewer) < len(frames) and held_out(fewer) == held_out(frames)
+
+
 def test_holdout_object_split(synthetic_session):
     frames = load_frames([synthetic_session])
     train, val = split_holdout_object(frames, "box")

@@ -7,10 +7,16 @@
 * by session / sensor: validate on other session files (``--val-data``), no split function needed.
 
 Free frames (no contact, pose -1) are split at random by frame in ``frames`` and ``poses``;
-with a held-out object they go to training.
+with a held-out object the other objects' free frames train and the held-out object's are left out.
+Each (session, object) draws from its own generator, seeded by ``seed``, the session's index and
+the object's name, and its free frames from another: which poses are held out depends on those and
+on the object's pose ids only, not on how many frames the recording holds (was: one generator for
+all, so a re-recording of the same plan with a few frames more or less held out other poses).
 """
 
 from __future__ import annotations
+
+import zlib
 
 import numpy as np
 
@@ -35,20 +41,21 @@ def split_in_class(frames: FrameSet, by: str = "poses", seed: int = 0, fraction:
     """``(train_idx, val_idx)`` int64 arrays: within each (session, object), 70/30 of frames or poses."""
     if by not in SPLITS:
         raise InputError(f"unknown split {by!r}; choose one of {', '.join(SPLITS)}")
-    rng = np.random.default_rng(seed)
     train = np.zeros(len(frames), dtype=bool)
     keys = {(int(s), str(o)) for s, o in zip(frames.session, frames.object_name)}
     for s, o in sorted(keys):
         members = np.flatnonzero((frames.session == s) & (frames.object_name == o))
+        key = (int(seed), s, zlib.crc32(o.encode()))
         if by == "frames":
-            mask = _split_groups(np.arange(len(members)), rng, fraction)
+            mask = _split_groups(np.arange(len(members)), np.random.default_rng(key), fraction)
         else:
             contact = frames.pose_id[members] >= 0
             mask = np.zeros(len(members), dtype=bool)
             if contact.any():
-                mask[contact] = _split_groups(frames.pose_id[members][contact], rng, fraction)
+                mask[contact] = _split_groups(frames.pose_id[members][contact], np.random.default_rng(key), fraction)
             if (~contact).any():
-                mask[~contact] = _split_groups(np.arange(int((~contact).sum())), rng, fraction)
+                mask[~contact] = _split_groups(np.arange(int((~contact).sum())), np.random.default_rng((*key, 1)),
+                                               fraction)
         train[members] = mask
     return np.flatnonzero(train), np.flatnonzero(~train)
 
