@@ -204,7 +204,7 @@ def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, spl
     return plain_json({
         "data": [s.sha256 for s in frames.sources],
         "val_data": [s.sha256 for s in val_frames.sources] if config.val_data else [],
-        "split": split_info,
+        "split": {k: v for k, v in split_info.items() if k != "val_data"},  # its paths: the files are in "val_data"
         "objects": sorted(config.objects) if config.objects else None,
         "frame_stride": config.frame_stride,
         "seed": config.seed,
