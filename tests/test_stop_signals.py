@@ -40,16 +40,6 @@ def test_a_handler_that_only_asks_for_a_stop_is_called_once():
     assert calls == [signal.SIGTERM]
 
 
-@pytest.fixture
-def interrupt_handlers_restored():
-    """The test leaves this process's handlers as it found them (a command's outermost block leaves
-    them ignored, for the process's exit)."""
-    before = {sig: signal.getsignal(sig) for sig in INTERRUPTS}
-    yield
-    for sig, handler in before.items():
-        signal.signal(sig, handler)
-
-
 def test_once_a_command_has_stopped_a_repeat_cannot_change_how_its_process_ends(interrupt_handlers_restored, capfd):
     """Was: the command's block put the default handlers back after a stop that took under 20 ms,
     and a second Ctrl-C killed the exiting process (exit -2 to its parent, not 130)."""

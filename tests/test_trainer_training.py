@@ -5,6 +5,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import threading
 import time
 
@@ -400,3 +401,34 @@ def test_a_diverged_training_writes_no_model(session, tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"training diverged after 1 step \(the loss is nan\)"):
         train_model(_config([session], tmp_path / "n", export_onnx=False))
     assert not (tmp_path / "n" / WEIGHTS_FILE).exists()
+
+
+def test_ctrl_c_during_training_checkpoints_the_step_reached(bubble, session, tmp_path, monkeypatch, capsys,
+                                                              interrupt_handlers_restored):
+    """Ctrl-C in ``bubble train`` ends the step in progress, checkpoints it and exits 130; ``--resume``
+    goes on from that step. Was: the process ended where the signal found it, and before the first
+    periodic checkpoint (every 20 s) nothing was left to resume."""
+    from rich.progress import Progress
+
+    update = Progress.update
+    steps_shown = []
+
+    def update_then_ctrl_c(self, task, **fields):  # the operator presses Ctrl-C as the bar shows step 2
+        update(self, task, **fields)
+        steps_shown.append(fields.get("completed"))
+        if len(steps_shown) == 3:  # the untrained model's validation, step 1, step 2
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(Progress, "update", update_then_ctrl_c)
+    out = tmp_path / "m"
+    train = ("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "1", "--batch-size", "4",
+             "--no-onnx", "--threads", "1")
+    assert bubble(*train) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == (f"bubble: interrupted: its checkpoint at step 2 (0.0 min of training) is in {out}: continue "
+                       "with the same command and --resume"), err
+    assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
+    assert json.loads((out / "checkpoint.json").read_text())["progress"]["step"] == 2
+    monkeypatch.setattr(Progress, "update", update)
+    assert bubble(*train, "--resume") == 0
+    assert load_metadata(out).training["steps"] > 2 and not has_checkpoint(out)

@@ -9,6 +9,9 @@ from __future__ import annotations
 import argparse
 import errno
 import math
+import signal
+import sys
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext, suppress
 from pathlib import Path
@@ -159,6 +162,7 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    from calibrate.stop_signals import INTERRUPTS, exit_code, raise_interrupt, stop_signals_handled
     from collect.errors import InputError
     from trainer.checkpoint import has_checkpoint
     from trainer.model_dir import WEIGHTS_FILE
@@ -188,6 +192,8 @@ def run_train(args: argparse.Namespace) -> int:
         augment=not args.no_augment,
         export_onnx=not args.no_onnx,
         threads=args.threads,
+        write_on_stop=False,
+        checkpoint_on_stop=True,
         **options,
     )
     console = Console(stderr=True)
@@ -201,6 +207,17 @@ def run_train(args: argparse.Namespace) -> int:
     )
     bar = Progress(*columns, console=console)
     task = None
+
+    stop = threading.Event()
+    stopped_by: list[int] = []
+
+    def on_signal(signum: int) -> None:
+        """Ctrl-C (SIGTERM, SIGHUP) while the data loads ends at once, as before any command; once
+        training has begun it ends the step in progress and checkpoints it for ``--resume``."""
+        if task is None:
+            raise_interrupt(signum)
+        stopped_by.append(signum)
+        stop.set()
 
     def on_progress(p) -> None:
         nonlocal task
@@ -223,12 +240,18 @@ def run_train(args: argparse.Namespace) -> int:
                 left = ("its training finished (a model, no checkpoint)" if (out / WEIGHTS_FILE).exists()
                         else "it holds no checkpoint of an interrupted training")
                 raise InputError(f"cannot resume {out}: {left}; choose another --out, or drop --resume")
-            result = train_model(config, progress_callback=on_progress)
+            with stop_signals_handled(on_signal, INTERRUPTS):
+                result = train_model(config, on_progress, stop)
     finally:
         if task is not None:  # stopping a bar never started prints an empty line before the error
             bar.stop()
     if result is None:  # a non-zero torchrun rank
         return 0
+    if result.stopped:
+        kept = (f"its checkpoint at step {result.steps} ({result.train_s / 60:.1f} min of training) is in {out}: "
+                "continue with the same command and --resume" if has_checkpoint(out) else "nothing to resume yet")
+        print(f"bubble: interrupted: {kept}", file=sys.stderr)
+        return exit_code(stopped_by[0] if stopped_by else signal.SIGINT)
     if args.json is not None:
         write_json_result(args.json, "bubble train", result.metrics)
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))

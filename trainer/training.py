@@ -111,6 +111,7 @@ class TrainConfig:
     deadline_s: float | None = None  # wall-time limit (s) of the whole train_model call; None: budget only
     export_onnx: bool = True
     write_on_stop: bool = True  # False: a stop_event ends the call at once, no final validation nor model written
+    checkpoint_on_stop: bool = False  # with write_on_stop False: checkpoint the step reached, for a later resume
     threads: int | None = None  # torch CPU threads; None: the cores shared by local processes
 
 
@@ -319,7 +320,8 @@ def train_model(
     ends training early: the model so far is still validated and written, or, with
     ``config.write_on_stop`` False (a caller that throws it away), the call returns at once with
     ``stopped`` set and empty ``metrics``, and ``config.out`` keeps only the last periodic
-    checkpoint, if any. Raises ``InputError`` for bad data or settings. Under torchrun only rank 0
+    checkpoint, if any, or (``config.checkpoint_on_stop``: ``bubble train`` stopped by Ctrl-C) a
+    checkpoint of the step the stop found, which ``resume`` continues. Raises ``InputError`` for bad data or settings. Under torchrun only rank 0
     returns a result (the others None).
     """
     call_start = time.perf_counter()
@@ -403,7 +405,11 @@ def train_model(
         eta = train_s / frac * (1.0 - frac) if frac > 0 else None
         progress_callback(TrainProgress(epoch_f, step, running, _learning_rate(config.lr, frac), train_s, frac, eta, val_live, event))
 
-    def validate_and_checkpoint(checkpoint: bool = True) -> None:
+    def checkpoint() -> None:
+        save_checkpoint(out_dir, network, optimizer, {"epoch": epoch_f, "step": step, "train_s": train_s,
+                                                      "history": history, "loss": running, "frames_key": frames_key})
+
+    def validate_and_checkpoint(with_checkpoint: bool = True) -> None:
         nonlocal val_live, eval_s_per_frame
         if ctx.is_main:
             t0 = time.perf_counter()
@@ -411,15 +417,13 @@ def train_model(
             eval_s_per_frame = (time.perf_counter() - t0) / len(live_val)
             val_live = {"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running, **metrics}
             history.append(val_live)
-            if checkpoint:
-                save_checkpoint(out_dir, network, optimizer,
-                                {"epoch": epoch_f, "step": step, "train_s": train_s, "history": history, "loss": running,
-                                 "frames_key": frames_key})
+            if with_checkpoint:
+                checkpoint()
             report("eval")
         ctx.barrier()
 
     if not history:  # the curve starts with the untrained (or init) model
-        validate_and_checkpoint(checkpoint=False)
+        validate_and_checkpoint(with_checkpoint=False)
     model.train()
     # a stop requested while the data loaded or the init model was validated ends the call before a step
     # (was: one step, then, with the deadline passed meanwhile, a model written as if it had finished)
@@ -477,6 +481,8 @@ def train_model(
 
     result = None
     if ctx.is_main and stopped and not config.write_on_stop:
+        if config.checkpoint_on_stop and step > 0:  # a stop checked between steps: optimizer and weights agree
+            checkpoint()
         result = TrainResult(out_dir, {}, history, epoch_f, step, train_s, True, _peak_rss_mb())
     elif ctx.is_main:
         metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
