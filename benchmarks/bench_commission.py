@@ -12,7 +12,12 @@ For each seed (sensors the base model never saw: pretraining uses seeds 1000 and
    the calibration set (a sphere and a capsule, written as STL files and pressed through the same
    ``bubble collect`` code) and evaluate the commissioned model on it (``trainer.evaluation``).
 
-Targets: end to end <= 5 min wall on the 2-core CPU, fine-tune step <= 3 min, held-out a1 >= 0.95.
+3. one defective sensor per simulated defect (``draw_sensor(seed, defect)``: a leak, dead pixels,
+   no printed dots), commissioned the same way: each must be rejected, by the check that guards
+   against its defect.
+
+Targets: end to end <= 5 min wall on the 2-core CPU, fine-tune step <= 3 min, held-out a1 >= 0.95,
+every good sensor accepted and every defective one rejected.
 """
 
 from __future__ import annotations
@@ -38,7 +43,12 @@ from trainer.splits import TRAIN_FRACTION  # noqa: E402
 TARGET_TOTAL_S = 300.0
 TARGET_FINETUNE_S = 180.0
 TARGET_A1 = 0.95
+#: The checks that must reject each simulated defect (calibrate/acceptance_thresholds.yaml).
+DEFECT_CHECKS = {"leak": ("leak_rate_hpa_per_min",), "dead-pixels": ("dead_pixels", "stuck_pixels"),
+                 "no-dots": ("dot_contrast", "dot_count")}
 UNSEEN_POSES = 6
+#: The seed of the defective sensors (one per defect).
+DEFECT_SEED = 909
 
 
 def unseen_meshes(work: Path) -> list[Path]:
@@ -73,11 +83,12 @@ def record_unseen(spec_path: Path, meshes: list[Path], seed: int, out: Path) -> 
     return out
 
 
-def commission_one(seed: int, work: Path, minutes: float, base_model: Path | None) -> dict:
+def commission_one(seed: int, work: Path, minutes: float, base_model: Path | None, defect: str | None = None) -> dict:
     from hw_mocks.sensor_spec import draw_sensor
 
-    spec = draw_sensor(seed)
-    spec_path = work / f"sensor_{seed}.yaml"
+    spec = draw_sensor(seed, defect)
+    name = f"{seed}" if defect is None else f"{seed}_{defect}"
+    spec_path = work / f"sensor_{name}.yaml"
     spec.to_yaml(spec_path)
     starts: dict[str, float] = {}
     durations: dict[str, float] = {}
@@ -90,7 +101,7 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
             durations[event.step.value] = now - starts[event.step.value]
 
     config = CommissionConfig(
-        run_dir=work / f"run_{seed}",
+        run_dir=work / f"run_{name}",
         sensor_spec=spec_path,
         registry_dir=work / "registry",
         finetune_minutes=minutes,
@@ -107,7 +118,8 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
     checks = {c["name"]: c["value"] for c in doc["checks"]}
     finetune = state.get("finetune", {})
     row = {
-        "seed": seed, "serial": spec.serial, "accepted": result.accepted, "reason": result.reason, "total_s": total,
+        "seed": seed, "defect": defect, "failed_checks": [c["name"] for c in doc["checks"] if not c["passed"] and c["value"] is not None],
+        "serial": spec.serial, "accepted": result.accepted, "reason": result.reason, "total_s": total,
         "steps": durations, "train_s": finetune.get("train_s"), "finetune_deadline_s": finetune.get("deadline_s"),
         "run_budget_cut": bool(finetune.get("deadline_from_run_budget")), "a1": doc.get("a1"), "abs_rel": doc.get("abs_rel"), "rmse": doc.get("rmse"),
         "truth_a1": checks.get("truth_a1"), "contact_rmse": checks.get("contact_rmse_mm"), "pose_e_x": checks.get("pose_e_x_median_mm"),
@@ -154,8 +166,10 @@ def _spread(values: list[float], fmt: str) -> str:
     return f"{format(min(values), fmt)} / {format(statistics.median(values), fmt)} / {format(max(values), fmt)}"
 
 
-def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
+def write_doc(all_rows: list[dict], args, load: tuple[float, float]) -> Path:
     steps = [s.value for s in Step]
+    rows = [r for r in all_rows if r["defect"] is None]
+    defective = [r for r in all_rows if r["defect"] is not None]
     lines = [
         "# Benchmark: `bubble commission --sim` end to end",
         "",
@@ -197,6 +211,7 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         f"the run's {CommissionConfig.total_minutes:g}-min budget (the steps before it ran long) on "
         f"{', '.join(str(r['seed']) for r in rows if r['run_budget_cut']) or 'no sensor'}",
         f"* held-out a1: {_spread([r['a1'] for r in rows], '.3f')}",
+        f"* held-out contact rmse (mm): {_spread([r['contact_rmse'] for r in rows], '.3f')}",
         f"* a1 on unseen meshes (sphere, capsule): {_spread([r.get('unseen_a1') for r in rows], '.3f')}",
         f"* pose check, median e_x predicted vs measured: {_spread([r['pose_e_x'] for r in rows], '.2f')} mm; "
         f"per held-out mug pose: "
@@ -206,6 +221,23 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         f"* accepted: {sum(r['accepted'] for r in rows)} of {len(rows)}",
         "",
     ]
+    if defective:
+        lines += [
+            "Defective sensors (`draw_sensor(seed, defect)`), commissioned the same way: each must be rejected by a "
+            "check that guards against its defect.",
+            "",
+            "| seed | defect | verdict | total (s) | failed checks (measured) | by its guard | reason |",
+            "|---|---|---|---|---|---|---|",
+            *(f"| {r['seed']} | {r['defect']} | {'accepted' if r['accepted'] else 'rejected'} | {r['total_s']:.0f} | "
+              f"{', '.join(r['failed_checks']) or '-'} | "
+              f"{'yes' if set(r['failed_checks']) & set(DEFECT_CHECKS[r['defect']]) else 'no'} | {r['reason']} |"
+              for r in defective),
+            "",
+            f"* defective sensors rejected by their guard: "
+            f"{sum(not r['accepted'] and bool(set(r['failed_checks']) & set(DEFECT_CHECKS[r['defect']])) for r in defective)}"
+            f" of {len(defective)}",
+            "",
+        ]
     for r in rows:
         if not r["accepted"]:
             lines.append(f"* seed {r['seed']} rejected: {r['reason']}")
@@ -225,7 +257,7 @@ def write_doc(rows: list[dict], args, load: tuple[float, float]) -> Path:
         "ToF dropouts included) and with the ToF (where it is valid); "
         "\"a1 on ToF dropouts\" is the model's a1 against the truth where the ToF gave no depth.",
         "",
-        f"Rerun: `.venv/bin/python benchmarks/bench_commission.py --seeds {args.seeds}`",
+        f"Rerun: `.venv/bin/python benchmarks/bench_commission.py --seeds {args.seeds} --defects {args.defects}`",
         "",
     ]
     path = ROOT / "docs" / "bench_commission.md"
@@ -238,15 +270,21 @@ def main() -> int:
     parser.add_argument("--seeds", default="101,202,303", help="comma-separated sensor seeds (default 101,202,303)")
     parser.add_argument("--minutes", type=float, default=CommissionConfig.finetune_minutes, help="fine-tune budget")
     parser.add_argument("--base-model", type=Path, help="model to fine-tune from (default: the packaged base model)")
+    parser.add_argument("--defects", default=",".join(DEFECT_CHECKS),
+                        help=f"comma-separated simulated defects, one defective sensor each (seed {DEFECT_SEED}; '' for none)")
     parser.add_argument("--work", help="keep the runs here (default: a temporary directory)")
     parser.add_argument("--no-doc", action="store_true", help="print only, do not write docs/bench_commission.md")
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    defects = [d.strip() for d in args.defects.split(",") if d.strip()]
+    if not seeds or any(d not in DEFECT_CHECKS for d in defects):
+        parser.error(f"give at least one seed, and defects among {', '.join(DEFECT_CHECKS)}")
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
         rows = [commission_one(seed, work, args.minutes, args.base_model) for seed in seeds]
+        rows += [commission_one(DEFECT_SEED, work, args.minutes, args.base_model, defect) for defect in defects]
     if not args.no_doc:
         print(f"wrote {write_doc(rows, args, (load_before, os.getloadavg()[0]))}")
     return 0

@@ -14,7 +14,8 @@ Without ``--session``/``--model`` it records one session per sensor seed (``--se
 sensors by default, about 26 minutes: one sensor's ratio to the ToF moves by 0.2-1.2 between
 recordings of its seed, and three sensors pooled gave 2.02 where the same three and three more gave
 1.61; docs/pose_unseen_object.md) with ``bubble collect --sim`` and fine-tunes the base model on each with ``bubble train``
-(held out: the mug, so the check runs on an object the model was not trained on, as in the paper).
+(held out: the mug, so the check runs on an object this sensor's fine-tune never saw, as in the paper;
+the base model it starts from was pretrained on other sensors pressing the mug among the other objects).
 Writes ``docs/bench_pose.md`` (``--out``).
 """
 
@@ -42,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 from calibrate.contact_patch import contact_points  # noqa: E402
 from calibrate.pose_estimation import Pose, ProximityPoseEstimator, quat_to_matrix, shape_from_object  # noqa: E402
 from hw_mocks.objects import load_object  # noqa: E402
-from trainer.model_dir import METADATA_FILE  # noqa: E402
+from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
 
 #: The built-in mug's primitive: a cylinder lying on its side, axis along object x.
 MUG = shape_from_object(load_object("mug").primitive)
@@ -139,6 +140,10 @@ def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Pa
         _bubble("collect", "--sim", "--objects", "mug,wine_glass,box,fingers", "--poses-per-object", "8",
                 "--seed", str(seed), "--out", str(session))
     if reused_model:
+        training = load_metadata(model).training
+        if training["budget"]["minutes"] != minutes or training["split"].get("object") != "mug":
+            sys.exit(f"bench_pose: {model} was fine-tuned for {training['budget']['minutes']} min with split "
+                     f"{training['split']}, not --train-minutes {minutes:g} holding out the mug: use another --work")
         print(f"reusing {model}", flush=True)
     else:
         _bubble("train", "--data", str(session), "--init", "base", "--holdout-object", "mug",
@@ -146,15 +151,17 @@ def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Pa
     return session, model, reused_session and reused_model
 
 
-def bench_accuracy(inputs: list[tuple[str, Path, Path]], plots: Path) -> tuple[dict, list[tuple[str, dict]]]:
+def bench_accuracy(inputs: list[tuple[str, Path, Path]], plots: Path) -> tuple[dict, list[tuple[str, dict, dict]]]:
     """The pose check on each ``(label, session, model)``: the pooled result over all their frames
-    (histograms in ``plots``) and each one's, as ``to_dict()`` documents."""
+    (histograms in ``plots``) and each one's, as ``to_dict()`` documents, with the model's
+    ``training`` metadata."""
     from calibrate.pose_check import pooled_result, run_pose_check, write_histograms
 
-    results = [(label, run_pose_check(model, session, "mug")) for label, session, model in inputs]
-    pooled = pooled_result([r for _, r in results])
+    results = [(label, run_pose_check(model, session, "mug"), load_metadata(model).training)
+               for label, session, model in inputs]
+    pooled = pooled_result([r for _, r, _ in results])
     write_histograms(pooled, plots)
-    return pooled.to_dict(), [(label, r.to_dict()) for label, r in results]
+    return pooled.to_dict(), [(label, r.to_dict(), training) for label, r, training in results]
 
 
 def _stats_row(name: str, e_x: dict, e_theta: dict) -> str:
@@ -162,10 +169,11 @@ def _stats_row(name: str, e_x: dict, e_theta: dict) -> str:
             f"{e_theta['median']:.2e} | {e_theta['mean']:.2e} | {e_theta['variance']:.2e} |")
 
 
-def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: list[tuple[str, dict]],
+def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: list[tuple[str, dict, dict]],
                    command: str, reused: list[str]) -> None:
-    """Write the page; ``reused``: labels of the sessions whose recording and model came from an
-    earlier run in ``--work`` (only the pose check ran again)."""
+    """Write the page; ``per_session``: (label, pose check result, the model's ``training`` metadata);
+    ``reused``: labels of the sessions whose recording and model came from an earlier run in
+    ``--work`` (only the pose check ran again)."""
     lines = [
         "# Pose estimation benchmark",
         "",
@@ -213,14 +221,15 @@ def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: l
             "",
             "Each session (median e_x, mm):",
             "",
-            "| session | frames used | predicted vs measured | " + " | ".join(
+            "| session | fine-tune (budget min, steps, held out) | frames used | predicted vs measured | " + " | ".join(
                 f"{src} vs true" for src in accuracy["vs_true"]) + " |",
-            "|---|---|---|" + "---|" * len(accuracy["vs_true"]),
+            "|---|---|---|---|" + "---|" * len(accuracy["vs_true"]),
         ]
         lines += [
-            f"| {label} | {r['n_used']} | {r['e_x_mm']['median']:.3f} | "
+            f"| {label} | {t['budget']['minutes'] or '-'}, {t['steps']}, {t['split'].get('object', t['split']['kind'])} | "
+            f"{r['n_used']} | {r['e_x_mm']['median']:.3f} | "
             + " | ".join(f"{st['e_x_mm']['median']:.3f}" for st in r["vs_true"].values()) + " |"
-            for label, r in per_session
+            for label, r, t in per_session
         ]
         lines += [
             "",

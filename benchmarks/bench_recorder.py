@@ -9,7 +9,9 @@ Sections:
    on frames rendered by the simulator (a press sequence on the mug, cycled).
 2. Long recording: the writer alone fed at the camera rate (45 fps, real time) for ``--minutes``
    with simulated frames; checks zero dropped frames (every produced frame is in the file,
-   contiguous sequence numbers, increasing device timestamps), the producer's worst wait in
+   contiguous sequence numbers, increasing device timestamps, and no frame handed to the writer
+   later than the camera's 8-frame queue would have kept it: a writer that blocks its producer
+   loses frames at the camera, not in the file), the producer's worst wait in
    ``append_frame`` (the control loop must never wait on the disk), the process CPU share, and
    file size per minute. The simulator cannot render 45 fps for 10 min in real time on a loaded
    laptop, so the frames are pre-rendered and cycled: this measures the recorder, not the physics.
@@ -38,6 +40,7 @@ sys.path.insert(0, str(ROOT))
 from collect import session_format as sf  # noqa: E402
 from collect.session_reader import Session  # noqa: E402
 from collect.session_writer import IMAGE_COMPRESSION, SessionWriter  # noqa: E402
+from hw_mocks.fake_camera import QUEUE_SIZE  # noqa: E402  (depthai's queue of the ToF outputs: collect/camera.py)
 
 FPS = 45.0
 COMPRESSIONS = {
@@ -111,6 +114,7 @@ def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
     n_total = int(round(minutes * 60 * FPS))
     writer = _writer(path, spec, IMAGE_COMPRESSION)
     waits = np.zeros(n_total)
+    late_s = np.zeros(n_total)  # s, the append's start after the frame's capture time on the schedule
     t0, c0 = time.perf_counter(), time.process_time()
     start = time.monotonic()
     for i in range(n_total):
@@ -118,6 +122,7 @@ def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
         if delay > 0:
             time.sleep(delay)
         ir, depth, true = frames[i % len(frames)]
+        late_s[i] = time.monotonic() - (start + i / FPS)
         t_call = time.perf_counter()
         writer.append_frame(ir, depth, 100.0 + i / FPS, time.monotonic(), i, -1, -1, sf.PHASE_FREE, np.zeros(6),
                             true_depth=true)
@@ -138,6 +143,8 @@ def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
         "frames_in_file": n,
         "seq_gaps": int(np.count_nonzero(np.diff(seq) != 1)),
         "non_increasing_t": int(np.count_nonzero(np.diff(t_dev) <= 0)),
+        "late_beyond_queue": int(np.count_nonzero(late_s > QUEUE_SIZE / FPS)),
+        "late_max_ms": float(late_s.max() * 1e3),
         "append_wait_p99_ms": float(np.percentile(waits, 99) * 1e3),
         "append_wait_max_ms": float(waits.max() * 1e3),
         "max_queue_depth": stats.max_queue_depth,
@@ -224,6 +231,9 @@ def report(compression, long, collection, args) -> str:
         "|---|---|",
         f"| frames produced / in file | {long['frames_produced']} / {long['frames_in_file']} |",
         f"| sequence gaps / non-increasing device timestamps | {long['seq_gaps']} / {long['non_increasing_t']} |",
+        f"| frames a camera's {QUEUE_SIZE}-frame queue would have dropped (handed to the writer more than "
+        f"{1e3 * QUEUE_SIZE / FPS:.0f} ms after capture) / latest hand-over | {long['late_beyond_queue']} / "
+        f"{long['late_max_ms']:.1f} ms |",
         f"| producer wait in append_frame p99 / max (max: scheduling stalls of a loaded machine) | "
         f"{long['append_wait_p99_ms']:.2f} / {long['append_wait_max_ms']:.1f} ms |",
         f"| largest batch the writer drained | {long['max_queue_depth']} items |",

@@ -222,7 +222,8 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         *rows,
         "",
         f"All presses: {len(all_lat)}, median {np.median(all_lat):.1f} ms, p95 {np.percentile(all_lat, 95):.1f} ms, "
-        f"max {all_lat.max():.1f} ms." if len(all_lat) else "No presses measured.",
+        f"max {all_lat.max():.1f} ms; no update in 2 s: {sum(stats['missed'].values())}." if len(all_lat)
+        else "No presses measured.",
         "",
         f"Run: {stats['wall_s']:.0f} s, {stats['events']} flow events received, {stats['frames']} frames composed; "
         f"flow outcome: {stats['outcome']}.",

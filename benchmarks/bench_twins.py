@@ -55,6 +55,7 @@ def measure(seconds: float, idle: bool) -> dict:
             bench.arm.retract()
             presses += 1
         cpu1, wall1, sim1 = os.times(), time.monotonic(), bench.clock()
+        arm_states, pressure_samples = len(bench.arm.drain_states()), len(bench.pressure.drain())  # at the run's end
         stop.set()
         consumer.join()
         received = np.array(frames, dtype=np.float64).reshape(-1, 2)
@@ -68,8 +69,8 @@ def measure(seconds: float, idle: bool) -> dict:
             "cpu_cores": (cpu1.user - cpu0.user + cpu1.system - cpu0.system) / wall,
             "camera_fps": (len(seqs) - 1) / (t_recv[-1] - t_recv[0]) if len(seqs) > 1 else 0.0,
             "camera_gaps": int(np.sum(np.diff(seqs) - 1)) if len(seqs) > 1 else 0,
-            "arm_hz": len(bench.arm.drain_states()) / wall,
-            "pressure_hz": len(bench.pressure.drain()) / wall,
+            "arm_hz": arm_states / wall,
+            "pressure_hz": pressure_samples / wall,
             "solves_per_s": (bench.sim.solves - solves0) / wall,
         }
 
@@ -97,8 +98,8 @@ def main(argv=None) -> int:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['mode']} | {r['wall_s']:.1f} | {r['sim_per_real']:.2f} | {r['cpu_cores']:.2f} | {r['camera_fps']:.1f} | "
-                     f"{r['camera_gaps']} | {r['arm_hz']:.0f} | {r['pressure_hz']:.0f} | {r['solves_per_s']:.1f} |")
+        lines.append(f"| {r['mode']} | {r['wall_s']:.1f} | {r['sim_per_real']:.2f} | {r['cpu_cores']:.2f} | {r['camera_fps']:.2f} | "
+                     f"{r['camera_gaps']} | {r['arm_hz']:.1f} | {r['pressure_hz']:.1f} | {r['solves_per_s']:.1f} |")
     lines += [
         "",
         "Rates are per wall-clock second; the camera's from the frames the consumer received in the run,",
