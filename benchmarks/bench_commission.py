@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from calibrate.commission_config import CommissionConfig  # noqa: E402
 from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
-from calibrate.commissioning import run_commissioning  # noqa: E402
+from calibrate.commissioning import POSE_BY_POSE_KEY, pose_vs_true_key, run_commissioning  # noqa: E402
 from trainer.splits import TRAIN_FRACTION  # noqa: E402
 
 TARGET_TOTAL_S = 300.0
@@ -127,9 +127,9 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
         "dropout_a1": (doc.get("vs_true") or {}).get("model_on_tof_dropout", {}).get("a1"),
     }
     pose = state.get("pose_check", {}).get("pose", {})
-    row["pose_by_pose"] = pose.get("e_x_mm median per held-out pose", {})
+    row["pose_by_pose"] = pose.get(POSE_BY_POSE_KEY, {})
     for key, source in (("pred_vs_true", "predicted"), ("tof_vs_true", "measured")):
-        row[key] = (pose.get(f"{source} vs true pose: e_x_mm / e_theta (median)") or [None])[0]
+        row[key] = (pose.get(pose_vs_true_key(source)) or [None])[0]
     print(f"seed {seed}: {'ACCEPTED' if result.accepted else 'REJECTED'} in {total:.0f} s, a1 {_f(row['a1'], '.3f')} "
           f"{result.reason}", flush=True)
     if (config.run_dir / "model" / "metadata.json").is_file():

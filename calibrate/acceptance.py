@@ -177,8 +177,24 @@ def load_thresholds(path: Path | None = None) -> Thresholds:
     return Thresholds(version, checks, f"{DEFAULT_THRESHOLDS_PATH} + {path}")
 
 
-def _fmt(value: float) -> str:
-    return f"{value:.4g}"
+def _fmt(value: float, limits: tuple = ()) -> str:
+    """``value`` to 4 significant digits, or to as many more as it takes not to read as one of ``limits``
+    (was: a failed a1 of 0.94996 shown as 0.95 against ``>= 0.95``)."""
+    limits = tuple(x for x in limits if x is not None)
+    for digits in range(4, 17):
+        text = f"{value:.{digits}g}"
+        if float(text) == value or float(text) not in limits:
+            return text
+    return repr(value)
+
+
+def check_value_text(check: dict) -> str:
+    """The measured value of a check (an ``evaluate`` result) as text: 4 significant digits, more where
+    those would round it onto its limit; '-' when it was not measured."""
+    if check["value"] is None:
+        return "-"
+    thr = check["threshold"]
+    return _fmt(check["value"], tuple(thr) if isinstance(thr, (list, tuple)) else (thr,))
 
 
 def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str = "") -> dict:
@@ -201,9 +217,9 @@ def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str =
         if passed:
             reason = f"{th.describe}: {_fmt(value)}{unit} within limit"
         elif low:
-            reason = f"{th.describe}: {_fmt(value)}{unit} below minimum {_fmt(th.lo)}{unit}"
+            reason = f"{th.describe}: {_fmt(value, (th.lo,))}{unit} below minimum {_fmt(th.lo)}{unit}"
         else:
-            reason = f"{th.describe}: {_fmt(value)}{unit} above maximum {_fmt(th.hi)}{unit}"
+            reason = f"{th.describe}: {_fmt(value, (th.hi,))}{unit} above maximum {_fmt(th.hi)}{unit}"
     if note:
         reason = f"{reason} ({note})"
     return {
@@ -236,7 +252,7 @@ def _short(check: dict) -> str:
     thr = check["threshold"]
     limit = f"{thr[0]:g}..{thr[1]:g}" if check["op"] == "in" else f"{check['op']} {thr:g}"
     unit = f" {check['unit']}" if check.get("unit") and check["unit"] not in ("fraction", "ratio") else ""
-    return f"{check['name']} {check['value']:.4g}{unit} (needs {limit}{unit})"
+    return f"{check['name']} {check_value_text(check)}{unit} (needs {limit}{unit})"
 
 
 def rejection_reason(checks: list[dict], fault: str | None = None) -> str:

@@ -202,12 +202,17 @@ def run_sensors(args) -> int:
         data = profile.data
         print(f"{profile.serial}: {profile.status} ({'simulated' if data.get('simulated') else 'hardware'})")
         print(f"  directory  {profile.path}")
-        print(f"  model      {profile.model_dir or '-'}")
+        model = profile.model_dir or ("-" if not data.get("accepted_at") else "-, none kept")
+        print(f"  model      {model}" + (f" (accepted {data['accepted_at']})" if profile.model_dir else ""))
+        for name in profile.missing():
+            print(f"  MISSING    {name}: profile.json names it, but {profile.path} no longer holds it (deleted?); "
+                  "commission the sensor again")
         for entry in profile.history:
             verdict = "accepted" if entry["accepted"] else "rejected"
             a1 = f" a1={entry['a1']:.3f}" if entry.get("a1") is not None else ""
             reason = f" - {entry['reason']}" if entry.get("reason") else ""
-            print(f"  {entry['time']}  {verdict}{a1}  {entry['run_dir']}{reason}")
+            gone = "" if Path(entry["run_dir"]).is_dir() else " (run folder deleted)"
+            print(f"  {entry['time']}  {verdict}{a1}  {entry['run_dir']}{gone}{reason}")
         return EXIT_OK
     listing = registry.survey()
     profiles = listing.profiles
@@ -216,16 +221,15 @@ def run_sensors(args) -> int:
     else:
         absent = "" if registry.root.is_dir() else " (no such directory yet: the first commissioning creates it)"
         print(f"registry {registry.root}: {len(profiles)} sensor{'s' if len(profiles) != 1 else ''}{absent}")
-        if profiles:
-            print(f"{'serial':<28} {'status':<9} {'last commissioned':<26} {'runs':>4} {'abs_rel':>8} {'a1':>6}  model")
+        if profiles:  # abs_rel and a1: the kept model's, at its acceptance (a rejected run changes neither)
+            print(f"{'serial':<28} {'status':<9} {'last commissioned':<26} {'runs':>4}  {'model':<8} {'abs_rel':>8} "
+                  f"{'a1':>6}")
         for p in profiles:
-            m = p.data.get("accepted_metrics") or (p.history[-1] if p.history else {})
+            m = p.model_metrics
             a1 = f"{m['a1']:.3f}" if m.get("a1") is not None else "-"
             rel = f"{m['abs_rel']:.4f}" if m.get("abs_rel") is not None else "-"
-            print(
-                f"{p.serial:<28} {p.status:<9} {p.data.get('last_commissioned', '-'):<26} {len(p.history):>4} "
-                f"{rel:>8} {a1:>6}  {'yes' if p.model_dir else 'no'}"
-            )
+            print(f"{p.serial:<28} {p.status:<9} {p.data.get('last_commissioned', '-'):<26} {len(p.history):>4}  "
+                  f"{p.model_state:<8} {rel:>8} {a1:>6}")
     problem = listing.problem()
     if problem is not None:  # the readable sensors are listed above
         raise InputError(problem)

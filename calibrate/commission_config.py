@@ -126,11 +126,11 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         check_model_arg(str(config.base_model), "--base-model")
         load_metadata(config.base_model)
         load_weights(config.base_model)  # InputError for missing, corrupt or pickled weights
-    if config.registry_dir is not None:
-        registry = SensorRegistry(config.registry_dir)  # InputError: not a directory
-        # the run registers the sensor at its end, in a folder named as its serial (not known yet on
-        # the real bench): the message names that file (was: <registry>/profile.json, a file never written)
-        check_parent_dirs(registry.root / "<serial>" / PROFILE)
+    # the registry of --registry, else of $BUBBLE_REGISTRY or the default (was: checked for --registry alone, and
+    # an unwritable $BUBBLE_REGISTRY failed the run at its end with a traceback): InputError for one not a directory;
+    # the run registers the sensor at its end, in a folder named as its serial (not known yet on the real bench):
+    # the message names that file (was: <registry>/profile.json, a file never written)
+    check_parent_dirs(SensorRegistry(config.registry_dir).root / "<serial>" / PROFILE)
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")

@@ -526,18 +526,45 @@ class _Flow:
             acceptance.evaluate(th, "pose_e_x_median_mm", result.e_x_mm.median),
             acceptance.evaluate(th, "pose_e_theta_median", result.e_theta.median),
         ]
-        pose = {
-            "frames_used": f"{result.n_used}/{result.n_hold_frames}",
-            "e_x_mm (median/mean/var)": [result.e_x_mm.median, result.e_x_mm.mean, result.e_x_mm.variance],
-            "e_theta (median/mean/var)": [result.e_theta.median, result.e_theta.mean, result.e_theta.variance],
-            "e_x_mm median per held-out pose": {str(p): round(v, 3) for p, v in result.e_x_median_by_pose().items()},
-            "hz": result.hz,
+        pose = {  # labels as the report shows them (POSE_BY_POSE_KEY, pose_vs_true_key: read back by benchmarks)
+            "hold frames used / with contact": f"{result.n_used}/{result.n_hold_frames}",
+            "e_x (mm), predicted vs measured depth: median / mean / variance (mm^2)":
+                [result.e_x_mm.median, result.e_x_mm.mean, result.e_x_mm.variance],
+            "e_theta, predicted vs measured depth: median / mean / variance":
+                [result.e_theta.median, result.e_theta.mean, result.e_theta.variance],
+            POSE_BY_POSE_KEY: {str(p): round(v, 3) for p, v in result.e_x_median_by_pose().items()},
+            "pose estimates per second": result.hz,
         }
         for src, stats in result.vs_true.items():
-            pose[f"{src} vs true pose: e_x_mm / e_theta (median)"] = [stats["e_x_mm"].median, stats["e_theta"].median]
+            pose[pose_vs_true_key(src)] = [stats["e_x_mm"].median, stats["e_theta"].median]
         return {"summary": result.summary().splitlines()[1], "pose": pose, "checks": checks}
 
     # ------------------------------------------------------------------ verdict
+    def write_outcome(self, accepted: bool, reason: str, fault: str | None, stopped: bool) -> dict:
+        """Write ``acceptance.json`` and ``report.html`` from ``state.json`` and the verdict; returns the
+        acceptance document."""
+        validate = self.state.get(Step.VALIDATE)
+        doc = {
+            "accepted": accepted,
+            "serial": self.state.data.get("serial"),
+            "simulated": bool(self.config.simulated),
+            "reason": reason,
+            "fault": fault,
+            "stopped": stopped,
+            "thresholds": {"version": self.thresholds.version, "source": self.thresholds.source},
+            "checks": self.state.checks(),
+            **dict.fromkeys(METRIC_KEYS),  # null when the run ended before validation
+            **validate.get("metrics", {}),
+            "per_object": validate.get("per_object"),
+            "contact": validate.get("contact"),
+            "vs_true": validate.get("vs_true"),
+            "steps": {s.value: self.state.get(s).get("summary") for s in STEPS if self.state.done(s)},
+            "finished": utc_now(),
+        }
+        write_json(self.run_dir / ACCEPTANCE_FILE, doc)
+        write_run_report(self.run_dir, self.state, doc)
+        return doc
+
     def finish(self, fault: str | None = None, stopped: bool = False) -> CommissionResult:
         """acceptance.json, report.html, (unless stopped) the registry entry and (a verdict reached:
         neither fault nor stop) the verdict step in ``state.json``.
@@ -554,26 +581,8 @@ class _Flow:
             reason = "stopped by the operator before a verdict"
         elif not accepted and not reason:
             reason = "not every step completed"
-        validate = self.state.get(Step.VALIDATE)
-        doc = {
-            "accepted": accepted,
-            "serial": self.state.data.get("serial"),
-            "simulated": bool(self.config.simulated),
-            "reason": reason,
-            "fault": fault,
-            "stopped": stopped,
-            "thresholds": {"version": self.thresholds.version, "source": self.thresholds.source},
-            "checks": checks,
-            **dict.fromkeys(METRIC_KEYS),  # null when the run ended before validation
-            **validate.get("metrics", {}),
-            "per_object": validate.get("per_object"),
-            "contact": validate.get("contact"),
-            "vs_true": validate.get("vs_true"),
-            "steps": {s.value: self.state.get(s).get("summary") for s in STEPS if self.state.done(s)},
-            "finished": utc_now(),
-        }
-        write_json(self.run_dir / ACCEPTANCE_FILE, doc)
-        report_path = write_run_report(self.run_dir, self.state, doc)
+        doc = self.write_outcome(accepted, reason, fault, stopped)
+        report_path = self.run_dir / REPORT_FILE
         serial = self.state.data.get("serial")
         if not stopped and serial:
             connect = self.state.get(Step.CONNECT)
@@ -674,7 +683,8 @@ class _Flow:
 
     def _finished_before(self) -> CommissionResult:
         """The verdict of a run that already finished in this directory, as its ``state.json`` recorded it
-        (nothing runs again)."""
+        (nothing runs again, and the sensor is not registered again: it was at the time; a deleted
+        report or ``acceptance.json`` is written again from ``state.json``)."""
         for step in STEPS:
             if self.state.done(step):
                 rec = self.state.get(step)
@@ -683,11 +693,23 @@ class _Flow:
                 self.emit(StepFinished(step, False, "not run", resumed=True, skipped=True))
         verdict, checks = self.state.get(Step.VERDICT), self.state.checks()
         report = self.run_dir / REPORT_FILE
+        if not report.is_file() or not (self.run_dir / ACCEPTANCE_FILE).is_file():  # deleted since: written anew
+            self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
         self.emit(Verdict(verdict["ok"], checks, str(report)))
         return CommissionResult(verdict["ok"], checks, self.run_dir, report, fault=verdict["fault"], reason=verdict["reason"])
 
     def _speed(self) -> float:
         return float(self.config.sim_speed) if self.config.simulated else 1.0
+
+
+#: The pose check's median e_x (mm) per held-out mug pose, in ``state.json``'s ``pose_check`` step.
+POSE_BY_POSE_KEY = "e_x (mm) median per held-out mug pose"
+
+
+def pose_vs_true_key(source: str) -> str:
+    """The ``pose_check`` entry of the pose fitted to ``source`` depth ("predicted", "measured", "true")
+    against the simulator's true pose: [median e_x (mm), median e_theta]."""
+    return f"pose from {source} depth vs the true pose: e_x (mm) / e_theta, medians"
 
 
 def _arm_z_and_force(bench) -> tuple[float, float]:

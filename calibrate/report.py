@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibrate.acceptance import check_value_text
 from collect.atomic_files import replacing
 
 #: The paper's table columns: (metric key, header, format).
@@ -106,8 +107,8 @@ def _checks_table(checks: list[dict]) -> str:
     rows = ""
     for c in checks:
         thr = c["threshold"]
-        thr_s = f"{thr[0]:g} &ndash; {thr[1]:g}" if isinstance(thr, (list, tuple)) else f"{c['op']} {thr:g}"
-        val = "&ndash;" if c["value"] is None else f"{c['value']:.4g}"
+        thr_s = f"{thr[0]:g} &ndash; {thr[1]:g}" if isinstance(thr, (list, tuple)) else html.escape(f"{c['op']} {thr:g}")
+        val = "&ndash;" if c["value"] is None else check_value_text(c)
         cls = "pass" if c["passed"] else "fail"
         rows += (
             f"<tr class='{cls}'><td>{html.escape(c['name'])}</td><td>{val}</td><td>{thr_s}</td>"
@@ -253,9 +254,21 @@ def _training_plot(curve: list[dict]) -> str:
     return _png(fig)
 
 
+def _four_digits(value):
+    """``value`` (a number, or lists and dicts of them) with its floats cut to 4 significant digits."""
+    if isinstance(value, float):
+        return float(f"{value:.4g}")
+    if isinstance(value, list):
+        return [_four_digits(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _four_digits(v) for k, v in value.items()}
+    return value
+
+
 def _kv_table(items: dict) -> str:
     rows = "".join(
-        f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(v if isinstance(v, str) else json.dumps(v))}</td></tr>"
+        f"<tr><th>{html.escape(str(k))}</th><td>"
+        f"{html.escape(v if isinstance(v, str) else json.dumps(_four_digits(v)))}</td></tr>"
         for k, v in items.items()
     )
     return f"<table class='kv'>{rows}</table>"

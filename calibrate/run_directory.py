@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from calibrate.commission_events import STEPS, Step
+from collect.atomic_files import is_leftover
 from collect.errors import InputError
 from collect.json_files import JSON_READ_ERRORS, plain_json, write_json
 from collect.session_format import utc_now
@@ -88,6 +89,7 @@ class RunState:
         holds a run with other settings."""
         path = run_dir / STATE_FILE
         if not path.exists():
+            cls._check_no_other_files(run_dir)
             state = cls(path, {"version": STATE_VERSION, "settings": settings, "created": utc_now(), "steps": {}})
             state.save()
             return state
@@ -99,6 +101,21 @@ class RunState:
         with other settings, or a damaged ``state.json``."""
         if (run_dir / STATE_FILE).exists():
             cls._read(run_dir, settings)
+        else:
+            cls._check_no_other_files(run_dir)
+
+    @staticmethod
+    def _check_no_other_files(run_dir: Path) -> None:
+        """``InputError`` when ``run_dir``, holding no run (no ``state.json``), holds other files: a run
+        would write over a ``report.html`` or an ``acceptance.json`` of something else (was: replaced
+        without a word)."""
+        if not run_dir.is_dir():
+            return
+        others = sorted(p.name for p in run_dir.iterdir() if not is_leftover(p))
+        if others:
+            raise InputError(f"{run_dir} holds no commissioning run (no {STATE_FILE}) but other files "
+                             f"({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}), which a run would write "
+                             "over; use a new or empty --out directory")
 
     @classmethod
     def _read(cls, run_dir: Path, settings: dict) -> "RunState":

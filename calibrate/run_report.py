@@ -40,7 +40,8 @@ def write_run_report(run_dir: Path, state: RunState, doc: dict) -> Path:
         pose=state.get(Step.POSE_CHECK).get("pose"),
     )
     why_missing = doc["reason"] or "the step did not run"
-    data.notes = {k: why_missing for k in ("leak", "camera", "nocontact", "examples", "training", "truth", "metrics")}
+    data.notes = {k: why_missing for k in ("checks", "leak", "camera", "nocontact", "examples", "training", "truth",
+                                           "metrics")}
     if state.done(Step.POSE_CHECK) and state.get(Step.POSE_CHECK).get("skipped"):
         data.notes["pose"] = state.get(Step.POSE_CHECK)["summary"]
     else:

@@ -4,7 +4,8 @@ Location: ``--registry DIR``, else ``$BUBBLE_REGISTRY``, else ``<user data dir>/
 (platformdirs). Layout::
 
     <root>/<serial>/profile.json     serial, status (accepted/rejected), intrinsics, camera_in_tcp,
-                                     simulated, current model, last acceptance summary,
+                                     simulated (of the run whose model is kept: the last accepted
+                                     one, else the last one), current model, last acceptance summary,
                                      history: one entry per commissioning (time, run_dir,
                                      accepted, reason, held-out metrics)
     <root>/<serial>/model/           the model of the last *accepted* commissioning
@@ -68,6 +69,23 @@ class SensorProfile:
     def model_dir(self) -> Path | None:
         return self.path / "model" if (self.path / "model").is_dir() else None
 
+    @property
+    def model_state(self) -> str:
+        """``yes`` (a kept model), ``no`` (none accepted) or ``MISSING`` (its files were deleted)."""
+        return "MISSING" if self.missing() else ("yes" if self.model_dir else "no")
+
+    @property
+    def model_metrics(self) -> dict:
+        """The kept model's held-out metrics at its acceptance ({} when none was accepted)."""
+        return self.data.get("accepted_metrics") or {}
+
+    def missing(self) -> list[str]:
+        """What ``profile.json`` names as kept for the accepted model (``model/``, ``reference.npz``)
+        but the sensor's folder no longer holds (deleted by hand)."""
+        return [name for key, name, present in (("model", "model/", self.model_dir is not None),
+                                                ("reference", "reference.npz", (self.path / "reference.npz").is_file()))
+                if self.data.get(key) and not present]
+
 
 _TEXT = (lambda v: isinstance(v, str), "a string")
 _ERROR = (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null")
@@ -78,8 +96,9 @@ _METRICS = {"abs_rel": _ERROR, "rmse": _ERROR,
 _PROFILE_FIELDS = {
     "serial": _TEXT,
     "status": (lambda v: v in ("accepted", "rejected"), "'accepted' or 'rejected'"),
-    "intrinsics": (lambda v: v is None or (isinstance(v, dict) and all(map(real_number, v.values()))),
-                   "an object of finite numbers or null"),
+    "intrinsics": (lambda v: v is None or (isinstance(v, dict) and all(
+        isinstance(x, list) and all(map(real_number, x)) if k == "distortion" else real_number(x) for k, x in v.items())),
+                   "an object of finite numbers (a list of them for 'distortion') or null"),
     "camera_in_tcp": (lambda v: v is None or real_numbers(v, 6),
                       "6 finite numbers or null"),
     "simulated": (lambda v: isinstance(v, bool), "true or false"),
@@ -232,15 +251,10 @@ class SensorRegistry:
                 **({"id": entry_id} if entry_id is not None else {}),
             }
             profile = dict(prior)
-            profile.update(
-                serial=serial,
-                status="accepted" if accepted else "rejected",
-                intrinsics=intrinsics,
-                camera_in_tcp=camera_in_tcp,
-                simulated=bool(simulated),
-                last_commissioned=entry["time"],
-                last_reason=reason,
-            )
+            profile.update(serial=serial, status="accepted" if accepted else "rejected",
+                           last_commissioned=entry["time"], last_reason=reason)
+            if accepted or "accepted_at" not in prior:  # the camera calibration of the model kept, if any
+                profile.update(intrinsics=intrinsics, camera_in_tcp=camera_in_tcp, simulated=bool(simulated))
             if accepted:
                 _store_accepted(sdir, model_dir, reference)
                 if model_dir is not None:
@@ -252,6 +266,7 @@ class SensorRegistry:
                 profile["accepted_metrics"] = metrics
             history = [e for e in prior.get("history", []) if entry_id is None or e.get("id") != entry_id]
             profile["history"] = history + [entry]
+            check_profile(profile, sdir / PROFILE)  # what the next reader would refuse is not written
             write_json(sdir / "acceptance.json", acceptance)
             write_json(sdir / PROFILE, profile)
             return SensorProfile(serial, sdir, profile)
@@ -296,13 +311,13 @@ class SensorRegistry:
 
     def survey(self) -> RegistryListing:
         """Every registered sensor, sorted by serial: the readable profiles, and the ``InputError``
-        message of each entry (a folder named as a serial) whose ``profile.json`` is damaged (one such
-        entry hides no other)."""
+        message of each entry named as a serial whose ``profile.json`` is damaged, or that is a file
+        (one such entry hides no other)."""
         listing = RegistryListing([], [])
         if not self.root.is_dir():
             return listing
-        for sdir in sorted(p for p in self.root.iterdir()  # other files and folders are not sensors
-                           if SENSOR_SERIAL_RE.fullmatch(p.name) and p.is_dir() and self._has_profile(p)):
+        for sdir in sorted(p for p in self.root.iterdir()  # files and folders named otherwise are not sensors
+                           if SENSOR_SERIAL_RE.fullmatch(p.name) and self._has_profile(p)):
             try:
                 listing.profiles.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
             except InputError as err:

@@ -61,12 +61,17 @@ def replacing(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def is_leftover(path: Path) -> bool:
+    """Whether ``path`` is a temporary file of ``replacing`` (one a killed writer may have left)."""
+    return bool(_TEMP_NAME.fullmatch(path.name)) and path.is_file() and not path.is_symlink()
+
+
 def remove_leftovers(folder: str | Path) -> list[Path]:
     """Remove the temporary files of ``replacing`` that a killed writer left in ``folder`` and its
     subfolders; returns them. Call it only while no other process may be writing there."""
     removed = []
     for entry in Path(folder).rglob("*.tmp"):
-        if _TEMP_NAME.fullmatch(entry.name) and entry.is_file() and not entry.is_symlink():
+        if is_leftover(entry):
             entry.unlink(missing_ok=True)
             removed.append(entry)
     return removed

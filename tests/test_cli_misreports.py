@@ -215,7 +215,7 @@ def test_a_resumed_segment_is_listed_only_when_it_records_a_frame(tmp_path):
          "'history[0].a1' must be a number from 0 to 1 or null, got 1000000000000000000000000000000000000..."),
         (lambda d: d["history"][0].__setitem__("a1", -5), "'history[0].a1' must be a number from 0 to 1 or null, got -5"),  # was: listed
         (lambda d: d["history"][0].__setitem__("abs_rel", -0.5), "'history[0].abs_rel' must be a number >= 0 or null, got -0.5"),
-        (lambda d: d.__setitem__("intrinsics", {"fx": "x"}), "'intrinsics' must be an object of finite numbers or null"),
+        (lambda d: d.__setitem__("intrinsics", {"fx": "x"}), "'intrinsics' must be an object of finite numbers (a list of them for 'distortion') or null"),
         (lambda d: d.__setitem__("status", ["accepted"]), "'status' must be 'accepted' or 'rejected'"),
         (lambda d: d.__setitem__("last_commissioned", 5), "'last_commissioned' must be a string, got 5"),
         (lambda d: d.__setitem__("simulated", "no"), "'simulated' must be true or false"),

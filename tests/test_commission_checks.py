@@ -180,3 +180,18 @@ def test_camera_health_rejects_too_few_frames():
     ir, depth = _synthetic_frames(np.random.default_rng(4), n=3)
     with pytest.raises(InputError, match="at least 4"):
         assess_camera(ir, depth)
+
+
+@pytest.mark.parametrize("name, value, shown", [("heldout_a1", 0.94996, "0.94996"),
+                                                ("leak_rate_hpa_per_min", 1.00004, "1.00004"),
+                                                ("heldout_a1", 0.91234, "0.9123")])
+def test_a_failed_value_never_reads_as_its_limit(tmp_path, name, value, shown):
+    """Was: "heldout_a1 0.95 (needs >= 0.95)" and "leak_rate_hpa_per_min 1 hPa/min (needs <= 1 hPa/min)",
+    failed, in the reason, the REJECTED line, the registry and the report's table."""
+    from calibrate.report import ReportData, write_report
+
+    check = evaluate(load_thresholds(), name, value)
+    assert not check["passed"] and shown in check["reason"] and shown in rejection_reason([check])
+    html = write_report(ReportData(serial="SB-1", accepted=False, simulated=True, reason="x", checks=[check]),
+                        tmp_path / "report.html").read_text()
+    assert f"<td>{shown}</td>" in html and ("&lt;= " in html or "&gt;= " in html)  # the comparison escaped

@@ -559,3 +559,37 @@ def test_the_tui_refuses_a_run_folder_of_another_sensor_before_it_starts(faulted
     err = capsys.readouterr().err
     assert err.startswith(f"bubble: error: {config.run_dir} holds a run with sensor='SB-SIM-000003', not "
                           "'SB-SIM-000004'") and err.count("\n") == 1, err
+
+
+def test_an_early_fault_names_itself_where_the_checks_would_be(tmp_path):
+    """Was: "Acceptance checks — Not available: not produced by this run." after a fault at connect."""
+    result = run_commissioning(tiny_config(tmp_path, sim_faults=("camera-stall@1",)), lambda e: None)
+    assert result.fault and not result.checks
+    report = (tmp_path / "run" / "report.html").read_text()
+    assert f"Acceptance checks</h2><p class='note'>Not available: {result.reason}." in report
+
+
+def test_a_folder_of_other_files_is_refused_as_a_run_folder(tmp_path, capsys):
+    """Was: a run into a folder holding no run wrote over its report.html and acceptance.json."""
+    folder = tmp_path / "results"
+    folder.mkdir()
+    (folder / "report.html").write_text("precious")
+    (folder / "acceptance.json.qnn9fi55.tmp").write_text("{")  # a killed writer's leftover is no foreign file
+    assert main(["commission", "--sim", "--out", str(folder), "--registry", str(tmp_path / "reg")]) == 2
+    assert capsys.readouterr().err == (f"bubble: error: {folder} holds no commissioning run (no state.json) but other "
+                                       "files (report.html), which a run would write over; use a new or empty --out "
+                                       "directory\n")
+    assert sorted(p.name for p in folder.iterdir()) == ["acceptance.json.qnn9fi55.tmp", "report.html"]
+    assert (folder / "report.html").read_text() == "precious" and not (tmp_path / "reg").exists()
+
+
+def test_a_finished_runs_deleted_report_is_written_again(faulted_then_resumed, tmp_path):
+    """Was: "ACCEPTED: report run/report.html" for a report deleted since, and none written."""
+    config = faulted_then_resumed["config"]
+    run_dir = tmp_path / "run"
+    shutil.copytree(config.run_dir, run_dir)
+    (run_dir / "report.html").unlink()
+    result = run_commissioning(dataclasses.replace(config, run_dir=run_dir, registry_dir=tmp_path / "reg"),
+                               lambda e: None)
+    assert result.accepted and result.report_path.is_file() and "ACCEPTED" in result.report_path.read_text()
+    assert not (tmp_path / "reg").exists()  # registered at the time, not again

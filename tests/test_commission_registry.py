@@ -39,6 +39,7 @@ def test_accepted_then_rejected_keeps_accepted_model(tmp_path):
         acceptance=rej, reason="leak", model_dir=_model_dir(tmp_path, "b"),
     )
     assert p2.status == "rejected" and p2.data["last_reason"] == "leak"
+    assert p2.data["camera_in_tcp"] == [0, 0, -0.093, 0, 0, 0]  # the kept model's camera (was: the rejected run's)
     assert json.loads((p2.model_dir / "model.json").read_text())["tag"] == "a"
     assert [h["accepted"] for h in p2.history] == [True, False]
     assert p2.history[0]["a1"] == 0.97
@@ -147,6 +148,66 @@ def test_an_unwritable_registry_is_refused_naming_the_file_the_run_would_write(t
     err = capsys.readouterr().err
     assert err == f"bubble: error: cannot write {plain}/reg/<serial>/profile.json: {plain} is a file, not a directory\n"
     assert not run.exists()
+
+
+def test_an_unwritable_registry_of_the_environment_is_refused_before_the_run(tmp_path, capsys, monkeypatch):
+    """Was: checked for --registry only; $BUBBLE_REGISTRY under a file failed the run at its end, a
+    traceback and exit 1 ("rejected")."""
+    from calibrate.cli import main
+
+    plain = tmp_path / "plain"
+    plain.write_text("not a folder")
+    monkeypatch.setenv("BUBBLE_REGISTRY", str(plain / "reg"))
+    run = tmp_path / "run"
+    assert main(["commission", "--sim", "--quiet", "--out", str(run)]) == 2
+    assert capsys.readouterr().err == (f"bubble: error: cannot write {plain}/reg/<serial>/profile.json: {plain} is a "
+                                       "file, not a directory\n")
+    assert not run.exists()
+
+
+def test_a_real_cameras_distortion_is_registered_and_read_back(tmp_path):
+    """The OAK camera's intrinsics carry a ``distortion`` list. Was: written, then refused as corrupt by
+    the next reader (``bubble sensors`` exit 2, every later commissioning of the sensor failed)."""
+    reg = SensorRegistry(tmp_path / "reg")
+    intrinsics = {**INTR, "distortion": [0.1, -0.02, 0.0, 0.0, 0.003]}
+    for accepted in (True, False):
+        reg.register("SB-HW1", accepted=accepted, run_dir=tmp_path, intrinsics=intrinsics, camera_in_tcp=None,
+                     simulated=False, acceptance={"accepted": accepted})
+    assert reg.get("SB-HW1").data["intrinsics"]["distortion"] == intrinsics["distortion"]
+    with pytest.raises(InputError, match="'intrinsics' must be an object of finite numbers"):  # not written
+        reg.register("SB-HW2", accepted=False, run_dir=tmp_path, intrinsics={**INTR, "distortion": [float("nan")]},
+                     camera_in_tcp=None, simulated=False, acceptance={"accepted": False})
+    assert not (tmp_path / "reg" / "SB-HW2" / "profile.json").exists()
+
+
+def test_sensors_lists_a_deleted_model_and_run_folder_and_a_file_named_as_a_sensor(tmp_path, capsys):
+    """Was: a deleted ``model/`` listed as "no", as for a sensor never accepted; a deleted run folder
+    shown as any other; a file named as a serial left out without a word; a rejected sensor shown
+    with its earlier accepted run's metrics in columns of no stated run."""
+    from calibrate.cli import main
+
+    reg = SensorRegistry(tmp_path / "reg")
+    run = tmp_path / "run"
+    run.mkdir()
+    reg.register("SB-A", accepted=True, run_dir=run, intrinsics=INTR, camera_in_tcp=None, simulated=True,
+                 acceptance={"accepted": True, "a1": 0.97, "abs_rel": 0.0123}, model_dir=_model_dir(tmp_path, "a"),
+                 reference={"depth_m": np.zeros((2, 2), np.float32)})
+    reg.register("SB-B", accepted=False, run_dir=run, intrinsics=INTR, camera_in_tcp=None, simulated=True,
+                 acceptance={"accepted": False, "a1": 0.5, "abs_rel": 0.2})
+    import shutil
+    shutil.rmtree(tmp_path / "reg" / "SB-A" / "model")
+    run.rmdir()
+    assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split() == ["serial", "status", "last", "commissioned", "runs", "model", "abs_rel", "a1"]
+    assert lines[2].split()[-3:] == ["MISSING", "0.0123", "0.970"] and lines[3].split()[-3:] == ["no", "-", "-"]
+    assert main(["sensors", "--registry", str(tmp_path / "reg"), "SB-A"]) == 0
+    out = capsys.readouterr().out
+    assert "MISSING    model/: profile.json names it" in out and f"{run} (run folder deleted)" in out
+    (tmp_path / "reg" / "SB-C").write_text("not a sensor folder")
+    assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 2
+    out, err = capsys.readouterr()
+    assert "SB-A" in out and err == f"bubble: error: sensor registry entry {tmp_path / 'reg' / 'SB-C'} is not a directory\n"
 
 
 def test_location_from_environment(tmp_path, monkeypatch):

@@ -36,7 +36,7 @@ class RegistryView(Vertical):
         yield self.table
 
     def on_mount(self) -> None:
-        self.table.add_columns("serial", "status", "last run", "mode", "runs", "abs_rel", "a1", "model")
+        self.table.add_columns("serial", "status", "last run", "mode", "runs", "model", "abs_rel", "a1")
         self.reload()
 
     def reload(self) -> None:
@@ -56,7 +56,7 @@ class RegistryView(Vertical):
         line.update(summary)
         for profile in profiles:
             data = profile.data
-            metrics = data.get("accepted_metrics") or (profile.history[-1] if profile.history else {})
+            metrics = profile.model_metrics  # the kept model's (a rejected run changes neither)
             status = profile.status
             table.add_row(
                 profile.serial,
@@ -64,7 +64,7 @@ class RegistryView(Vertical):
                 _short_time(data.get("last_commissioned")),
                 "sim" if data.get("simulated") else "real",
                 str(len(profile.history)),
+                Text(profile.model_state, style="bold red" if profile.missing() else ""),
                 number(metrics.get("abs_rel")),
                 number(metrics.get("a1")),
-                "yes" if profile.model_dir is not None else "no",
             )
