@@ -211,7 +211,10 @@ def run_sensors(args) -> int:
             verdict = "accepted" if entry["accepted"] else "rejected"
             a1 = f" a1={entry['a1']:.3f}" if entry.get("a1") is not None else ""
             reason = f" - {entry['reason']}" if entry.get("reason") else ""
-            gone = "" if Path(entry["run_dir"]).is_dir() else " (run folder deleted)"
+            try:
+                gone = "" if Path(entry["run_dir"]).is_dir() else " (run folder deleted)"
+            except OSError as err:  # a folder on the way that cannot be entered
+                gone = f" (run folder cannot be read: {err.strerror})"
             print(f"  {entry['time']}  {verdict}{a1}  {entry['run_dir']}{gone}{reason}")
         return EXIT_OK
     listing = registry.survey()

@@ -42,8 +42,10 @@ PROFILE = "profile.json"
 def default_registry_dir() -> Path:
     """``$BUBBLE_REGISTRY`` if set, else the platform's user data dir for bubble-bench."""
     env = os.environ.get(ENV_VAR)
-    if env:
+    if env is not None and env.strip():
         return Path(env).expanduser()
+    if env:  # was: a folder named by a space, in the current folder
+        raise InputError(f"${ENV_VAR} is blank: name the registry folder, or unset it")
     from platformdirs import user_data_dir
 
     return Path(user_data_dir("bubble-bench", appauthor=False)) / "sensors"
@@ -203,8 +205,12 @@ class SensorRegistry:
 
     def __init__(self, root: Path | str | None = None):
         self.root = Path(root).expanduser() if root is not None else default_registry_dir()
-        if self.root.exists() and not self.root.is_dir():
-            raise InputError(f"sensor registry {self.root} is not a directory")
+        for folder in (self.root, *self.root.parents):  # the registry, or the nearest folder it would be made in
+            if folder.exists():
+                if not folder.is_dir():
+                    raise InputError(f"sensor registry {self.root} is not a directory" if folder == self.root else
+                                     f"sensor registry {self.root} cannot be made: {folder} is a file")
+                break
 
     def _sensor_dir(self, serial: str) -> Path:
         if not SENSOR_SERIAL_RE.fullmatch(serial or ""):
@@ -290,11 +296,15 @@ class SensorRegistry:
     def _has_profile(sdir: Path) -> bool:
         """Whether ``sdir`` is an entry to read: something named ``profile.json`` in it (a folder without
         one is a first registration under way, or one that died before writing it: the next
-        registration starts the profile afresh), or ``sdir`` itself is something other than a folder."""
-        if not sdir.is_dir():
-            return sdir.exists() or sdir.is_symlink()
-        profile = sdir / PROFILE
-        return profile.exists() or profile.is_symlink()
+        registration starts the profile afresh), or ``sdir`` itself is something other than a folder.
+        ``InputError`` when it cannot be looked into (permissions)."""
+        try:
+            if not sdir.is_dir():
+                return sdir.exists() or sdir.is_symlink()
+            profile = sdir / PROFILE
+            return profile.exists() or profile.is_symlink()
+        except OSError as err:
+            raise InputError(f"sensor registry entry {sdir} cannot be read: {err.strerror}") from None
 
     def check_entry(self, serial: str) -> None:
         """Raise ``InputError`` when ``register(serial)`` would fail on the existing entry (a damaged
@@ -314,13 +324,17 @@ class SensorRegistry:
         message of each entry named as a serial whose ``profile.json`` is damaged, or that is a file
         (one such entry hides no other)."""
         listing = RegistryListing([], [])
-        if not self.root.is_dir():
-            return listing
-        for sdir in sorted(p for p in self.root.iterdir()  # files and folders named otherwise are not sensors
-                           if SENSOR_SERIAL_RE.fullmatch(p.name) and self._has_profile(p)):
+        try:
+            if not self.root.is_dir():
+                return listing
+            entries = sorted(p for p in self.root.iterdir() if SENSOR_SERIAL_RE.fullmatch(p.name))  # others: no sensors
+        except OSError as err:
+            raise InputError(f"cannot read the sensor registry {self.root}: {err.strerror}") from None
+        for sdir in entries:
             try:
-                listing.profiles.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
-            except InputError as err:
+                if self._has_profile(sdir):
+                    listing.profiles.append(SensorProfile(sdir.name, sdir, self._read_profile(sdir)))
+            except InputError as err:  # a damaged entry, or one that cannot be entered, hides no other
                 listing.unreadable.append(str(err))
         return listing
 

@@ -143,10 +143,11 @@ def test_an_unwritable_registry_is_refused_naming_the_file_the_run_would_write(t
     plain = tmp_path / "plain"
     plain.write_text("not a folder")
     run = tmp_path / "run"
-    # was: "cannot write .../reg/profile.json", a file the registry never writes
+    # was: "cannot write .../reg/profile.json", a file the registry never writes (then: cannot write
+    # .../reg/<serial>/profile.json; now the registry itself, before any file)
     assert main(["commission", "--sim", "--quiet", "--out", str(run), "--registry", str(plain / "reg")]) == 2
     err = capsys.readouterr().err
-    assert err == f"bubble: error: cannot write {plain}/reg/<serial>/profile.json: {plain} is a file, not a directory\n"
+    assert err == f"bubble: error: sensor registry {plain}/reg cannot be made: {plain} is a file\n"
     assert not run.exists()
 
 
@@ -160,8 +161,7 @@ def test_an_unwritable_registry_of_the_environment_is_refused_before_the_run(tmp
     monkeypatch.setenv("BUBBLE_REGISTRY", str(plain / "reg"))
     run = tmp_path / "run"
     assert main(["commission", "--sim", "--quiet", "--out", str(run)]) == 2
-    assert capsys.readouterr().err == (f"bubble: error: cannot write {plain}/reg/<serial>/profile.json: {plain} is a "
-                                       "file, not a directory\n")
+    assert capsys.readouterr().err == f"bubble: error: sensor registry {plain}/reg cannot be made: {plain} is a file\n"
     assert not run.exists()
 
 
@@ -245,3 +245,38 @@ def test_a_registration_that_fails_midway_keeps_the_accepted_model_and_reference
     assert sorted(p.name for p in (tmp_path / "reg" / "SB-1").iterdir()) == [
         "acceptance.json", "model", "profile.json", "reference.npz"]
     assert [h["run_dir"] for h in reg.get("SB-1").history] == [str((tmp_path / "run1").resolve())]
+
+
+def test_registry_locations_that_cannot_be_read_or_made_are_one_line(tmp_path, monkeypatch, capsys):
+    """Was: a PermissionError traceback for a registry (or one sensor's folder) that cannot be read,
+    "no such directory yet: the first commissioning creates it" for one under a file, and a folder
+    named by a space for a blank $BUBBLE_REGISTRY."""
+    from calibrate.cli import main
+
+    reg = SensorRegistry(tmp_path / "reg")
+    for serial in ("SB-A", "SB-B"):
+        reg.register(serial, accepted=False, run_dir=tmp_path, intrinsics=INTR, camera_in_tcp=None, simulated=True,
+                     acceptance={"accepted": False})
+    real_is_dir = Path.is_dir
+
+    def sb_a_locked(path):  # what stat says of a folder inside one without the search permission
+        if path.parent.name == "SB-A" or path.name == "SB-A":
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_is_dir(path)
+
+    monkeypatch.setattr(Path, "is_dir", sb_a_locked)
+    assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 2
+    out, err = capsys.readouterr()
+    assert "SB-B" in out and err == (f"bubble: error: sensor registry entry {tmp_path / 'reg' / 'SB-A'} cannot be read: "
+                                     "Permission denied\n")
+    monkeypatch.setattr(Path, "iterdir", lambda path: (_ for _ in ()).throw(PermissionError(errno.EACCES, "Permission denied")))
+    assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 2
+    assert capsys.readouterr().err == f"bubble: error: cannot read the sensor registry {tmp_path / 'reg'}: Permission denied\n"
+    monkeypatch.undo()
+    (tmp_path / "plain").write_text("x")
+    assert main(["sensors", "--registry", str(tmp_path / "plain" / "reg")]) == 2
+    assert capsys.readouterr().err == (f"bubble: error: sensor registry {tmp_path / 'plain' / 'reg'} cannot be made: "
+                                       f"{tmp_path / 'plain'} is a file\n")
+    monkeypatch.setenv("BUBBLE_REGISTRY", " ")
+    assert main(["sensors"]) == 2
+    assert capsys.readouterr().err == "bubble: error: $BUBBLE_REGISTRY is blank: name the registry folder, or unset it\n"
