@@ -49,6 +49,11 @@ SENSOR_SERIAL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 SENSOR_SERIAL_RULE = "1-64 letters, digits, '.', '_' or '-', the first a letter or digit"
 #: Corrupt lines in a row that make a ``serial-garbage`` fault (0.1 s of the 100 Hz stream).
 MAX_CORRUPT_RUN = 10
+#: s a board may stay silent after its port opens: opening raises DTR, which reboots boards wired
+#: like an Arduino (a bootloader waits 1-2 s); ``ID?`` is repeated every ``BOOT_RETRY_S`` until
+#: then, and silence is no ``serial-timeout`` before the board's first valid line or this long.
+BOOT_WAIT_S = 3.0
+BOOT_RETRY_S = 0.5
 
 
 def checksum(body: bytes) -> str:
@@ -107,6 +112,8 @@ class PressureBoard:
         self._last_valid = 0.0  # bench clock, s
         self._last_valid_host = 0.0  # time.monotonic(), s
         self._bad_run = 0
+        self._heard = False  # a valid line came since the port opened
+        self._boot_deadline = 0.0  # time.monotonic() until which silence is a board booting
         self.stats = {"readings": 0, "replies": 0, "bad_checksum": 0, "malformed": 0, "overlong": 0, "seq_gaps": 0}
 
     # ------------------------------------------------------------------ lifecycle
@@ -121,6 +128,7 @@ class PressureBoard:
             raise HardwareFault("serial-missing", f"pressure board: cannot open {self.port}: {err}") from err
         self._serial.reset_input_buffer()
         self._last_valid, self._last_valid_host = self._clock(), time.monotonic()
+        self._boot_deadline = time.monotonic() + BOOT_WAIT_S
         self._reader_loop.start()
 
     def close(self) -> None:
@@ -200,6 +208,7 @@ class PressureBoard:
 
     def _good(self) -> None:
         self._last_valid, self._last_valid_host = self._clock(), time.monotonic()
+        self._heard = True
         if self._bad_run:
             if self._fault is None:  # after a serial-garbage fault the run is over: no "recovered"
                 log.warning("pressure board: recovered after %d corrupt lines", self._bad_run)
@@ -214,8 +223,10 @@ class PressureBoard:
     # ------------------------------------------------------------------ API
     def check(self) -> None:
         """Raise the fault of the board: a run of corrupt lines, unplugged, or no valid reading for
-        ``stale_timeout_s`` on the bench clock and on the host's."""
+        ``stale_timeout_s`` on the bench clock and on the host's (once the board has spoken, or
+        ``BOOT_WAIT_S`` after the port opened: a board rebooting on the open is silent till then)."""
         if (self._fault is None and self._reader_loop.running
+                and (self._heard or time.monotonic() > self._boot_deadline)
                 and self._clock() - self._last_valid > self.stale_timeout_s
                 and time.monotonic() - self._last_valid_host > self.stale_timeout_s):
             self._set_fault(HardwareFault(
@@ -273,8 +284,18 @@ class PressureBoard:
 
     def identify(self) -> str:
         """Serial number of the bubble sensor the board is built into (``ID?``); a serial that breaks
-        ``SENSOR_SERIAL_RULE`` (a badly flashed board) raises ``HardwareFault('serial-protocol')``."""
-        serial_number = ",".join(self.command("ID?", "ID")[1:])
+        ``SENSOR_SERIAL_RULE`` (a badly flashed board) raises ``HardwareFault('serial-protocol')``.
+        Until ``BOOT_WAIT_S`` after the port opened, an unanswered ``ID?`` is sent again every
+        ``BOOT_RETRY_S`` (a board that reboots on the open misses the first; was: ``serial-timeout``)."""
+        while True:
+            booting = time.monotonic() < self._boot_deadline
+            try:
+                fields = self.command("ID?", "ID", timeout_s=BOOT_RETRY_S if booting else 1.0)
+                break
+            except HardwareFault as fault:
+                if fault.kind != "serial-timeout" or not booting:
+                    raise
+        serial_number = ",".join(fields[1:])
         if not SENSOR_SERIAL_RE.fullmatch(serial_number):
             raise HardwareFault("serial-protocol", f"pressure board: its sensor serial {serial_number!r} is not "
                                                    f"{SENSOR_SERIAL_RULE}; flash a valid one")

@@ -195,3 +195,34 @@ def test_missing_port_is_a_fault():
     with pytest.raises(HardwareFault) as err:
         PressureBoard("/dev/does-not-exist-bubble").open()
     assert err.value.kind == "serial-missing"
+
+
+def test_a_board_that_reboots_when_its_port_opens_is_waited_for(pty_board):
+    """Opening the port raises DTR, which reboots boards wired like an Arduino: the first ``ID?``
+    goes to the bootloader. Was: ``serial-timeout`` after 1 s (here: the 0.3 s stale limit too)."""
+    import threading
+
+    board, master = pty_board
+    heard = []
+
+    def boot_then_answer():
+        booted_at = time.monotonic() + 1.2  # the bootloader: deaf and silent
+        buf = b""
+        while time.monotonic() < booted_at + 2.0:
+            try:
+                buf += os.read(master, 64)
+            except BlockingIOError:
+                time.sleep(0.002)
+            if time.monotonic() < booted_at:
+                heard.append(buf.count(b"ID?\n"))
+                buf = b""
+            elif b"ID?\n" in buf:
+                os.write(master, encode_line("P,1,1000.00") + encode_line("ID,BB-0042"))
+                return
+
+    th = threading.Thread(target=boot_then_answer)
+    th.start()
+    assert board.identify() == "BB-0042"
+    th.join()
+    assert sum(heard) >= 2  # asked again while it booted
+    board.check()
