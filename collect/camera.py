@@ -235,14 +235,18 @@ class DepthaiToFCamera(QueueToFCamera):
         cam = tof_cams[0]
         calib = device.readCalibration()
         k = np.asarray(calib.getCameraIntrinsics(cam.socket, cam.width, cam.height), dtype=float)
+        # the frames come undistorted (below): the pinhole intrinsics alone lift them, no distortion applies
         self._intrinsics = {
             "fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
             "width": int(cam.width), "height": int(cam.height),
-            "distortion": [float(v) for v in calib.getDistortionCoefficients(cam.socket)],
         }
         self.serial = device.getDeviceId()
         pipeline = dai.Pipeline(device)
         tof = pipeline.create(dai.node.ToF).build(cam.socket, dai.ToFConfig.Profile.__members__[self.profile], self.fps)
+        config = tof.getInitialConfig()
+        config.enableOpticalCorrection = True  # depth along the optical axis (the sessions' depth), not along each ray
+        config.enableDistortionCorrection = True  # undistorted depth and amplitude (depthai's default, made explicit)
+        tof.setInitialConfig(config)
         self._attach(tof.depth.createOutputQueue(maxSize=8, blocking=False),
                      tof.amplitude.createOutputQueue(maxSize=8, blocking=False))
         pipeline.start()

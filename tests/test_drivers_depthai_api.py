@@ -36,10 +36,11 @@ CALLS = [
     (dai.Device.close, []),
     (dai.CalibrationHandler.getCameraIntrinsics,
      [r"cameraId: depthai\.CameraBoardSocket", r"resizeWidth: int", r"resizeHeight: int"]),
-    (dai.CalibrationHandler.getDistortionCoefficients, [r"cameraId: depthai\.CameraBoardSocket"]),
     (dai.Pipeline.__init__, [r"defaultDevice: depthai\.Device"]),                         # Pipeline(device)
     (dai.node.ToF.build,
      [r"boardSocket: depthai\.CameraBoardSocket", r"profile: depthai\.ToFConfig\.Profile", r"fps: Optional\[float\]"]),
+    (dai.node.ToF.getInitialConfig, []),
+    (dai.node.ToF.setInitialConfig, [r"arg0: depthai\.ToFConfig"]),
     (dai.Node.Output.createOutputQueue, [r"maxSize: int", r"blocking: bool"]),
     (dai.Pipeline.start, []),
     (dai.Pipeline.stop, []),
@@ -75,3 +76,7 @@ def test_the_attributes_and_enums_the_camera_driver_reads_exist():
     for output in ("depth", "amplitude"):
         assert getattr(dai.node.ToF, output).fget.__doc__.strip().endswith("-> depthai.Node.Output")
     assert callable(dai.Pipeline.create)
+    config = dai.ToFConfig()  # the corrections the driver switches on are settable booleans
+    for flag in ("enableOpticalCorrection", "enableDistortionCorrection"):
+        setattr(config, flag, True)
+        assert getattr(config, flag) is True
