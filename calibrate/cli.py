@@ -6,7 +6,7 @@ subcommand sets ``func(args) -> int`` (the exit code). Handlers import their hea
 
 Errors: ``InputError`` prints one line ``bubble: error: ...`` and exits 2; ``HardwareFault``
 prints ``bubble: fault: ...`` and exits 3; Ctrl-C exits 130, SIGTERM and SIGHUP end a command the
-same way (``calibrate.stop_signals``) and exit 143 and 129; a closed stdout (``| head``) exits 141.
+same way (``collect.stop_signals``) and exit 143 and 129; a closed stdout (``| head``) exits 141.
 No tracebacks for any of them.
 """
 
@@ -19,7 +19,7 @@ import os
 import signal
 import sys
 
-from calibrate.stop_signals import INTERRUPTS, Terminated, exit_code, raise_interrupt, stop_signals_handled
+from collect.stop_signals import INTERRUPTS, Terminated, exit_code, raise_interrupt, stop_signals_handled
 from collect.errors import (
     EXIT_BAD_INPUT,
     EXIT_BROKEN_PIPE,
@@ -72,9 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run the ``bubble`` command line ``argv`` (default: ``sys.argv[1:]``); returns the exit code.
+    argparse's own exits (``--help``, a bad option) raise ``SystemExit`` as usual."""
     try:
+        args = build_parser().parse_args(argv)  # a Ctrl-C while it imports the commands: below, as any other
         with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
             return int(args.func(args) or 0)
     except InputError as err:

@@ -15,7 +15,7 @@ import threading
 import time
 from pathlib import Path
 
-from calibrate.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
+from collect.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
 from collect.cli import DEFAULT_OBJECTS_ARG, check_sim_options, progress_place
 from collect.errors import EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import named_path
@@ -60,7 +60,8 @@ def add_run_options(p) -> None:
                    help="wall-time budget of the whole run; the fine-tune is shortened to fit it (default %(default)s)")
     p.add_argument("--leak-hold-s", type=float, default=CommissionConfig.leak_hold_s, metavar="S",
                    help=f"leak-test hold, s of bench time (default {CommissionConfig.leak_hold_s:g})")
-    p.add_argument("--objects", default=DEFAULT_OBJECTS_ARG, help=f"comma-separated objects to press (default {DEFAULT_OBJECTS_ARG})")
+    p.add_argument("--objects", help=f"comma-separated objects to press (default: a --bench file's objects, else "
+                                     f"{DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
                    help="contact poses per object (default %(default)s)")
     p.add_argument("--seed", type=int, default=CommissionConfig.seed, help="seed of the pose plan and of the simulated sensor")
@@ -76,6 +77,10 @@ def run_config(args, run_dir: str | Path, bench=None):
     def path(text: str | None) -> Path | None:
         return None if text is None else Path(text)
 
+    # the real bench's plate holds the objects its file lists (was: the four built-ins pressed whatever it held)
+    objects = args.objects if args.objects is not None else (
+        ",".join(bench.objects) if bench is not None else DEFAULT_OBJECTS_ARG)
+
     return CommissionConfig(
         run_dir=Path(run_dir),
         simulated=args.sim,
@@ -86,7 +91,7 @@ def run_config(args, run_dir: str | Path, bench=None):
         base_model=path(args.base_model),
         finetune_minutes=args.finetune_minutes,
         total_minutes=args.total_minutes,
-        objects=tuple(name.strip() for name in args.objects.split(",") if name.strip()),
+        objects=tuple(name.strip() for name in objects.split(",") if name.strip()),
         poses_per_object=args.poses_per_object,
         seed=args.seed,
         sim_faults=tuple(args.sim_fault),

@@ -7,7 +7,7 @@ from datetime import datetime
 from pathlib import Path
 
 from calibrate.commission_cli import add_run_options, run_config
-from calibrate.stop_signals import exit_code, stop_signals_handled
+from collect.stop_signals import exit_code, stop_signals_handled
 from collect.errors import InputError
 from collect.output_files import named_path
 

@@ -17,6 +17,9 @@ from pathlib import Path
 
 #: Name of a temporary file of ``replacing``: ``<target name>.<8 random characters>.tmp`` (mkstemp's).
 _TEMP_NAME = re.compile(r".+\.[a-z0-9_]{8}\.tmp")
+#: Bytes that name adds to the target's (``.<8 random characters>.tmp``): a target name longer than
+#: the file system's limit less these cannot be written (``collect.output_files`` refuses it up front).
+TEMP_NAME_EXTRA = len(".12345678.tmp")
 
 
 def _new_file_mode() -> int:

@@ -1,6 +1,8 @@
 """Checks of the files a command is about to write, made before any work: a command never
 overwrites a recording, a model or any other file that is not an earlier result of its own kind,
-and two commands never write one output folder at once (``output_folder_lock``)."""
+never starts on a path with a name the file system cannot take (255 bytes on the usual ones; 242
+for the name of a file written through a temporary file, ``collect.atomic_files.replacing``), and
+two commands never write one output folder at once (``output_folder_lock``)."""
 
 from __future__ import annotations
 
@@ -13,11 +15,15 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from collect.atomic_files import TEMP_NAME_EXTRA
 from collect.errors import InputError
 from collect.json_files import JSON_READ_ERRORS, write_json
 
 #: Longest file name (one path component) in bytes; 255 on the usual Linux file systems.
 _NAME_MAX = os.pathconf("/", "PC_NAME_MAX")
+#: Longest name of a file written through ``collect.atomic_files.replacing`` (242 bytes on those file
+#: systems): its temporary file's name is ``TEMP_NAME_EXTRA`` bytes longer.
+_REPLACED_NAME_MAX = _NAME_MAX - TEMP_NAME_EXTRA
 #: Top-level key of every ``--json`` result: the command that wrote it (``"bubble pose"``). A later run
 #: of that command may replace the file; no other file, JSON or not, is ever overwritten by one.
 WRITTEN_BY = "written_by"
@@ -36,7 +42,7 @@ def check_json_output(path, command: str) -> None:
     a file, its directory exists and is writable, and the path is new or holds an earlier result of
     the same command (which is replaced)."""
     path = Path(path)
-    _check_name_lengths(path)
+    _check_name_lengths(path, replaced=True)
     parent = path.parent.resolve()
     if not parent.is_dir():
         raise InputError(f"cannot write {path}: directory {parent} does not exist")
@@ -86,11 +92,13 @@ def output_folder_lock(folder, holder: str | None = None):
     return exclusive_lock(folder, busy)
 
 
-def check_parent_dirs(path) -> None:
-    """Raise InputError when a folder on the way to ``path`` (folders are created when missing)
-    exists as a file, or the nearest existing one takes no new files."""
+def check_parent_dirs(path, *, replaced: bool = False) -> None:
+    """Raise InputError when a name in ``path`` is too long (``_check_name_lengths``; ``replaced``:
+    ``path`` is a file written through ``collect.atomic_files.replacing``), or a folder on the way to
+    ``path`` (folders are created when missing) exists as a file, or the nearest existing one takes
+    no new files."""
     path = Path(path)
-    _check_name_lengths(path)
+    _check_name_lengths(path, replaced=replaced)
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
@@ -99,11 +107,17 @@ def check_parent_dirs(path) -> None:
             return
 
 
-def _check_name_lengths(path: Path) -> None:
-    """Raise InputError when a name in ``path`` is longer than the file system takes (checked
-    before the work, which would otherwise fail only when its result is written)."""
+def _check_name_lengths(path: Path, *, replaced: bool) -> None:
+    """Raise InputError when a name in ``path`` is longer than the file system takes, ``_NAME_MAX``
+    bytes, or, with ``replaced`` (``path`` is a file written through ``collect.atomic_files.replacing``),
+    its last name is longer than ``_REPLACED_NAME_MAX`` bytes, which its temporary file could not have
+    (checked before the work, which would otherwise fail only when its result is written)."""
     if any(len(os.fsencode(part)) > _NAME_MAX for part in path.parts):
         raise InputError(f"cannot write {path}: a name in this path is longer than the file system's {_NAME_MAX} bytes")
+    if replaced and len(os.fsencode(path.name)) > _REPLACED_NAME_MAX:
+        raise InputError(f"cannot write {path}: its file name is longer than {_REPLACED_NAME_MAX} bytes (the file "
+                         f"system's {_NAME_MAX}, less the {TEMP_NAME_EXTRA} of the temporary file it is written "
+                         "through)")
 
 
 def _check_can_create_in(folder: Path, path: Path) -> None:

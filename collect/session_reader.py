@@ -14,9 +14,11 @@ Bad files raise ``InputError`` with one line, and so does a file another process
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
+import stat
 from dataclasses import dataclass
 
 import h5py
@@ -70,16 +72,21 @@ MAX_DEPTH_UNIT_M = 0.01
 
 
 def open_h5(path, *, locking: bool = True) -> h5py.File:
-    """Open ``path`` read-only. Raises InputError for a missing, unreadable, non-HDF5 or truncated
-    file, and for one that another process is writing (``in_use_error``). ``locking=False`` leaves
-    out HDF5's file lock: only for a caller that holds the file's lock itself."""
+    """Open ``path`` read-only. Raises InputError for a missing, unreadable (also one in a folder that
+    cannot be entered), non-HDF5 or truncated file, and for one that another process is writing
+    (``in_use_error``). ``locking=False`` leaves out HDF5's file lock: only for a caller that holds
+    the file's lock itself."""
     path = os.fspath(path)
-    if os.path.isdir(path):
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as err:  # missing, or in a folder that cannot be entered
+        if err.errno in (errno.ENOENT, errno.ENOTDIR):
+            raise InputError(f"{path}: no such file") from None
+        raise InputError(f"cannot read {path}: {err.strerror}") from None
+    if stat.S_ISDIR(mode):
         raise InputError(f"{path} is a directory, not a session file")
-    if not os.path.isfile(path):
-        if os.path.exists(path):
-            raise InputError(f"{path} is not a regular file (a device, a pipe or a socket), not a session file")
-        raise InputError(f"{path}: no such file")
+    if not stat.S_ISREG(mode):
+        raise InputError(f"{path} is not a regular file (a device, a pipe or a socket), not a session file")
     try:
         return h5py.File(path, "r", locking=None if locking else False)  # None: HDF5's default file locking
     except BlockingIOError:
@@ -116,6 +123,8 @@ def check_session_attrs(f: h5py.File) -> None:
     if fmt is None:
         raise InputError(f"{f.filename}: an HDF5 file but not a {sf.FORMAT_NAME} file (it has no "
                          f"'{sf.ATTR_FORMAT}' attribute)")
+    if not isinstance(fmt, str):  # an array or a number: no format name
+        raise _bad(f.filename, f"root attr '{sf.ATTR_FORMAT}'", f"the text '{sf.FORMAT_NAME}'", fmt)
     if fmt != sf.FORMAT_NAME:
         raise InputError(f"{f.filename}: not a {sf.FORMAT_NAME} file (its '{sf.ATTR_FORMAT}' attribute is {fmt!r})")
     version = _root_attr(f, sf.ATTR_FORMAT_VERSION)
@@ -200,8 +209,11 @@ class Session:
             if name in f:  # optional (the required ones are checked above)
                 _check_layout(self.path, name, f[name], layout)
         _, self.height, self.width = f[sf.FRAMES_IR].shape
-        if f[sf.FRAMES_DEPTH].shape[1:] != (self.height, self.width):
-            raise InputError(f"{self.path}: corrupt session, frames/ir and frames/depth differ in size")
+        for name in (sf.FRAMES_DEPTH, sf.SIM_TRUE_DEPTH):  # the true depth of a simulated session
+            if name in f and f[name].shape[1:] != (self.height, self.width):
+                height, width = f[name].shape[1:]
+                raise InputError(f"{self.path}: corrupt session, {sf.FRAMES_IR} and {name} differ in size "
+                                 f"({self.width}x{self.height} and {width}x{height} px)")
         if (self.intrinsics["height"], self.intrinsics["width"]) != (self.height, self.width):
             raise InputError(f"{self.path}: intrinsics size does not match the {self.width}x{self.height} frames")
         frame_sets = [*sf.FRAME_DATASETS, *(name for name in (sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH) if name in f)]
@@ -556,7 +568,19 @@ def _read_objects(f: h5py.File) -> list[SessionObject]:
             if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
                 raise InputError(f"{f.filename}: corrupt session, {mesh}/faces names vertices that "
                                  f"{mesh}/vertices does not hold ({len(vertices)} vertices)")
-        objects.append(
-            SessionObject(i, name, poses[i], shas[i], json.loads(prims[i]) if prims[i] else {}, vertices, faces)
-        )
+        primitive = _primitive(f.filename, name, prims[i])
+        objects.append(SessionObject(i, name, poses[i], shas[i], primitive, vertices, faces))
     return objects
+
+
+def _primitive(path: str, name: str, text: str) -> dict:
+    """The shape description of object ``name``: ``text``, its entry of objects/primitive, parsed
+    (``{}`` when empty); InputError naming the object when it is not JSON or not a JSON object."""
+    where = f"{sf.OBJECTS_PRIMITIVE} entry of object {name!r}"
+    try:
+        value = json.loads(text) if text else {}
+    except JSON_READ_ERRORS as err:
+        raise InputError(f"{path}: corrupt session, {where} is not valid JSON ({getattr(err, 'msg', err)})") from None
+    if not _is_object(value):
+        raise _bad(path, where, "a JSON object", value)
+    return value

@@ -15,8 +15,6 @@ from collect.output_files import named_path
 
 #: Deepest press the preview accepts (mm).
 MAX_PREVIEW_PRESS_MM = 30.0
-#: First bytes of every PNG file.
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def register(subparsers) -> None:
@@ -47,7 +45,7 @@ def _new_sensor(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out} is a directory; name the spec file to write, e.g. {out / 'sensor.yaml'}")
     if out.exists():  # a spec describes the sensor a recording was made with: never replace one silently
         raise InputError(f"{out} already exists; choose another --out or delete it first")
-    check_parent_dirs(out)
+    check_parent_dirs(out, replaced=True)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         spec.to_yaml(out)
@@ -75,8 +73,10 @@ def _preview(args: argparse.Namespace) -> int:
 
 
 def _check_preview_output(out: Path) -> None:
-    """Raise InputError unless ``out`` can take the preview: a .png path, new or an earlier PNG."""
+    """Raise InputError unless ``out`` can take the preview: a .png path, new or an earlier preview
+    (``hw_mocks.preview.is_preview``)."""
     from collect.output_files import check_parent_dirs
+    from hw_mocks.preview import is_preview
 
     if out.is_dir():
         raise InputError(f"--out {out} is a directory; name the PNG file to write, e.g. {out / 'preview.png'}")
@@ -84,10 +84,9 @@ def _check_preview_output(out: Path) -> None:
         raise InputError(f"--out {out}: the preview is a PNG image; name a .png file")
     if out.exists():
         try:
-            with out.open("rb") as f:
-                is_png = f.read(8) == PNG_SIGNATURE
-        except OSError:
-            is_png = False
-        if not is_png:
-            raise InputError(f"{out} exists and is not a PNG image; refusing to overwrite it")
-    check_parent_dirs(out)
+            earlier = is_preview(out)
+        except OSError:  # unreadable: nothing tells that it is a preview
+            earlier = False
+        if not earlier:
+            raise InputError(f"{out} exists and is not an earlier `bubble sim preview` image; refusing to overwrite it")
+    check_parent_dirs(out, replaced=True)

@@ -20,13 +20,30 @@ from hw_mocks.objects import fixture_plate, load_object
 from hw_mocks.sensor_spec import SensorSpec
 
 
+#: The ``Software`` text of every preview PNG: ``bubble sim preview --out`` replaces a PNG that has it
+#: (an earlier preview) and no other file.
+PREVIEW_SOFTWARE = "bubble sim preview"
+
+
+def is_preview(path: Path) -> bool:
+    """Whether the file ``path`` is a preview PNG (Pillow reads its ``Software`` text). Raises
+    ``OSError`` when it cannot be read."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.format == "PNG" and image.text.get("Software") == PREVIEW_SOFTWARE
+    except UnidentifiedImageError:  # not an image at all
+        return False
+
+
 def press_pose(top_point: np.ndarray, press_m: float) -> np.ndarray:
     """Untilted TCP pose (6,) pressing ``press_m`` below first touch of the surface point ``top_point (3,)`` (base frame)."""
     return np.array([top_point[0], top_point[1], top_point[2] - press_m, np.pi, 0.0, 0.0])
 
 
 def render_preview(spec: SensorSpec, object_name: str, press_m: float, out: Path, seed: int = 0) -> str:
-    """Write the preview PNG to ``out``; returns a one-line summary."""
+    """Write the preview PNG to ``out``, marked as one (``is_preview``); returns a one-line summary."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -72,7 +89,7 @@ def render_preview(spec: SensorSpec, object_name: str, press_m: float, out: Path
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         with replacing(out) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
+            fig.savefig(tmp, dpi=110, format="png", metadata={"Software": PREVIEW_SOFTWARE})
     except OSError as err:
         raise InputError(f"cannot write {out}: {err.strerror or err}") from None
     finally:

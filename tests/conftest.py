@@ -158,7 +158,7 @@ def wait_until(predicate, timeout_s: float = 2.0) -> bool:
 def interrupt_handlers_restored():
     """The test leaves this process's handlers as it found them (a command's outermost block leaves
     them ignored, for the process's exit)."""
-    from calibrate.stop_signals import INTERRUPTS
+    from collect.stop_signals import INTERRUPTS
 
     before = {sig: signal.getsignal(sig) for sig in INTERRUPTS}
     yield

@@ -3,9 +3,11 @@ clear ``bubble: error:`` line and exit 2, and a resume with nothing left to do c
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 
+import cv2
 import h5py
 import numpy as np
 import pytest
@@ -80,8 +82,39 @@ def test_preview_never_overwrites_another_file(tmp_path, places, synthetic_sessi
     _refused(capsys, preview + [synthetic_session], "the preview is a PNG image; name a .png file")  # was: a traceback
     notes = tmp_path / "notes.png"
     notes.write_text("not a picture")
-    _refused(capsys, preview + [notes], "exists and is not a PNG image; refusing to overwrite it")
+    refusal = "exists and is not an earlier `bubble sim preview` image; refusing to overwrite it"
+    _refused(capsys, preview + [notes], f"{notes} {refusal}")
+    photo = tmp_path / "photo.png"  # was: replaced, as any PNG
+    assert cv2.imwrite(str(photo), np.full((4, 6, 3), 200, np.uint8))
+    picture = photo.read_bytes()
+    _refused(capsys, preview + [photo], f"{photo} {refusal}")
     assert synthetic_session.read_bytes() == recording and notes.read_text() == "not a picture"
+    assert photo.read_bytes() == picture
+    earlier = tmp_path / "earlier.png"
+    for press_mm in ("2", "6"):  # an earlier preview is replaced
+        assert main([str(a) for a in preview + [earlier, "--press-mm", press_mm]]) == 0
+    assert "pressed 6.0 mm" in capsys.readouterr().out
+
+
+def test_an_output_name_its_temporary_file_could_not_have_is_refused_before_any_work(tmp_path, places,
+                                                                                       synthetic_session, capsys):
+    """A file written whole goes through a temporary file ``<name>.<8 characters>.tmp``, 13 bytes longer:
+    a name of 243-255 bytes failed only after the work, naming that temporary file. Folders keep 255."""
+    _, _, spec = places
+    capsys.readouterr()
+    folder = tmp_path / ("d" * 255)
+    folder.mkdir()
+    limit = ("its file name is longer than 242 bytes (the file system's 255, less the 13 of the temporary file it "
+             "is written through)")
+    for argv, out in ((["sim", "new-sensor", "--seed", "2", "--out"], folder / ("s" * 238 + ".yaml")),
+                      (["sim", "preview", "--sensor", spec, "--object", "box", "--out"], folder / ("p" * 239 + ".png")),
+                      (["evaluate", "--model", "base", "--data", synthetic_session, "--json"],
+                       folder / ("e" * 238 + ".json"))):
+        assert len(out.name) == 243
+        _refused(capsys, argv + [out], f"cannot write {out}: {limit}")
+    assert list(folder.iterdir()) == []
+    fits = folder / ("s" * 237 + ".yaml")  # 242 bytes
+    assert main(["sim", "new-sensor", "--seed", "2", "--out", str(fits)]) == 0 and fits.is_file()
 
 
 def test_model_and_session_paths_of_the_wrong_kind(tmp_path, places, synthetic_session, capsys):
@@ -139,6 +172,27 @@ def test_hdf5_files_that_are_not_sessions(tmp_path, synthetic_session, capsys):
     with h5py.File(synthetic_session, "a") as f:
         f.attrs[sf.ATTR_FORMAT] = "other-format"
     _refused(capsys, ["info", synthetic_session], "not a bubble-session file (its 'format' attribute is 'other-format')")
+
+
+def test_a_session_in_a_folder_that_cannot_be_entered_is_not_called_missing(tmp_path, synthetic_session, monkeypatch,
+                                                                             capsys):
+    """``stat`` of a file in a folder without search permission fails with EACCES (was: "no such file")."""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    inside = locked / "w.h5"
+    synthetic_session.rename(inside)
+    real_stat = os.stat
+
+    def stat(path, *args, **kwargs):
+        if os.fspath(path) == str(inside):
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), os.fspath(path))
+        return real_stat(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", stat)
+    err = _refused(capsys, ["info", inside], f"cannot read {inside}: Permission denied")
+    assert "no such file" not in err
+    monkeypatch.undo()
+    _refused(capsys, ["info", locked / "missing.h5"], f"{locked / 'missing.h5'}: no such file")
 
 
 def test_info_of_a_session_without_frames(tmp_path, capsys):
@@ -332,3 +386,18 @@ def test_the_json_result_is_written_though_the_reader_of_stdout_went_away(tmp_pa
     proc.stderr.close()
     assert proc.wait() == 141 and err == "", err
     assert json.loads((tmp_path / "r.json").read_text())["written_by"] == "bubble evaluate"
+
+
+def test_commission_on_a_real_bench_presses_the_objects_its_file_lists(tmp_path):
+    """Was: `bubble commission --bench` pressed the four built-in objects whatever the bench file's
+    `objects` listed (where no object is mounted too); `bubble collect --bench` took the file's."""
+    from calibrate.cli import build_parser
+    from calibrate.commission_cli import run_config
+    from collect.bench import DEFAULT_OBJECTS, BenchConfig
+
+    bench = BenchConfig.create("ur", robot_ip="192.168.1.10", serial_port="/dev/ttyACM0", objects=("box", "mug"))
+    parse = build_parser().parse_args
+    assert run_config(parse(["commission", "--bench", "b.yaml", "--out", "r"]), "r", bench).objects == ("box", "mug")
+    assert run_config(parse(["commission", "--bench", "b.yaml", "--objects", "mug", "--out", "r"]), "r",
+                      bench).objects == ("mug",)
+    assert run_config(parse(["commission", "--sim", "--out", "r"]), "r").objects == tuple(DEFAULT_OBJECTS)

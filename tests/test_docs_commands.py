@@ -191,6 +191,18 @@ def test_troubleshooting_lists_every_message():
 
 
 
+def test_the_guide_names_the_optional_fields_of_a_sensor_spec():
+    """Was: "every field is required, none extra", though a spec without its defect fields loads."""
+    import dataclasses
+
+    from hw_mocks.sensor_spec import SensorSpec
+
+    row = next(line for line in USER_GUIDE.read_text().splitlines() if "missing field '…'" in line)
+    optional = [f.name for f in dataclasses.fields(SensorSpec)
+                if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING]
+    assert optional and all(f"`{name}`" in row for name in optional), row
+
+
 def test_help_gives_the_readme_exit_codes(capsys):
     """``bubble --help`` ends with the exit codes; the README's line gives the same codes and meanings."""
     with pytest.raises(SystemExit) as stop:

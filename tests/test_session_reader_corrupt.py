@@ -107,6 +107,18 @@ CASES = {
                                "corrupt session, objects/fixture_pose must hold (O,6) floats, got shape (2, 5)"),
     "primitive-numbers": (_replace(sf.OBJECTS_PRIMITIVE, lambda old: np.zeros(len(old))),
                           "corrupt session, objects/primitive must hold (O,) strings"),
+    # was: "corrupt or truncated session (char 1)"
+    "primitive-not-json": (_replace(sf.OBJECTS_PRIMITIVE, lambda old: np.array([b"{x", *old[1:]])),
+                           "corrupt session, objects/primitive entry of object 'mug' is not valid JSON (Expecting "
+                           "property name enclosed in double quotes)"),
+    "primitive-a-list": (_replace(sf.OBJECTS_PRIMITIVE, lambda old: np.array([old[0], b"[1]"])),
+                         "objects/primitive entry of object 'box' must be a JSON object, got [1]"),
+    # was: "corrupt or truncated session () or a.all()"
+    "format-an-array": (_set_attr(sf.ATTR_FORMAT, np.array([1, 2])),
+                        "root attr 'format' must be the text 'bubble-session', got [1, 2]"),
+    # was: opened, and `bubble evaluate` failed naming neither the file nor the dataset
+    "true-depth-another-size": (_replace(sf.SIM_TRUE_DEPTH, lambda old: old[:, :-1]),
+                                "corrupt session, frames/ir and sim/true_depth differ in size (32x24 and 32x23 px)"),
     "mesh-a-dataset": (lambda f: (f.__delitem__(f"{sf.OBJECTS_MESH_GROUP}/box"),
                                   f.create_dataset(f"{sf.OBJECTS_MESH_GROUP}/box", data=np.zeros(3))),
                        "corrupt session, objects/meshes/box is not a group"),

@@ -1,4 +1,4 @@
-"""Ctrl-C, SIGTERM and SIGHUP handling of the command line (``calibrate.stop_signals``), in this
+"""Ctrl-C, SIGTERM and SIGHUP handling of the command line (``collect.stop_signals``), in this
 process: the first signal stops, a repeat never cuts that stop short. (Whole commands, SIGHUP
 included, are interrupted in a child: test_collect_run, test_commission_flow, test_tui_commissioning.)"""
 
@@ -9,7 +9,7 @@ import signal
 
 import pytest
 
-from calibrate.stop_signals import INTERRUPTS, STILL_STOPPING, Terminated, raise_interrupt, stop_signals_handled
+from collect.stop_signals import INTERRUPTS, STILL_STOPPING, Terminated, raise_interrupt, stop_signals_handled
 
 
 def test_a_repeat_during_the_stop_is_only_acknowledged(capfd):
@@ -70,3 +70,34 @@ def test_a_command_without_a_stop_puts_the_handlers_back(interrupt_handlers_rest
     with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
         pass
     assert {sig: signal.getsignal(sig) for sig in INTERRUPTS} == before
+
+
+@pytest.mark.parametrize("stage", ["build", "parse"])
+def test_ctrl_c_before_the_command_starts_is_one_line_and_exit_130(monkeypatch, capsys, stage):
+    """Was: a KeyboardInterrupt traceback for a Ctrl-C in the ~0.4 s in which ``bubble`` imports its
+    commands and parses the command line (a real SIGINT, sent at that moment)."""
+    import argparse
+    import importlib
+
+    from calibrate.cli import main
+
+    def interrupted(original):
+        def call(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGINT)  # Python's handler raises KeyboardInterrupt here
+            return original(*args, **kwargs)
+        return call
+
+    if stage == "build":
+        monkeypatch.setattr(importlib, "import_module", interrupted(importlib.import_module))
+    else:
+        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", interrupted(argparse.ArgumentParser.parse_args))
+    try:
+        code = main(["info", "s.h5"])
+    except KeyboardInterrupt:
+        pytest.fail("a KeyboardInterrupt traceback")
+    assert (code, capsys.readouterr().err) == (130, "bubble: interrupted\n")
+    monkeypatch.undo()
+    for argv, exit_code in ((["--version"], 0), (["nope"], 2)):  # argparse's own exits are as before
+        with pytest.raises(SystemExit) as exited:
+            main(argv)
+        assert exited.value.code == exit_code

@@ -1,7 +1,9 @@
 """Model directory: safetensors + metadata round trip, refusal of pickle and mismatched weights, and of
 metadata.json values that are missing, of the wrong type or out of range."""
 
+import errno
 import json
+import os
 
 import numpy as np
 import pytest
@@ -192,3 +194,34 @@ def test_bad_metadata_is_one_line_and_exit_2_on_the_command_line(model_dir, synt
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"bubble: error: model {model_dir}: metadata.json field "
                                                    "'geometry.native_height' = 0 must be "), err
+
+
+def _denied(monkeypatch, method: str, refuse) -> None:
+    """``Path.<method>`` (``open``, ``stat``) raises the system's PermissionError for every path
+    ``refuse(path)`` picks, as for a file of mode 000 or one in a folder that cannot be entered."""
+    from pathlib import Path
+
+    original = getattr(Path, method)
+
+    def denied(self, *args, **kwargs):
+        if refuse(self):
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, method, denied)
+
+
+@pytest.mark.parametrize("method, refused", [
+    ("open", WEIGHTS_FILE),  # was: a PermissionError traceback from the pickle check
+    ("open", METADATA_FILE),  # was: "metadata.json is not valid JSON: [Errno 13] Permission denied"
+    ("stat", METADATA_FILE),  # the model folder cannot be entered; was: a traceback from path.exists()
+])
+def test_a_model_file_that_cannot_be_read_is_one_line_naming_it(model_dir, synthetic_session, capsys, monkeypatch,
+                                                                 method, refused):
+    if method == "stat":
+        _denied(monkeypatch, "stat", lambda path: path.parent == model_dir)
+    else:
+        _denied(monkeypatch, "open", lambda path: path == model_dir / refused)
+    assert main(["evaluate", "--model", str(model_dir), "--data", str(synthetic_session)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"bubble: error: cannot read {model_dir / refused}: Permission denied\n", err

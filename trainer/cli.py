@@ -127,12 +127,13 @@ def check_model_arg(value: str | None, option: str) -> None:
 
 def metrics_table(title: str, rows: dict[str, dict]):
     """A rich table of the paper's columns, one row per name."""
+    from rich.markup import escape
     from rich.table import Table
 
     table = Table(title=title)
     table.add_column("data")
     for _, header in PAPER_COLUMNS:
-        table.add_column(header, justify="right")
+        table.add_column(escape(header), justify="right")  # "RMSE [m]": [m] is no rich markup tag
     table.add_column("images", justify="right")
     for name, m in rows.items():
         table.add_row(name, *(f"{m[key]:.4f}" for key, _ in PAPER_COLUMNS), str(m["n_images"]))
@@ -162,7 +163,7 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from calibrate.stop_signals import INTERRUPTS, exit_code, raise_interrupt, stop_signals_handled
+    from collect.stop_signals import INTERRUPTS, exit_code, raise_interrupt, stop_signals_handled
     from collect.errors import InputError
     from trainer.checkpoint import has_checkpoint
     from trainer.model_dir import WEIGHTS_FILE

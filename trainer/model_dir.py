@@ -182,22 +182,32 @@ def write_metadata(model_dir: str | Path, metadata: ModelMetadata) -> None:
 
 
 def load_metadata(model_dir: str | Path) -> ModelMetadata:
-    """``metadata.json`` of ``model_dir``; ``InputError`` when missing or malformed."""
+    """``metadata.json`` of ``model_dir``; ``InputError`` when missing, unreadable or malformed."""
     model_dir = resolve_model_dir(model_dir)
     path = model_dir / METADATA_FILE
-    if not model_dir.is_dir():
-        raise InputError(f"model directory not found: {model_dir}")
-    if path.exists() and not path.is_file():  # a folder or a pipe of that name
-        raise InputError(f"{path} is not a regular file")
-    if not path.is_file():
-        raise InputError(f"model directory {model_dir} has no {METADATA_FILE}")
     try:
-        data = json.loads(path.read_text())
+        if not model_dir.is_dir():
+            raise InputError(f"model directory not found: {model_dir}")
+        if path.exists() and not path.is_file():  # a folder or a pipe of that name
+            raise InputError(f"{path} is not a regular file")
+        if not path.is_file():
+            raise InputError(f"model directory {model_dir} has no {METADATA_FILE}")
+        raw = path.read_bytes()
+    except OSError as err:  # a folder on the way that cannot be entered, a file that cannot be read
+        raise _unreadable(path, err) from None
+    try:
+        data = json.loads(raw)  # json decodes the bytes (UTF-8, -16 or -32)
     except JSON_READ_ERRORS as err:
         raise InputError(f"{path} is not valid JSON: {err}") from None
     if not isinstance(data, dict):
         raise InputError(f"{path} does not hold a JSON object")
     return ModelMetadata.from_dict(data, model_dir)
+
+
+def _unreadable(path: Path, err: OSError) -> InputError:
+    """The one-line refusal of a model file ``path`` that the system would not read (``err``, e.g. a
+    ``PermissionError``): names the file or folder that failed and the system's reason."""
+    return InputError(f"cannot read {err.filename or path}: {err.strerror or err}")
 
 
 def _looks_like_safetensors(path: Path) -> bool:
@@ -226,14 +236,18 @@ def load_weights(model_dir: str | Path) -> dict[str, torch.Tensor]:
     """The safetensors state dict of ``model_dir``; refuses pickle files with ``InputError``."""
     model_dir = resolve_model_dir(model_dir)
     path = model_dir / WEIGHTS_FILE
-    if path.exists() and not path.is_file():
-        raise InputError(f"{path} is not a regular file")
-    if not path.is_file():
-        pickles = sorted(p.name for p in model_dir.iterdir() if p.suffix in PICKLE_SUFFIXES) if model_dir.is_dir() else []
-        if pickles:
-            raise InputError(f"refusing pickle weights {pickles[0]} in {model_dir}: only {WEIGHTS_FILE} (safetensors) is loaded")
-        raise InputError(f"model directory {model_dir} has no {WEIGHTS_FILE}")
-    if _looks_like_pickle(path):
+    try:
+        if path.exists() and not path.is_file():
+            raise InputError(f"{path} is not a regular file")
+        if not path.is_file():
+            pickles = sorted(p.name for p in model_dir.iterdir() if p.suffix in PICKLE_SUFFIXES) if model_dir.is_dir() else []
+            if pickles:
+                raise InputError(f"refusing pickle weights {pickles[0]} in {model_dir}: only {WEIGHTS_FILE} (safetensors) is loaded")
+            raise InputError(f"model directory {model_dir} has no {WEIGHTS_FILE}")
+        is_pickle = _looks_like_pickle(path)
+    except OSError as err:  # a folder on the way that cannot be entered or listed, weights that cannot be read
+        raise _unreadable(path, err) from None
+    if is_pickle:
         raise InputError(f"refusing {path}: it is a pickle file, not safetensors")
     try:
         return load_file(str(path))
