@@ -23,7 +23,7 @@ from trainer.checkpoint import has_checkpoint
 from trainer.distributed import DistContext
 from trainer.inference import DepthEstimator
 from trainer.metrics import METRIC_KEYS
-from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, load_metadata
+from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, load_metadata, load_weights
 from trainer.training import TrainConfig, train_model
 
 SMALL = {"height": 48, "width": 64, "poses_per_object": 3}
@@ -110,6 +110,49 @@ def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
     full = train_model(_config([session], tmp_path / "full", epochs=2, export_onnx=False))
     assert [e.step for e in events if e.event == "step"][0] == 4
     assert result.steps == full.steps
+    resumed, straight = load_weights(out), load_weights(tmp_path / "full")  # augmentation on: was 0.06 apart
+    assert all(torch.equal(resumed[name], straight[name]) for name in straight)
+
+
+def test_a_checkpoint_of_two_saves_or_of_other_content_is_refused(session, tmp_path):
+    """Was: a kill between the two files' writes resumed weights of step k with the progress of step
+    k-1 (one step over the budget); a checkpoint.json of other content gave a KeyError traceback."""
+    out = tmp_path / "model"
+    _interrupted_after_3_steps(session, out)
+    state_path = out / "checkpoint.json"
+    state = json.loads(state_path.read_text())
+    for content, message in (({**state, "checkpoint_id": "0" * 32}, "is torn: checkpoint.safetensors and "
+                                                                      "checkpoint.json come from two saves"),
+                             ({}, "does not hold the optimizer's settings and the training's progress"),
+                             ([1], "does not hold the optimizer's settings")):
+        state_path.write_text(json.dumps(content))
+        with pytest.raises(InputError, match=message):
+            train_model(_config([session], out, epochs=2, export_onnx=False, resume=True))
+
+
+def test_a_stop_during_a_validation_ends_the_training_at_that_step(session, tmp_path):
+    """Was: one more step after the validation the stop came in."""
+    stop = threading.Event()
+
+    def stop_in_the_validation_after_step_3(progress):
+        if progress.step == 3 and progress.event == "eval":
+            stop.set()
+
+    result = train_model(_config([session], tmp_path / "m", export_onnx=False, write_on_stop=False),
+                         stop_in_the_validation_after_step_3, stop)
+    assert result.stopped and result.steps == 3
+
+
+def test_the_deadline_binds_before_the_first_step_and_in_a_resumed_run(session, tmp_path):
+    """Was: a deadline already spent still let one step run; a resumed run ignored its deadline until
+    its first periodic validation (here: none), and trained its whole budget."""
+    fresh = train_model(_config([session], tmp_path / "fresh", deadline_s=1e-3, export_onnx=False))
+    assert fresh.steps == 0 and fresh.ended_at_deadline
+    out = tmp_path / "model"
+    _interrupted_after_3_steps(session, out)
+    resumed = train_model(_config([session], out, epochs=2, export_onnx=False, resume=True, deadline_s=1e-3,
+                                  eval_interval_s=1e9))
+    assert resumed.steps == 3 and resumed.ended_at_deadline
 
 
 @pytest.mark.parametrize("change, named", [(dict(seed=1), "--seed"), (dict(holdout_object="box"), "split (--split"),
@@ -433,3 +476,24 @@ def test_ctrl_c_during_training_checkpoints_the_step_reached(bubble, session, tm
     monkeypatch.setattr(Progress, "update", update)
     assert bubble(*train, "--resume") == 0
     assert load_metadata(out).training["steps"] > 2 and not has_checkpoint(out)
+
+
+def test_ctrl_c_while_the_model_is_written_is_reported(bubble, session, tmp_path, monkeypatch, capsys,
+                                                       interrupt_handlers_restored):
+    """Was: swallowed, "model written to", exit 0: the stop came after the last step, where nothing
+    looked at it. The model is whole; the command says so and exits 130."""
+    import trainer.training
+
+    save_model = trainer.training.save_model
+
+    def ctrl_c_then_save(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return save_model(*args, **kwargs)
+
+    monkeypatch.setattr(trainer.training, "save_model", ctrl_c_then_save)
+    out = tmp_path / "m"
+    assert bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.2", "--no-onnx",
+                  "--threads", "1") == 130
+    assert capsys.readouterr().err.splitlines()[-1] == (f"bubble: interrupted after the training's last step: the "
+                                                        f"model in {out} is complete")
+    assert load_metadata(out).training["steps"] > 0

@@ -2,16 +2,21 @@
 
 ``checkpoint.safetensors`` holds the network weights and the optimizer's tensors
 (``net.<name>``, ``optim.<param index>.<state name>``); ``checkpoint.json`` holds the optimizer's
-hyper-parameters and the training progress (epoch, step, elapsed seconds, history, ...).
+hyper-parameters and the training progress (epoch, step, elapsed seconds, history, ...). Each file
+is replaced whole, one after the other; both carry one random ``checkpoint_id`` (the weights in
+their safetensors metadata), so that a pair torn by a kill between the two writes (weights of
+step k, progress of step k-1: a resume would train one step more than its budget) is refused.
 """
 
 from __future__ import annotations
 
 import json
+import uuid
 from pathlib import Path
 
 import torch
 from safetensors import SafetensorError
+from safetensors import safe_open
 from safetensors.torch import load_file
 from torch import nn
 
@@ -21,6 +26,8 @@ from trainer.model_dir import write_safetensors
 
 CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
+#: What ``progress`` must hold for a resume (``trainer.training`` writes more).
+PROGRESS_KEYS = ("epoch", "step", "train_s", "history", "loss")
 
 
 def has_checkpoint(model_dir: str | Path) -> bool:
@@ -37,19 +44,31 @@ def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     for index, state in opt["state"].items():
         for name, value in state.items():
             tensors[f"optim.{index}.{name}"] = torch.as_tensor(value).detach().cpu().contiguous()
-    write_safetensors(tensors, model_dir / CHECKPOINT_WEIGHTS)
-    state = {"param_groups": opt["param_groups"], "progress": progress}
+    checkpoint_id = uuid.uuid4().hex
+    write_safetensors(tensors, model_dir / CHECKPOINT_WEIGHTS, metadata={"checkpoint_id": checkpoint_id})
+    state = {"checkpoint_id": checkpoint_id, "param_groups": opt["param_groups"], "progress": progress}
     write_json(model_dir / CHECKPOINT_STATE, state)
 
 
 def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer) -> dict:
-    """Restore network and optimizer from ``model_dir``; returns the saved progress dict."""
+    """Restore network and optimizer from ``model_dir``; returns the saved progress dict.
+    ``InputError`` for files that cannot be read, hold other content, or are of two saves."""
     model_dir = Path(model_dir)
     try:
         tensors = load_file(str(model_dir / CHECKPOINT_WEIGHTS))
+        with safe_open(str(model_dir / CHECKPOINT_WEIGHTS), "pt") as f:
+            weights_id = (f.metadata() or {}).get("checkpoint_id")
         state = json.loads((model_dir / CHECKPOINT_STATE).read_text())
     except (SafetensorError, *JSON_READ_ERRORS) as err:
         raise InputError(f"cannot read the checkpoint in {model_dir}: {err}") from None
+    progress = state.get("progress") if isinstance(state, dict) else None
+    if (not isinstance(progress, dict) or not isinstance(state.get("param_groups"), list)
+            or any(key not in progress for key in PROGRESS_KEYS) or not isinstance(progress["history"], list)):
+        raise InputError(f"cannot read the checkpoint in {model_dir}: its {CHECKPOINT_STATE} does not hold the "
+                         "optimizer's settings and the training's progress; train anew without --resume")
+    if state.get("checkpoint_id") != weights_id:
+        raise InputError(f"the checkpoint in {model_dir} is torn: {CHECKPOINT_WEIGHTS} and {CHECKPOINT_STATE} come "
+                         "from two saves (the training was killed between them); train anew without --resume")
     net_state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
     try:
         network.load_state_dict(net_state)
@@ -60,5 +79,9 @@ def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
         if key.startswith("optim."):
             _, index, name = key.split(".", 2)
             opt_state.setdefault(int(index), {})[name] = value
-    optimizer.load_state_dict({"state": opt_state, "param_groups": state["param_groups"]})
-    return state["progress"]
+    try:
+        optimizer.load_state_dict({"state": opt_state, "param_groups": state["param_groups"]})
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"cannot read the checkpoint in {model_dir}: its optimizer state does not match the "
+                         f"network ({err}); train anew without --resume") from None
+    return progress

@@ -253,6 +253,9 @@ def run_train(args: argparse.Namespace) -> int:
                 "continue with the same command and --resume" if has_checkpoint(out) else "nothing to resume yet")
         print(f"bubble: interrupted: {kept}", file=sys.stderr)
         return exit_code(stopped_by[0] if stopped_by else signal.SIGINT)
+    if stopped_by:  # the stop came after the last step, while the model was validated and written: it is whole
+        print(f"bubble: interrupted after the training's last step: the model in {out} is complete", file=sys.stderr)
+        return exit_code(stopped_by[0])
     if args.json is not None:
         write_json_result(args.json, "bubble train", result.metrics)
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))

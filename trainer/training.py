@@ -382,15 +382,19 @@ def train_model(
         return train_s / budget_s if budget_s is not None else epoch / config.epochs
 
     def fraction_done(epoch: float, train_s: float) -> float:
-        """Share of the budget done; with a deadline, of the wall time training may last if larger."""
+        """Share of the budget done; with a deadline, of the wall time training may last if larger
+        (before the first step: 1 when the deadline leaves no time for one)."""
         frac = budget_fraction(epoch, train_s)
-        if deadline is None or eval_s_per_frame is None or loop_start is None:
+        if deadline is None or eval_s_per_frame is None:
             return frac
         train_end = deadline - DEADLINE_TAIL_MARGIN * (eval_s_per_frame * tail_frames + step_s)
-        wall = 1.0 if train_end <= loop_start else (time.perf_counter() - loop_start) / (train_end - loop_start)
+        start = time.perf_counter() if loop_start is None else loop_start
+        wall = 1.0 if train_end <= start else (time.perf_counter() - start) / (train_end - start)
         return max(frac, wall)
 
-    gen = torch.Generator().manual_seed(config.seed * 7919 + ctx.rank)
+    # the augmentation's draws of each step come from (seed, rank, step): a resumed run draws what an
+    # uninterrupted one draws (was: one generator seeded per call, its draws replayed from the start)
+    gen = torch.Generator()
     epoch_f, step, train_s = float(progress["epoch"]), int(progress["step"]), float(progress["train_s"])
     history: list[dict] = list(progress["history"])
     running = progress["loss"]
@@ -409,12 +413,18 @@ def train_model(
         save_checkpoint(out_dir, network, optimizer, {"epoch": epoch_f, "step": step, "train_s": train_s,
                                                       "history": history, "loss": running, "frames_key": frames_key})
 
+    def timed_live_metrics() -> dict:
+        """The metrics of ``live_val``; sets ``eval_s_per_frame``, the cost the deadline plans with."""
+        nonlocal eval_s_per_frame
+        t0 = time.perf_counter()
+        metrics = evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)
+        eval_s_per_frame = (time.perf_counter() - t0) / len(live_val)
+        return metrics
+
     def validate_and_checkpoint(with_checkpoint: bool = True) -> None:
-        nonlocal val_live, eval_s_per_frame
+        nonlocal val_live
         if ctx.is_main:
-            t0 = time.perf_counter()
-            metrics = evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)
-            eval_s_per_frame = (time.perf_counter() - t0) / len(live_val)
+            metrics = timed_live_metrics()
             val_live = {"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running, **metrics}
             history.append(val_live)
             if with_checkpoint:
@@ -424,10 +434,13 @@ def train_model(
 
     if not history:  # the curve starts with the untrained (or init) model
         validate_and_checkpoint(with_checkpoint=False)
+    elif deadline is not None and ctx.is_main:  # resumed: the deadline plans with a validation's cost (was:
+        timed_live_metrics()                     # unknown until the first periodic one, the deadline ignored)
     model.train()
     # a stop requested while the data loaded or the init model was validated ends the call before a step
     # (was: one step, then, with the deadline passed meanwhile, a model written as if it had finished)
     over, stopped = ctx.any_flags(fraction_done(epoch_f, train_s) >= 1.0, stop_event is not None and stop_event.is_set())
+    at_deadline = over and not stopped and budget_fraction(epoch_f, train_s) < 1.0  # no time left for a step
     done = over or stopped
     loop_start = time.perf_counter()
     while not done:
@@ -443,6 +456,7 @@ def train_model(
             idx = shard[b * config.batch_size : (b + 1) * config.batch_size]
             x = train_t.x[idx]
             if config.augment:
+                gen.manual_seed(((config.seed * 7919 + ctx.rank) * 1_000_003 + step) % (1 << 63))
                 x = augment_ir(x, train_t.content, metadata.normalization.std, gen, config.ir_noise_std)
             target = train_t.depth[idx].to(ctx.device)
             valid = (target > metadata.min_depth) & (target < metadata.max_depth)
@@ -476,6 +490,10 @@ def train_model(
             if eval_due:
                 validate_and_checkpoint()
                 last_eval = time.perf_counter()
+                stopped, = ctx.any_flags(stop_event is not None and stop_event.is_set())  # during the validation
+                if stopped:  # was: one more step first
+                    done = True
+                    break
         else:
             epoch_f = float(epoch + 1)
 
