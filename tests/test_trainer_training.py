@@ -269,6 +269,21 @@ def test_evaluate_command_writes_metrics_latency_and_truth_comparison(bubble, tr
     assert "Abs.Rel" in out and "RMSE [m]" in out  # was: "RMSE", its unit taken for a rich markup tag
 
 
+def test_an_object_without_tof_depth_is_a_row_of_dashes(bubble, trained, session, tmp_path, capsys):
+    """Was: a row of nan in the table (DESIGN: never a table of NaN)."""
+    no_box_depth = tmp_path / "s.h5"
+    shutil.copy(session, no_box_depth)
+    with h5py.File(no_box_depth, "r+") as f:
+        names = [n.decode() if isinstance(n, bytes) else n for n in f["objects/name"][:]]
+        box = f["frames/object"][:] == names.index("box")
+        depth = f["frames/depth"][:]
+        depth[box] = 0
+        f["frames/depth"][...] = depth
+    assert bubble("evaluate", "--model", trained[0].model_dir, "--data", no_box_depth) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if " box " in line)
+    assert "nan" not in row and row.count(" - ") >= 5, row
+
+
 def test_train_command_small_run(bubble, session, tmp_path):
     out = tmp_path / "cli_model"
     code = bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.3",

@@ -136,7 +136,8 @@ def metrics_table(title: str, rows: dict[str, dict]):
         table.add_column(escape(header), justify="right")  # "RMSE [m]": [m] is no rich markup tag
     table.add_column("images", justify="right")
     for name, m in rows.items():
-        table.add_row(name, *(f"{m[key]:.4f}" for key, _ in PAPER_COLUMNS), str(m["n_images"]))
+        table.add_row(name, *(f"{m[key]:.4f}" if math.isfinite(m[key]) else "-" for key, _ in PAPER_COLUMNS),
+                      str(m["n_images"]))  # "-": no image of that row has a valid pixel (was: nan)
     return table
 
 
