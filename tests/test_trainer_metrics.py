@@ -61,3 +61,17 @@ def test_mask_restricts_pixels_and_shape_errors():
         depth_metrics(pred, gt[:, :1])
     with pytest.raises(InputError):
         depth_metrics(pred[None, None], gt[None, None])
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_prediction_makes_every_metric_nan(bad):
+    """Was: NaN abs_rel, rmse, silog but finite a1-a3 (the NaN pixel a miss), and inf clipped to a
+    bound (all finite), though the docstring said NaN only for no valid pixel."""
+    gt = np.full((2, 2, 2), 0.1)
+    pred = gt.copy()
+    pred[1, 0, 0] = bad
+    m = depth_metrics(pred, gt)
+    assert all(math.isnan(m[k]) for k in METRIC_KEYS), m
+    assert m["n_images"] == 2 and m["n_pixels"] == 8
+    gt[1, 0, 0] = 0.0  # the same prediction on an ignored pixel (ToF dropout) counts for nothing
+    assert depth_metrics(pred, gt)["a1"] == 1.0

@@ -14,7 +14,7 @@ from collect.errors import InputError
 from trainer.inference import DepthEstimator
 from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, ModelMetadata, load_metadata, load_network, save_model
 from trainer.networks import build_network
-from trainer.onnx_export import export_and_select_runtime
+from trainer.onnx_export import export_and_select_runtime, export_onnx
 from trainer.preprocessing import InputGeometry, IRNormalization
 
 
@@ -225,3 +225,87 @@ def test_a_model_file_that_cannot_be_read_is_one_line_naming_it(model_dir, synth
     assert main(["evaluate", "--model", str(model_dir), "--data", str(synthetic_session)]) == 2
     err = capsys.readouterr().err
     assert err == f"bubble: error: cannot read {model_dir / refused}: Permission denied\n", err
+
+
+@pytest.fixture
+def small_session(make_synthetic_session, tmp_path):
+    """A session of the ``model_dir`` model's 64 x 48 frames."""
+    return make_synthetic_session(tmp_path / "small.h5", height=48, width=64)
+
+
+def _evaluate_error(model_dir, session, capsys) -> str:
+    """The one line ``bubble evaluate --model model_dir --data session`` prints, after checking it exits 2."""
+    assert main(["evaluate", "--model", str(model_dir), "--data", str(session)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("bubble: error: "), err
+    return err.removeprefix("bubble: error: ").rstrip("\n")
+
+
+def test_an_onnx_file_that_is_not_the_export_of_the_weights_is_refused(model_dir, small_session, capsys):
+    """Was: an ONNX of another network copied into a model folder run silently (exit 0, metrics of that
+    network), and weights replaced after the export run through the old export."""
+    from trainer.dataset import file_sha256
+    from trainer.model_dir import ONNX_FILE, write_safetensors
+
+    info = export_and_select_runtime(model_dir, repeats=2)
+    assert info["onnx_sha256"] == file_sha256(model_dir / ONNX_FILE)
+    assert info["weights_sha256"] == file_sha256(model_dir / WEIGHTS_FILE)
+    assert DepthEstimator.load(model_dir, runtime="onnx").runtime == "onnx"
+    onnx, weights = (model_dir / ONNX_FILE).read_bytes(), (model_dir / WEIGHTS_FILE).read_bytes()
+    torch.manual_seed(1)
+    other = build_network("bts", 0.125, 0.04, 0.12)
+    export_onnx(other, (64, 64), model_dir / ONNX_FILE)  # same input size, another network
+    message = (f"{model_dir / ONNX_FILE} is not the ONNX export that {model_dir} records (another SHA-256): "
+               "delete it to run the model in torch, or export it again (trainer.onnx_export.export_and_select_runtime)")
+    assert _evaluate_error(model_dir, small_session, capsys) == message
+    (model_dir / ONNX_FILE).write_bytes(onnx)
+    torch.manual_seed(2)
+    retrained = {k: v.contiguous() for k, v in build_network("resnet", 0.125, 0.04, 0.12).state_dict().items()}
+    write_safetensors(retrained, model_dir / WEIGHTS_FILE)
+    with pytest.raises(InputError, match=f"^{model_dir / ONNX_FILE} was exported from other weights than "
+                                         f"{model_dir / WEIGHTS_FILE}: delete it to run the model in torch"):
+        DepthEstimator.load(model_dir)
+    assert DepthEstimator.load(model_dir, runtime="torch").runtime == "torch"
+    (model_dir / WEIGHTS_FILE).write_bytes(weights)
+    (model_dir / ONNX_FILE).unlink()  # the way out the message gives
+    assert DepthEstimator.load(model_dir).runtime == "torch"
+
+
+def test_an_onnx_file_of_another_input_size_is_refused_in_a_folder_without_hashes(model_dir, small_session, capsys):
+    """Folders exported before the hashes were recorded still load, their ONNX input checked against
+    the metadata's input size (was: an ONNX Runtime InvalidArgument traceback, exit 1)."""
+    from trainer.model_dir import ONNX_FILE
+
+    export_and_select_runtime(model_dir, repeats=2)
+    meta = json.loads((model_dir / METADATA_FILE).read_text())
+    for key in ("onnx_sha256", "weights_sha256"):
+        meta["inference"].pop(key, None)
+    meta["inference"]["runtime"] = "onnx"
+    (model_dir / METADATA_FILE).write_text(json.dumps(meta))
+    assert main(["evaluate", "--model", str(model_dir), "--data", str(small_session)]) == 0
+    assert "(batch 1, onnx)" in capsys.readouterr().out  # the old folder still runs its ONNX export
+    net, _ = load_network(model_dir)
+    export_onnx(net, (96, 64), model_dir / ONNX_FILE)
+    assert _evaluate_error(model_dir, small_session, capsys) == (
+        f"{model_dir / ONNX_FILE} takes ir (batch, 1, 96, 64), the model needs ir (batch, 1, 64, 64): "
+        "delete it to run the model in torch, or export it again (trainer.onnx_export.export_and_select_runtime)")
+
+
+def test_the_base_model_runs_its_recorded_onnx_export():
+    """The committed base model's metadata.json records the hashes of its model.onnx and weights."""
+    assert DepthEstimator.load("base").runtime == "onnx"
+
+
+def test_ir_outside_the_uint16_range_is_refused_naming_the_frame(model_dir):
+    """Was: negative float IR turned into an all-NaN depth map without an error (only NaN/inf were refused)."""
+    estimator = DepthEstimator.load(model_dir, runtime="torch")
+    ir = np.full((3, 48, 64), 1000.0, np.float32)
+    assert np.isfinite(estimator.predict_batch(ir)).all()
+    for value, held in ((-1.0, "values -1 to 1000"), (np.nan, "NaN or inf"), (np.inf, "NaN or inf"),
+                        (70000.0, "values 1000 to 70000")):
+        bad = ir.copy()
+        bad[2, 5, 5] = value
+        with pytest.raises(InputError, match=rf"^IR frame 2 holds {held}: an IR amplitude is 0 to 65535 \(uint16\)$"):
+            estimator.predict_batch(bad)
+    with pytest.raises(InputError, match=r"^IR frame 0 holds values -5 to -5: "):
+        estimator.predict(np.full((48, 64), -5, np.int32))

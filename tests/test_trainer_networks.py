@@ -70,3 +70,12 @@ def test_every_width_the_command_line_accepts_builds(arch, width):
     net = build_network(arch, width, 0.04, 0.12).eval()
     with torch.inference_mode():
         assert net(torch.zeros(1, 1, 64, 64)).shape == (1, 1, 64, 64)
+
+
+def test_depth_head_output_stays_within_its_float32_bounds():
+    """Was: 0.12000000476 for a saturated logit, one float32 step above max_depth, under a docstring
+    that said 'strictly inside (min_depth, max_depth)'."""
+    head = BoundedInverseDepth(0.04, 0.12)
+    depth = head(torch.tensor([-1e4, -50.0, -17.0, 0.0, 17.0, 50.0, 1e4]))
+    assert float(depth.max()) <= float(np.float32(0.12)) and float(depth.min()) >= float(np.float32(0.04))
+    assert depth[0] == np.float32(0.12) and depth[-1] == np.float32(0.04)  # a saturated logit gives the bound

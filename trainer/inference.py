@@ -3,6 +3,11 @@
 Runs the network through ONNX Runtime when the model directory says so (``metadata.json``
 ``inference.runtime == "onnx"``, set by ``trainer.onnx_export`` when ORT matches torch to 1e-4
 and is faster), else through torch. Frames go in and come out at the sensor's native size.
+
+An ONNX file is run only when it is this model's export (``onnx_session``): the SHA-256 of
+``model.onnx`` and of ``model.safetensors`` that the export recorded (``inference.onnx_sha256``,
+``inference.weights_sha256``; folders exported before they were recorded are not checked for
+them) and the input size of ``metadata.json``.
 """
 
 from __future__ import annotations
@@ -14,7 +19,9 @@ import numpy as np
 import torch
 
 from collect.errors import InputError
-from trainer.model_dir import ONNX_FILE, ModelMetadata, load_network, resolve_model_dir
+from trainer.model_dir import EXPORT_HASH_KEYS, ONNX_FILE, WEIGHTS_FILE, ModelMetadata, export_hashes, load_network, \
+    resolve_model_dir
+from trainer.preprocessing import MAX_IR
 
 RUNTIMES = ("onnx", "torch")
 
@@ -32,6 +39,31 @@ def ort_session(onnx_path: str | Path):
         raise InputError(f"cannot load ONNX model {onnx_path}: {str(err).splitlines()[0]}") from None
 
 
+def onnx_session(model_dir: Path, metadata: ModelMetadata):
+    """An ``ort_session`` of ``model_dir``'s ``model.onnx``, refused with ``InputError`` (naming the file
+    and the way out) unless it is the export of this model: the SHA-256 of ``model.onnx`` and of
+    ``model.safetensors`` equal the ones ``metadata.inference`` records (each checked when recorded),
+    and its one input is ``ir`` ``(batch, 1, input_height, input_width)`` with a free batch size."""
+    path = model_dir / ONNX_FILE
+    way_out = "delete it to run the model in torch, or export it again (trainer.onnx_export.export_and_select_runtime)"
+    recorded = {key: metadata.inference[key] for key in EXPORT_HASH_KEYS if key in metadata.inference}
+    if recorded:
+        actual = export_hashes(model_dir)
+        if "onnx_sha256" in recorded and actual["onnx_sha256"] != recorded["onnx_sha256"]:
+            raise InputError(f"{path} is not the ONNX export that {model_dir} records (another SHA-256): {way_out}")
+        if "weights_sha256" in recorded and actual["weights_sha256"] != recorded["weights_sha256"]:
+            raise InputError(f"{path} was exported from other weights than {model_dir / WEIGHTS_FILE}: {way_out}")
+    session = ort_session(path)
+    g = metadata.geometry
+    inputs = session.get_inputs()
+    shape = list(inputs[0].shape) if len(inputs) == 1 and inputs[0].name == "ir" else []
+    if not (len(shape) == 4 and not isinstance(shape[0], int) and shape[1:] == [1, g.input_height, g.input_width]):
+        got = ", ".join(f"{i.name} ({', '.join(map(str, i.shape))})" for i in inputs)
+        raise InputError(f"{path} takes {got}, the model needs ir (batch, 1, {g.input_height}, {g.input_width}): "
+                         f"{way_out}")
+    return session
+
+
 class DepthEstimator:
     """A trained depth network ready for inference on native IR frames."""
 
@@ -40,7 +72,7 @@ class DepthEstimator:
         self.metadata = metadata
         self.runtime = runtime
         self.model_dir = model_dir
-        self._session = ort_session(model_dir / ONNX_FILE) if runtime == "onnx" else None
+        self._session = onnx_session(model_dir, metadata) if runtime == "onnx" else None
 
     @classmethod
     def load(cls, model_dir: str | Path, runtime: str | None = None) -> "DepthEstimator":
@@ -70,12 +102,20 @@ class DepthEstimator:
             return self.network(torch.from_numpy(x)).numpy()
 
     def predict_batch(self, ir: np.ndarray) -> np.ndarray:
-        """IR amplitude ``(N,H,W) uint16`` (native size) -> depth ``(N,H,W) float32 m``."""
+        """IR amplitude ``(N,H,W) uint16`` (native size) -> depth ``(N,H,W) float32 m``.
+
+        Frames of another dtype must hold amplitudes in [0, ``MAX_IR``]: ``InputError`` naming the
+        first frame (index in the batch) that holds NaN, inf, negative or larger values.
+        """
         ir = np.asarray(ir)
         if ir.ndim != 3:
             raise InputError(f"IR frames must be (N,H,W), got shape {ir.shape}")
-        if ir.dtype.kind == "f" and not np.isfinite(ir).all():
-            raise InputError("IR frames hold NaN or inf")
+        if ir.dtype != np.uint16:
+            bad = ~((ir >= 0) & (ir <= MAX_IR)).all(axis=(1, 2))  # NaN fails both comparisons
+            if bad.any():
+                i = int(np.argmax(bad))
+                held = "NaN or inf" if not np.isfinite(ir[i]).all() else f"values {ir[i].min():g} to {ir[i].max():g}"
+                raise InputError(f"IR frame {i} holds {held}: an IR amplitude is 0 to {MAX_IR} (uint16)")
         x = self.metadata.geometry.to_input(self.metadata.normalization.apply(ir))
         depth = self.run_network(np.ascontiguousarray(x[:, None]))
         return self.metadata.geometry.to_native(depth[:, 0]).astype(np.float32)

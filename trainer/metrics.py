@@ -11,7 +11,9 @@ Over valid ground-truth pixels (``min_depth < gt < max_depth``), the prediction 
   thresholds).
 
 Images without any valid ground-truth pixel are left out of the average (``n_images`` counts
-the images that took part, ``n_pixels`` their valid pixels).
+the images that took part, ``n_pixels`` their valid pixels). An image whose prediction is NaN or
+inf on a valid pixel (a diverged network) has every metric NaN, so the averages are NaN too: a
+check of any one key sees it (``trainer.training`` refuses a model whose ``abs_rel`` is not finite).
 """
 
 from __future__ import annotations
@@ -60,8 +62,8 @@ def depth_metrics(
     ``pred``, ``gt``: ``(H,W)`` or ``(N,H,W)`` depth in m (same shape); ``gt`` pixels outside
     ``(min_depth, max_depth)`` (0 = invalid ToF) are ignored. ``mask`` (same shape, bool)
     further restricts the pixels taken into account. Returns the keys of ``METRIC_KEYS``
-    (averaged over images) plus ``n_images`` and ``n_pixels``; the metric values are NaN
-    when no image has a valid pixel.
+    (averaged over images) plus ``n_images`` and ``n_pixels``; the metric values (all of them) are
+    NaN when no image has a valid pixel, or when a prediction on a valid pixel is NaN or inf.
     """
     pred = np.asarray(pred, dtype=np.float64)
     gt = np.asarray(gt, dtype=np.float64)
@@ -85,9 +87,10 @@ def depth_metrics(
             valid &= np.asarray(mask[i], dtype=bool)
         if not valid.any():
             continue
-        p = np.clip(pred[i][valid], min_depth, max_depth)
-        g = gt[i][valid]
-        per_image.append(image_metrics(p, g))
+        p = pred[i][valid]
+        finite = np.isfinite(p).all()  # was: inf clipped to a bound, NaN counted as a miss in a1-a3 only
+        per_image.append(image_metrics(np.clip(p, min_depth, max_depth), gt[i][valid]) if finite
+                         else dict.fromkeys(METRIC_KEYS, float("nan")))
         n_pixels += int(valid.sum())
     out: dict[str, float | int] = {}
     for key in METRIC_KEYS:

@@ -5,7 +5,8 @@ Layout of ``MODEL_DIR``:
 * ``model.safetensors``: the network's state dict.
 * ``metadata.json``: ``ModelMetadata`` (arch, width, depth range, input geometry, IR
   normalization, training data, metrics, inference runtime).
-* ``model.onnx`` (optional): the exported network, see ``trainer.onnx_export``.
+* ``model.onnx`` (optional): the exported network, see ``trainer.onnx_export``; ``metadata.json``
+  ``inference`` records its SHA-256 and that of the weights it was exported from (``export_hashes``).
 * ``checkpoint.*`` (while training): see ``trainer.checkpoint``.
 
 ``load_metadata`` refuses a ``metadata.json`` with a value missing, of the wrong type or out of
@@ -30,6 +31,7 @@ from torch import nn
 from collect.errors import InputError
 from collect.atomic_files import NEW_FILE_MODE, replacing
 from collect.json_files import JSON_READ_ERRORS, shown_json, write_json
+from trainer.dataset import file_sha256
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, MAX_WIDTH, build_network
 from trainer.preprocessing import MAX_LOG_IR, MIN_IR_STD, InputGeometry, IRNormalization
 
@@ -49,6 +51,9 @@ MAX_DEPTH_M = 10.0
 MAX_NATIVE_SIZE = 4096
 MAX_INPUT_SIZE = 2048
 
+#: ``metadata.json`` ``inference`` key -> the file whose SHA-256 (hex) it records at the ONNX export.
+EXPORT_HASH_KEYS = {"onnx_sha256": ONNX_FILE, "weights_sha256": WEIGHTS_FILE}
+
 #: File endings of pickle-based weight files, which are refused.
 PICKLE_SUFFIXES = (".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin")
 
@@ -65,7 +70,7 @@ class ModelMetadata:
     normalization: IRNormalization
     training: dict = field(default_factory=dict)  # data files, sha256, sensor serials, split, schedule
     metrics: dict = field(default_factory=dict)  # validation metrics (trainer.metrics keys)
-    inference: dict = field(default_factory=dict)  # runtime ("onnx"|"torch"), ORT check, latencies
+    inference: dict = field(default_factory=dict)  # runtime ("onnx"|"torch"), ORT check, latencies, export hashes
 
     def to_dict(self) -> dict:
         data = asdict(self)
@@ -202,6 +207,19 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
     if not isinstance(data, dict):
         raise InputError(f"{path} does not hold a JSON object")
     return ModelMetadata.from_dict(data, model_dir)
+
+
+def export_hashes(model_dir: str | Path) -> dict[str, str]:
+    """SHA-256 (hex) of ``model.onnx`` and ``model.safetensors`` in ``model_dir``, under their
+    ``EXPORT_HASH_KEYS``; ``InputError`` naming a file that cannot be read."""
+    model_dir = Path(model_dir)
+    hashes = {}
+    for key, name in EXPORT_HASH_KEYS.items():
+        try:
+            hashes[key] = file_sha256(model_dir / name)
+        except OSError as err:
+            raise _unreadable(model_dir / name, err) from None
+    return hashes
 
 
 def _unreadable(path: Path, err: OSError) -> InputError:

@@ -4,7 +4,9 @@
 ``ir`` ``(B,1,h,w) float32`` normalized, output ``depth`` ``(B,1,h,w) float32 m``), checks
 ONNX Runtime against torch on the same inputs (batches of 1 and 3), times both (batch 1), and records in ``metadata.json``
 under ``inference``: ``runtime`` (``"onnx"`` when ORT matches to ``ORT_TOLERANCE_M`` and is not
-slower, else ``"torch"``), ``onnx_max_abs_diff_m``, ``onnx_ms``, ``torch_ms``.
+slower, else ``"torch"``), ``onnx_max_abs_diff_m``, ``onnx_ms``, ``torch_ms``, and ``onnx_sha256``,
+``weights_sha256`` (hex SHA-256 of ``model.onnx`` and of the ``model.safetensors`` it was exported
+from), which tie the ONNX file to the weights: ``trainer.inference.onnx_session`` refuses another.
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ import numpy as np
 import torch
 
 from collect.atomic_files import replacing
-from trainer.inference import DepthEstimator, ort_session
-from trainer.model_dir import ONNX_FILE, load_network, write_metadata
+from trainer.inference import DepthEstimator, onnx_session
+from trainer.model_dir import ONNX_FILE, export_hashes, load_network, write_metadata
 
 #: Largest allowed |ORT - torch| depth difference (m) for ORT to be used.
 ORT_TOLERANCE_M = 1e-4
@@ -49,8 +51,10 @@ def export_and_select_runtime(model_dir: str | Path, repeats: int = 20, seed: in
     model_dir = Path(model_dir)
     network, metadata = load_network(model_dir)
     g = metadata.geometry
-    onnx_path = export_onnx(network, (g.input_height, g.input_width), model_dir / ONNX_FILE)
-    session = ort_session(onnx_path)
+    export_onnx(network, (g.input_height, g.input_width), model_dir / ONNX_FILE)
+    hashes = export_hashes(model_dir)
+    metadata.inference = hashes  # what the sessions below check the new file against
+    session = onnx_session(model_dir, metadata)
     rng = np.random.default_rng(seed)
     max_diff = 0.0
     for batch in (1, 3):
@@ -65,6 +69,7 @@ def export_and_select_runtime(model_dir: str | Path, repeats: int = 20, seed: in
     matches = max_diff <= ORT_TOLERANCE_M
     chosen = "onnx" if matches and latencies["onnx"] <= latencies["torch"] else "torch"
     metadata.inference = {
+        **hashes,
         "runtime": chosen,
         "onnx_file": ONNX_FILE,
         "onnx_opset": ONNX_OPSET,

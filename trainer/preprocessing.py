@@ -21,9 +21,11 @@ from collect.errors import InputError
 
 #: Default network input (height, width), as in the paper.
 DEFAULT_INPUT_SIZE = (224, 224)
-#: ln(1 + 65535): ln(1 + ir) of a uint16 amplitude, hence an ``IRNormalization`` mean, lies in
+#: Largest IR amplitude: the sensor's uint16 range is [0, MAX_IR].
+MAX_IR = 65535
+#: ln(1 + MAX_IR): ln(1 + ir) of a uint16 amplitude, hence an ``IRNormalization`` mean, lies in
 #: [0, this], and its std is at most this (ln-amplitude units).
-MAX_LOG_IR = math.log1p(65535)
+MAX_LOG_IR = math.log1p(MAX_IR)
 #: Smallest ``IRNormalization`` std (ln-amplitude units): ``fit`` clamps to it, so that frames
 #: of one flat level do not divide by ~0.
 MIN_IR_STD = 1e-3

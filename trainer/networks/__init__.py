@@ -1,8 +1,9 @@
 """Depth networks, one per module, built by architecture name.
 
 Every network maps normalized IR ``(N,1,H,W) float32`` (H, W multiples of 32) to metric depth
-``(N,1,H,W) float32 m`` strictly inside ``(min_depth, max_depth)``, and ends in a logit layer
-``to_logits`` followed by the ``head`` (``BoundedInverseDepth``).
+``(N,1,H,W) float32 m`` in ``[min_depth, max_depth]`` (the bounds as float32 holds them: 0.04 m is
+0.0399999991), and ends in a logit layer ``to_logits`` followed by the ``head``
+(``BoundedInverseDepth``).
 """
 
 from __future__ import annotations

@@ -1,9 +1,14 @@
 """Bounded inverse-depth output head shared by every network.
 
 A network ends in one logit channel ``x``; the head maps it to metric depth through a sigmoid
-over inverse depth, so that any output lies strictly inside ``(min_depth, max_depth)``:
+over inverse depth, clamped to the range:
 
-``depth = 1 / (1/max_depth + (1/min_depth - 1/max_depth) * sigmoid(x))``.
+``depth = clamp(1 / (1/max_depth + (1/min_depth - 1/max_depth) * sigmoid(x)), min_depth, max_depth)``.
+
+Any output lies in the closed range ``[min_depth, max_depth]`` as float32 holds its bounds
+(0.04 m is 0.0399999991, 0.12 m is 0.1199999973), and reaches a bound where the sigmoid saturates
+(|x| above about 17). Without the clamp, float32 rounding put such outputs one unit in the last
+place outside (0.12000000476 for 0.12).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from torch import nn
 
 
 class BoundedInverseDepth(nn.Module):
-    """Logits ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``(min_depth, max_depth)``."""
+    """Logits ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``[min_depth, max_depth]`` (float32 bounds)."""
 
     def __init__(self, min_depth: float, max_depth: float):
         super().__init__()
@@ -38,4 +43,4 @@ class BoundedInverseDepth(nn.Module):
 
     def forward(self, logits: torch.Tensor) -> torch.Tensor:
         inv_min, inv_max = 1.0 / self.min_depth, 1.0 / self.max_depth
-        return 1.0 / (inv_max + (inv_min - inv_max) * torch.sigmoid(logits))
+        return (1.0 / (inv_max + (inv_min - inv_max) * torch.sigmoid(logits))).clamp(self.min_depth, self.max_depth)

@@ -86,7 +86,7 @@ class Unpacking(nn.Module):
 
 
 class PackNetDepth(nn.Module):
-    """The module's network: IR ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``(min_depth, max_depth)``."""
+    """The module's network: IR ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``[min_depth, max_depth]``."""
 
     def __init__(self, width: float, min_depth: float, max_depth: float):
         super().__init__()

@@ -14,7 +14,7 @@ from trainer.networks.depth_head import BoundedInverseDepth
 
 
 class ResNetDepth(nn.Module):
-    """The module's network: IR ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``(min_depth, max_depth)``."""
+    """The module's network: IR ``(N,1,H,W)`` -> depth ``(N,1,H,W) float32 m`` in ``[min_depth, max_depth]``."""
 
     def __init__(self, width: float, min_depth: float, max_depth: float):
         super().__init__()
