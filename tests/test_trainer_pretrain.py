@@ -1,9 +1,17 @@
 """Pretraining step 2 (train + package the base model) on synthetic sessions of several sensors."""
 
+import json
+import os
+import re
+import signal
+
 import pytest
 from conftest import make_synthetic_session
-from trainer.model_dir import WEIGHTS_FILE, load_metadata
-from trainer.pretrain import TRAIN_DIR, main
+
+import trainer.training
+from trainer.checkpoint import has_checkpoint
+from trainer.model_dir import BASE_MODEL_DIR, WEIGHTS_FILE, load_metadata
+from trainer.pretrain import TRAIN_DIR, main, write_model_card_section
 
 
 def _sensor_sessions(work, n):
@@ -80,3 +88,118 @@ def test_pretrain_collect_refuses_bad_options_before_recording(tmp_path, capsys)
     assert not (tmp_path / "w").exists()
     assert main(["train", "--work", str(tmp_path / "missing")]) == 2
     assert "is not a directory of sessions" in capsys.readouterr().err
+
+
+def test_pretrain_checks_the_model_card_before_training(tmp_path, capsys):
+    """Was: a traceback after the whole training for a --model-card that is a directory or lies in a
+    missing folder."""
+    work = _sensor_sessions(tmp_path / "work", 2)
+    common = ["train", "--work", str(work), "--out", str(tmp_path / "base"), "--val-sensors", "1", "--width", "0.125",
+              "--epochs", "0.2"]
+    assert main([*common, "--model-card", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"pretrain: error: --model-card {tmp_path} is a directory, not a markdown file"]
+    (tmp_path / "afile").write_text("")
+    assert main([*common, "--model-card", str(tmp_path / "afile" / "card.md")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "is a file, not a directory" in err[0]
+    assert not (work / TRAIN_DIR).exists()  # refused before training
+    card = tmp_path / "new" / "docs" / "card.md"  # missing folders are created, as for --out
+    write_model_card_section(BASE_MODEL_DIR, card, "python -m trainer.pretrain train")
+    assert "<!-- begin:pretraining -->" in card.read_text()
+
+
+def test_pretrain_checks_val_sensors_and_eval_interval(tmp_path, capsys):
+    """Was: --val-sensors -1 trained on 1 session and validated on 2, 0 said "no session files given";
+    --eval-interval nan, 0 or negative was taken (nan: never a validation nor a checkpoint)."""
+    work = _sensor_sessions(tmp_path / "work", 3)
+    common = ["train", "--work", str(work), "--out", str(tmp_path / "base"), "--model-card", "", "--width", "0.125",
+              "--epochs", "0.2"]
+    for bad, says in ((["--val-sensors", "0"], "--val-sensors must be at least 1"),
+                      (["--val-sensors", "-1"], "--val-sensors must be at least 1"),
+                      (["--val-sensors", "3"], "3 sessions in"),
+                      (["--eval-interval", "nan"], "--eval-interval must be a positive number of seconds, got nan"),
+                      (["--eval-interval", "0"], "--eval-interval must be a positive number of seconds, got 0"),
+                      (["--eval-interval", "-5"], "--eval-interval must be a positive number of seconds, got -5"),
+                      (["--eval-interval", "inf"], "--eval-interval must be a positive number of seconds, got inf")):
+        assert main([*common, *bad]) == 2, bad
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith("pretrain: error: ") and says in err[0], err
+    assert not (work / TRAIN_DIR).exists()
+
+
+def _train_model_interrupted(monkeypatch, signum, after_reports):
+    """``train_model`` as ``pretrain train`` calls it, sent ``signum`` once its progress callback has
+    had ``after_reports`` reports (0: as its data loads)."""
+    real = trainer.training.train_model
+    real_load = trainer.training.load_frames
+
+    def load_frames(*args, **kwargs):
+        if after_reports == 0:
+            os.kill(os.getpid(), signum)
+        return real_load(*args, **kwargs)
+
+    def train_model(config, progress_callback, stop_event=None):
+        reports = []
+
+        def progress(p):
+            progress_callback(p)
+            reports.append(p)
+            if len(reports) == after_reports:  # the untrained model's validation, step 1, step 2, ...
+                os.kill(os.getpid(), signum)
+
+        return real(config, progress, stop_event)
+
+    monkeypatch.setattr(trainer.training, "load_frames", load_frames)
+    monkeypatch.setattr(trainer.training, "train_model", train_model)
+
+
+def test_pretrain_stopped_by_a_signal_checkpoints_the_step_reached(tmp_path, monkeypatch, capsys,
+                                                                  interrupt_handlers_restored):
+    """Ctrl-C (SIGTERM, SIGHUP) in ``pretrain train`` stops it as ``bubble train``: the step in
+    progress finished and checkpointed, one line, exit 130 (143, 129), and ``--resume`` goes on from
+    there; a stop while the data loads ends it at once with one line. Was: a KeyboardInterrupt
+    traceback and no checkpoint (SIGTERM: the process killed)."""
+    work = _sensor_sessions(tmp_path / "work", 2)
+    out = tmp_path / "base"
+    train = ["train", "--work", str(work), "--out", str(out), "--val-sensors", "1", "--width", "0.125",
+             "--epochs", "0.2", "--frame-stride", "1", "--batch-size", "1", "--model-card", ""]
+    model = work / TRAIN_DIR
+    _train_model_interrupted(monkeypatch, signal.SIGINT, after_reports=0)
+    assert main(train) == 130
+    assert capsys.readouterr().err.splitlines() == ["pretrain: interrupted"]
+    assert not has_checkpoint(model) and not out.exists()
+    monkeypatch.undo()
+    _train_model_interrupted(monkeypatch, signal.SIGTERM, after_reports=3)
+    assert main(train) == 143
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and re.fullmatch(rf"pretrain: interrupted: its checkpoint at step 2 \(\d+\.\d min of "
+                                          rf"training\) is in {re.escape(str(model))}: continue with the same command "
+                                          "and --resume", err[0]), err
+    assert json.loads((model / "checkpoint.json").read_text())["progress"]["step"] == 2
+    assert not (model / WEIGHTS_FILE).exists() and not out.exists()
+    monkeypatch.undo()
+    save_model = trainer.training.save_model
+
+    def ctrl_c_then_save(*args, **kwargs):  # a stop after the last step: the model is whole, and packaged
+        os.kill(os.getpid(), signal.SIGINT)
+        return save_model(*args, **kwargs)
+
+    monkeypatch.setattr(trainer.training, "save_model", ctrl_c_then_save)
+    assert main([*train, "--resume"]) == 130
+    assert capsys.readouterr().err.splitlines() == [
+        f"pretrain: interrupted after the training's last step: the model in {out} is complete"]
+    assert load_metadata(out).training["steps"] > 2 and not has_checkpoint(model)
+
+
+def test_pretrain_collect_checks_objects_and_sim_speed_before_recording(tmp_path, capsys):
+    """Was: each sensor failed (exit 1) after its sensor YAML was written, for a --sim-speed out of
+    range or an unknown object."""
+    for argv, says in ((["--sim-speed", "0"], "simulation speed 0.0 must be within 0.1..100"),
+                       (["--sim-speed", "nan"], "simulation speed nan must be within"),
+                       (["--objects", "mug,teapot"], "unknown object 'teapot'"),
+                       (["--objects", "mug, missing.stl"], "mesh file not found: missing.stl")):
+        assert main(["collect", "--work", str(tmp_path / "w"), "--sensors", "1", *argv]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith("pretrain: error: ") and says in err[0], err
+    assert not (tmp_path / "w").exists()

@@ -9,9 +9,6 @@ from __future__ import annotations
 import argparse
 import errno
 import math
-import signal
-import sys
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext, suppress
 from pathlib import Path
@@ -164,10 +161,10 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from collect.stop_signals import INTERRUPTS, exit_code, raise_interrupt, stop_signals_handled
     from collect.errors import InputError
     from trainer.checkpoint import has_checkpoint
     from trainer.model_dir import WEIGHTS_FILE
+    from trainer.stop_on_signal import TrainingStop
     from trainer.training import TrainConfig, train_model
 
     out = Path(args.out)
@@ -210,22 +207,14 @@ def run_train(args: argparse.Namespace) -> int:
     bar = Progress(*columns, console=console)
     task = None
 
-    stop = threading.Event()
-    stopped_by: list[int] = []
-
-    def on_signal(signum: int) -> None:
-        """Ctrl-C (SIGTERM, SIGHUP) while the data loads ends at once, as before any command; once
-        training has begun it ends the step in progress and checkpoints it for ``--resume``."""
-        if task is None:
-            raise_interrupt(signum)
-        stopped_by.append(signum)
-        stop.set()
+    stop = TrainingStop()
 
     def on_progress(p) -> None:
         nonlocal task
         if task is None:  # started at the first step: data errors print no empty bar
             bar.start()
             task = bar.add_task("train", total=1.0, epoch=0.0, loss="-", a1="-")
+            stop.begin()
         a1 = "-" if not p.val else f"{p.val['a1']:.3f}"
         if not math.isfinite(p.loss):
             loss = "-"
@@ -242,21 +231,17 @@ def run_train(args: argparse.Namespace) -> int:
                 left = ("its training finished (a model, no checkpoint)" if (out / WEIGHTS_FILE).exists()
                         else "it holds no checkpoint of an interrupted training")
                 raise InputError(f"cannot resume {out}: {left}; choose another --out, or drop --resume")
-            with stop_signals_handled(on_signal, INTERRUPTS):
-                result = train_model(config, on_progress, stop)
+            with stop.handled():
+                result = train_model(config, on_progress, stop.event)
     finally:
         if task is not None:  # stopping a bar never started prints an empty line before the error
             bar.stop()
     if result is None:  # a non-zero torchrun rank
         return 0
     if result.stopped:
-        kept = (f"its checkpoint at step {result.steps} ({result.train_s / 60:.1f} min of training) is in {out}: "
-                "continue with the same command and --resume" if has_checkpoint(out) else "nothing to resume yet")
-        print(f"bubble: interrupted: {kept}", file=sys.stderr)
-        return exit_code(stopped_by[0] if stopped_by else signal.SIGINT)
-    if stopped_by:  # the stop came after the last step, while the model was validated and written: it is whole
-        print(f"bubble: interrupted after the training's last step: the model in {out} is complete", file=sys.stderr)
-        return exit_code(stopped_by[0])
+        return stop.interrupted(result, out, "bubble")
+    if stop.requested:  # the stop came after the last step, while the model was validated and written: it is whole
+        return stop.after_last_step(out, "bubble")
     if args.json is not None:
         write_json_result(args.json, "bubble train", result.metrics)
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))

@@ -10,6 +10,9 @@ Two steps, both resumable:
     # ... or data-parallel (gloo on CPU, nccl on GPU):
     torchrun --nproc_per_node 2 -m trainer.pretrain train --work runs/pretrain --epochs 20 --out trainer/base_model
 
+A Ctrl-C (SIGTERM, SIGHUP) in ``train`` checkpoints the step in progress (in ``--work``/model), as in
+``bubble train``; the same command with ``--resume`` continues.
+
 Sensors are drawn with seeds ``--first-seed .. --first-seed + sensors - 1``; the collection uses
 the same seed for its pose plan. The sessions go through the product's own commands, so the base
 model sees exactly what commissioning records.
@@ -18,14 +21,16 @@ model sees exactly what commissioning records.
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from collect.errors import EXIT_BAD_INPUT, InputError, OneLineParser
+from collect.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, OneLineParser
 from collect.output_files import check_parent_dirs, named_path
+from collect.stop_signals import Terminated
 from trainer.augmentation import PRETRAIN_NOISE_STD
 from trainer.cli import add_training_options, training_options
 from trainer.doc_sections import update_section
@@ -76,11 +81,24 @@ def collect_one(work: Path, seed: int, objects: str | None, poses: int, sim_spee
     return out
 
 
+def check_collect_options(objects: str | None, sim_speed: float) -> None:
+    """Raise InputError for what ``bubble collect`` would refuse once per sensor: an unknown object
+    (or a bad mesh file) in ``objects`` and a ``sim_speed`` out of range; checked before any sensor."""
+    from collect.cli import object_list
+    from hw_mocks.objects import load_object
+    from hw_mocks.sim_bench import check_sim_speed
+
+    check_sim_speed(sim_speed)
+    for name in object_list(objects, []) if objects is not None else ():
+        load_object(name)
+
+
 def run_collect(args: argparse.Namespace) -> int:
     if args.sensors < 1 or args.jobs < 1 or args.first_seed < 0 or args.poses_per_object < 1:
         raise InputError("--sensors, --jobs and --poses-per-object must be at least 1, --first-seed at least 0")
     if args.objects is not None and not args.objects.strip(" ,"):
         raise InputError("--objects names no object: name some, or drop the option for every object")
+    check_collect_options(args.objects, args.sim_speed)
     work = Path(args.work)
     if work.exists() and not work.is_dir():
         raise InputError(f"--work {work} is a file, not a directory")
@@ -137,11 +155,23 @@ def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
         f"* inference: {meta.inference.get('runtime', 'torch')}, ONNX max |ORT - torch| "
         f"{meta.inference.get('onnx_max_abs_diff_m', float('nan')):.1e} m",
     ]
+    card.parent.mkdir(parents=True, exist_ok=True)  # checked before the training (check_model_card)
     update_section(card, "pretraining", "Pretraining run (written by `python -m trainer.pretrain train`)", lines)
 
 
+def check_model_card(card: Path) -> None:
+    """Raise InputError unless the model card ``card`` can be written once the training is done: a file
+    (new or not) whose missing folders can be created (``check_parent_dirs``)."""
+    if card.is_dir():
+        raise InputError(f"--model-card {card} is a directory, not a markdown file")
+    check_parent_dirs(card)
+
+
 def run_train(args: argparse.Namespace) -> int:
-    from trainer.training import TrainConfig, train_model
+    """Train on the sessions of ``--work`` and package the base model. A stop (Ctrl-C, SIGTERM, SIGHUP)
+    ends it as it ends ``bubble train`` (``trainer.stop_on_signal``): at once while the data loads,
+    else after the step in progress, checkpointed in ``--work``/model for ``--resume``."""
+    from trainer.stop_on_signal import TrainingStop
 
     work = Path(args.work)
     if not work.is_dir():
@@ -150,6 +180,13 @@ def run_train(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file, not a model directory")
     check_parent_dirs(out / WEIGHTS_FILE)
+    if args.val_sensors < 1:
+        raise InputError(f"--val-sensors must be at least 1 (the last sessions, held out for validation), "
+                         f"got {args.val_sensors}")
+    if not (math.isfinite(args.eval_interval) and args.eval_interval > 0):
+        raise InputError(f"--eval-interval must be a positive number of seconds, got {args.eval_interval:g}")
+    if args.model_card:
+        check_model_card(Path(args.model_card))
     sessions = sorted(work.glob("sensor_*.h5"))
     sessions = [p for p in sessions if not p.name.endswith(".partial.h5")]
     if len(sessions) <= args.val_sensors:
@@ -157,27 +194,40 @@ def run_train(args: argparse.Namespace) -> int:
     train, val = sessions[: -args.val_sensors], sessions[-args.val_sensors :]
     if out.resolve() == (work / TRAIN_DIR).resolve():
         raise InputError(f"--out {args.out} is where training keeps its checkpoint; package the base model elsewhere")
-    config = TrainConfig(
-        data=[str(p) for p in train],
-        val_data=[str(p) for p in val],
-        out=str(work / TRAIN_DIR),
-        eval_interval_s=args.eval_interval,
-        ir_noise_std=PRETRAIN_NOISE_STD,
-        **training_options(args),
-    )
+    options = training_options(args)
+
+    stop = TrainingStop()
 
     def show(p) -> None:
+        stop.begin()
         if p.event != "step":
             a1 = f"{p.val['a1']:.3f}" if p.val else "-"
             print(f"[{p.event}] epoch {p.epoch:.2f} step {p.step} loss {p.loss * 1e3:.3f} mm "
                   f"val a1 {a1} ({p.fraction * 100:.0f} %)", flush=True)
 
-    result = train_model(config, progress_callback=show)
+    with stop.handled(process_ends=True):  # the command's only block: a stop while torch loads ends it too
+        from trainer.training import TrainConfig, train_model
+
+        config = TrainConfig(
+            data=[str(p) for p in train],
+            val_data=[str(p) for p in val],
+            out=str(work / TRAIN_DIR),
+            eval_interval_s=args.eval_interval,
+            ir_noise_std=PRETRAIN_NOISE_STD,
+            write_on_stop=False,
+            checkpoint_on_stop=True,
+            **options,
+        )
+        result = train_model(config, show, stop.event)
     if result is None:  # a non-zero torchrun rank
         return 0
+    if result.stopped:
+        return stop.interrupted(result, config.out, "pretrain")
     out = package_base_model(result.model_dir, out)
     if args.model_card:
         write_model_card_section(out, Path(args.model_card), "python -m trainer.pretrain " + " ".join(sys.argv[1:]))
+    if stop.requested:  # after the last step, while the model was validated and written: packaged, as it is whole
+        return stop.after_last_step(out, "pretrain")
     print(f"base model -> {out}: held-out sensors a1 {result.metrics['a1']:.3f}, abs_rel {result.metrics['abs_rel']:.4f}")
     return 0
 
@@ -214,6 +264,12 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as err:
         print(f"pretrain: error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except Terminated as err:  # a stop before training began (``trainer.stop_on_signal``)
+        print(f"pretrain: interrupted ({err.name})", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print("pretrain: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":
