@@ -111,7 +111,8 @@ def test_pretrain_checks_the_model_card_before_training(tmp_path, capsys):
 
 def test_pretrain_checks_val_sensors_and_eval_interval(tmp_path, capsys):
     """Was: --val-sensors -1 trained on 1 session and validated on 2, 0 said "no session files given";
-    --eval-interval nan, 0 or negative was taken (nan: never a validation nor a checkpoint)."""
+    --eval-interval nan, 0 or negative was taken (nan: never a validation nor a checkpoint); --resume
+    with nothing to resume trained anew."""
     work = _sensor_sessions(tmp_path / "work", 3)
     common = ["train", "--work", str(work), "--out", str(tmp_path / "base"), "--model-card", "", "--width", "0.125",
               "--epochs", "0.2"]
@@ -121,7 +122,9 @@ def test_pretrain_checks_val_sensors_and_eval_interval(tmp_path, capsys):
                       (["--eval-interval", "nan"], "--eval-interval must be a positive number of seconds, got nan"),
                       (["--eval-interval", "0"], "--eval-interval must be a positive number of seconds, got 0"),
                       (["--eval-interval", "-5"], "--eval-interval must be a positive number of seconds, got -5"),
-                      (["--eval-interval", "inf"], "--eval-interval must be a positive number of seconds, got inf")):
+                      (["--eval-interval", "inf"], "--eval-interval must be a positive number of seconds, got inf"),
+                      (["--resume"], f"cannot resume {work / TRAIN_DIR}: it holds no checkpoint of an interrupted "
+                                     "training; drop --resume to train anew")):  # was: a fresh training
         assert main([*common, *bad]) == 2, bad
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and err[0].startswith("pretrain: error: ") and says in err[0], err

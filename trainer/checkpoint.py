@@ -22,7 +22,7 @@ from torch import nn
 
 from collect.errors import InputError
 from collect.json_files import JSON_READ_ERRORS, write_json
-from trainer.model_dir import write_safetensors
+from trainer.model_dir import WEIGHTS_FILE, write_safetensors
 
 CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
@@ -33,6 +33,17 @@ PROGRESS_KEYS = ("epoch", "step", "train_s", "history", "loss")
 def has_checkpoint(model_dir: str | Path) -> bool:
     model_dir = Path(model_dir)
     return (model_dir / CHECKPOINT_WEIGHTS).is_file() and (model_dir / CHECKPOINT_STATE).is_file()
+
+
+def check_resumable(model_dir: str | Path, instead: str) -> None:
+    """``InputError`` unless ``model_dir`` holds a checkpoint for ``--resume`` to continue (was: a fresh
+    training, over a finished model too); ``instead``: what to do then, ending the message."""
+    model_dir = Path(model_dir)
+    if has_checkpoint(model_dir):
+        return
+    left = ("its training finished (a model, no checkpoint)" if (model_dir / WEIGHTS_FILE).exists()
+            else "it holds no checkpoint of an interrupted training")
+    raise InputError(f"cannot resume {model_dir}: {left}; {instead}")
 
 
 def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer, progress: dict) -> None:

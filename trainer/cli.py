@@ -162,7 +162,7 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from collect.errors import InputError
-    from trainer.checkpoint import has_checkpoint
+    from trainer.checkpoint import check_resumable
     from trainer.model_dir import WEIGHTS_FILE
     from trainer.stop_on_signal import TrainingStop
     from trainer.training import TrainConfig, train_model
@@ -227,10 +227,8 @@ def run_train(args: argparse.Namespace) -> int:
             if not args.resume and (out / WEIGHTS_FILE).exists():
                 raise InputError(f"{out} already holds a model; choose another --out (with --init {out} to train "
                                  "it further)")
-            if args.resume and not has_checkpoint(out):  # was: a fresh training, over a finished model too
-                left = ("its training finished (a model, no checkpoint)" if (out / WEIGHTS_FILE).exists()
-                        else "it holds no checkpoint of an interrupted training")
-                raise InputError(f"cannot resume {out}: {left}; choose another --out, or drop --resume")
+            if args.resume:
+                check_resumable(out, "choose another --out, or drop --resume")
             with stop.handled():
                 result = train_model(config, on_progress, stop.event)
     finally:
