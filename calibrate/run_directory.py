@@ -38,6 +38,8 @@ CAMERA_FILE = "camera_health.npz"
 VALIDATION_FILE = "validation.npz"
 POSE_FILE = "pose_check.json"
 PLOTS_DIR = "plots"
+#: ``bubble tui``'s log of the commissioning it runs in a child process, opened before the run starts.
+FLOW_LOG = "flow.log"
 
 #: Settings that must match when a run directory is resumed (or a finished run reported again):
 #: what was recorded, the model it starts from, and the limits that judge it. The time budgets, the
@@ -111,7 +113,7 @@ class RunState:
         without a word)."""
         if not run_dir.is_dir():
             return
-        others = sorted(p.name for p in run_dir.iterdir() if not is_leftover(p))
+        others = sorted(p.name for p in run_dir.iterdir() if not is_leftover(p) and p.name != FLOW_LOG)
         if others:
             raise InputError(f"{run_dir} holds no commissioning run (no {STATE_FILE}) but other files "
                              f"({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}), which a run would write "

@@ -15,10 +15,10 @@ from types import SimpleNamespace
 import pytest
 
 from calibrate.commission_events import Step, StepFinished, StepStarted
+from calibrate.run_directory import FLOW_LOG
 from calibrate.tui.flow_runner import (
     BENCH_NICE,
     COMPUTE_NICE,
-    FLOW_LOG,
     ProcessFlowRunner,
     ThreadFlowRunner,
     _stop_when_orphaned,

@@ -33,6 +33,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from calibrate.commission_events import Step, StepStarted
+from calibrate.run_directory import FLOW_LOG
 from collect.errors import HardwareFault, InputError
 
 #: ``flow(config, on_event=..., stop_event=...) -> CommissionResult``
@@ -46,8 +47,6 @@ BENCH_NICE = 6
 #: Nice increment of the flow from the first compute step on (total, from the UI's priority).
 COMPUTE_NICE = 10
 COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
-#: The child's log file inside the run directory.
-FLOW_LOG = "flow.log"
 #: How often the UI side checks that the child is still alive, and the child that the UI is, s.
 POLL_S = 0.25
 #: How long to wait for a child that sent its result to exit, before terminating it, s.
