@@ -207,8 +207,8 @@ def run_sensors(args) -> int:
         data = profile.data
         print(f"{profile.serial}: {profile.status} ({'simulated' if data.get('simulated') else 'hardware'})")
         print(f"  directory  {profile.path}")
-        model = profile.model_dir or ("-" if not data.get("accepted_at") else "-, none kept")
-        print(f"  model      {model}" + (f" (accepted {data['accepted_at']})" if profile.model_dir else ""))
+        accepted = f" (accepted {data['accepted_at']})" if profile.model_dir else ""
+        print(f"  model      {profile.model_dir or '-'}{accepted}")
         for name in profile.missing():
             print(f"  MISSING    {name}: profile.json names it, but {profile.path} no longer holds it (deleted?); "
                   "commission the sensor again")
