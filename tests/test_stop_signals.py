@@ -73,13 +73,16 @@ def test_a_command_without_a_stop_puts_the_handlers_back(interrupt_handlers_rest
 
 
 @pytest.mark.parametrize("stage", ["build", "parse"])
-def test_ctrl_c_before_the_command_starts_is_one_line_and_exit_130(monkeypatch, capsys, stage):
+def test_ctrl_c_before_the_command_starts_is_one_line_and_exit_130(monkeypatch, capsys, stage,
+                                                                   interrupt_handlers_restored):
     """Was: a KeyboardInterrupt traceback for a Ctrl-C in the ~0.4 s in which ``bubble`` imports its
     commands and parses the command line (a real SIGINT, sent at that moment)."""
     import argparse
     import importlib
 
     from calibrate.cli import main
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # a fresh process's, whatever a test before left
 
     def interrupted(original):
         def call(*args, **kwargs):
