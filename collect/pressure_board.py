@@ -17,7 +17,8 @@ line: a glitch (the partial line read on opening, a few corrupt lines) is surviv
 ``check()`` raises ``HardwareFault('serial-garbage')`` once ``MAX_CORRUPT_RUN`` corrupt lines came
 in a row (a tenth of a second of the stream: noise on the cable, a wrong baud rate),
 ``HardwareFault('serial-unplug')`` once the port vanished (read error), and
-``HardwareFault('serial-timeout')`` when no valid reading came for ``stale_timeout_s``, both on
+``HardwareFault('serial-timeout')`` when no valid reading (a ``P`` line with a pressure within
+``HPA_RANGE``; replies such as ``ERR`` do not count) came for ``stale_timeout_s``, both on
 the bench clock and on the host's (the same clock on real hardware; on the simulated bench, whose
 clock runs ``--sim-speed`` times faster, a reader thread the OS holds back for a quarter of a
 second is not a silent board).
@@ -54,6 +55,9 @@ MAX_CORRUPT_RUN = 10
 #: then, and silence is no ``serial-timeout`` before the board's first valid line or this long.
 BOOT_WAIT_S = 3.0
 BOOT_RETRY_S = 0.5
+#: hPa a reading may hold: the board's MPRLS-class sensor spans 0-25 psi (0-1724 hPa absolute). A
+#: value outside (a ``nan`` or ``inf`` a driver prints for a failed conversion) is a corrupt line.
+HPA_RANGE = (0.0, 1724.0)
 
 
 def checksum(body: bytes) -> str:
@@ -175,10 +179,12 @@ class PressureBoard:
             try:
                 seq, hpa = int(fields[1]), float(fields[2])
             except ValueError:
+                seq, hpa = None, None
+            if seq is None or not HPA_RANGE[0] <= hpa <= HPA_RANGE[1]:  # also nan
                 self.stats["malformed"] += 1
                 self._bad()
                 return
-            self._good()
+            self._good(reading=True)
             with self._lock:
                 if self._latest is not None:
                     self.stats["seq_gaps"] += (seq - self._latest.seq - 1) % SEQ_MODULO
@@ -188,7 +194,7 @@ class PressureBoard:
                 self.stats["readings"] += 1
                 self._lock.notify_all()
         elif fields[0] in ("ID", "VER", "OK", "ERR"):
-            self._good()
+            self._good(reading=False)
             with self._lock:
                 self._replies.append(fields)
                 self.stats["replies"] += 1
@@ -206,8 +212,11 @@ class PressureBoard:
                 "serial-garbage", f"pressure board: {MAX_CORRUPT_RUN} corrupt lines in a row on {self.port} "
                                   f"(noise on the cable or a wrong baud rate)"))
 
-    def _good(self) -> None:
-        self._last_valid, self._last_valid_host = self._clock(), time.monotonic()
+    def _good(self, reading: bool) -> None:
+        """A valid line came: it ends a run of corrupt ones. A ``reading`` keeps the stream fresh, and so
+        does the board's first line (its silence before was a boot); a reply alone later does not."""
+        if reading or not self._heard:
+            self._last_valid, self._last_valid_host = self._clock(), time.monotonic()
         self._heard = True
         if self._bad_run:
             if self._fault is None:  # after a serial-garbage fault the run is over: no "recovered"

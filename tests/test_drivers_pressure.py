@@ -141,6 +141,38 @@ def test_silence_is_a_timeout_fault(pty_board):
     assert err.value.kind == "serial-timeout"
 
 
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "1e999", "-3.00", "2500.00"])
+def test_a_reading_outside_the_sensors_range_is_a_corrupt_line(pty_board, value):
+    """Was: ``float()`` took ``nan``/``inf`` (what a driver prints for a failed conversion) as a valid
+    reading: recorded, and a board whose sensor died streamed on without a fault."""
+    board, master = pty_board
+    os.write(master, encode_line("P,0,1065.00"))
+    assert wait_until(lambda: board.latest() is not None)
+    for seq in range(1, MAX_CORRUPT_RUN + 1):
+        os.write(master, encode_line(f"P,{seq},{value}"))
+    assert wait_until(lambda: board.stats["malformed"] == MAX_CORRUPT_RUN)
+    assert board.latest().seq == 0 and board.stats["readings"] == 1
+    with pytest.raises(HardwareFault) as err:
+        board.check()
+    assert err.value.kind == "serial-garbage"
+
+
+def test_replies_without_readings_are_silence(pty_board):
+    """Was: any valid line, an ``ERR`` reply included, kept the board fresh: a board that answered
+    ``ERR,sensor not responding`` every half second never timed out."""
+    board, master = pty_board
+    os.write(master, encode_line("P,0,1065.00"))
+    assert wait_until(lambda: board.latest() is not None)
+    t_end = time.monotonic() + 0.5
+    while time.monotonic() < t_end:
+        os.write(master, encode_line("ERR,sensor not responding"))
+        time.sleep(0.05)
+    assert wait_until(lambda: board.stats["replies"] >= 5)
+    with pytest.raises(HardwareFault) as err:
+        board.check()
+    assert err.value.kind == "serial-timeout"
+
+
 def test_silence_counts_on_the_host_clock_too():
     """A bench clock that runs ahead (the simulated bench at --sim-speed N) while the reader thread
     is held back is not a silent board: the fault needs the timeout on both clocks (was: a false
