@@ -21,27 +21,29 @@ import re
 import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
-from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings
+from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings, check_motion_settings
 from collect.camera import STALL_TIMEOUT_S, ToFCamera, check_tof_profile
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
 from collect.numbers import real_number, real_numbers
 from collect.output_files import exclusive_lock
 from collect.pressure_board import PressureBoard
-from collect.safety import SafetyLimits
+from collect.safety import MAX_ROTATION_RAD, SafetyLimits, rotation_vector_ok
 
 log = logging.getLogger(__name__)
 
 #: The objects of the standard fixture plate (built-in simulated objects of the same names).
 DEFAULT_OBJECTS = ("mug", "wine_glass", "box", "fingers")
-#: RTDE rates (Hz) a UR controller serves: up to 500 Hz on e-Series (CB3: 125 Hz).
-RTDE_HZ_RANGE = (1.0, 500.0)
+#: RTDE rates (Hz) a UR controller serves: up to 500 Hz on e-Series (CB3: 125 Hz). Lower rates,
+#: which ur_rtde would serve, are refused: the arm's samples (``STATE_HZ_RANGE``) would repeat stale
+#: data between updates, and below 4 Hz the monitor takes a still clock for a dead link.
+RTDE_HZ_RANGE = (125.0, 500.0)
 #: Frame rates (fps) of the OAK ToF camera: its 33D sensor runs at up to 80 fps (depthai's RVC2
 #: driver limit), and below two frames per stall timeout the camera driver would see a stall.
 CAMERA_FPS_RANGE = (2.0 / STALL_TIMEOUT_S, 80.0)
@@ -71,10 +73,13 @@ def _within(value, lo: float, hi: float) -> bool:
 
 
 def _check_pose(type_name: str, name: str, pose, what: str) -> None:
-    """InputError unless ``pose`` is 6 finite numbers (m, rotation vector rad)."""
+    """InputError unless ``pose`` is 6 finite numbers (m, rotation vector rad, at most one turn long)."""
     if not real_numbers(pose, 6):
         raise InputError(f"bench '{type_name}': {name} ({what}) must be 6 numbers [x, y, z, rx, ry, rz] "
                          f"(m, rotation vector in rad), got {pose!r}")
+    if not rotation_vector_ok(pose):
+        raise InputError(f"bench '{type_name}': {name} rotation vector {list(pose[3:])!r} is longer than "
+                         f"{MAX_ROTATION_RAD:.4g} rad (one turn): give it in radians")
 
 
 @dataclass
@@ -82,7 +87,8 @@ class BenchConfig(ABC):
     """Settings common to every bench; subclasses register under ``type`` with ``BenchConfig.register``.
 
     objects: built-in object names or mesh paths, placed on the fixture plate in this order (one
-    string is one name: YAML ``objects: mug``). limits: safety limits (None: the type's default).
+    string is one name: YAML ``objects: mug``). limits: safety limits (None: the defaults;
+    a workspace corner left unset is fitted around the objects, ``workspace_limits``).
     motion: speeds of the pressing motions. state_hz: arm state sampling rate (125-500 Hz).
     """
 
@@ -108,6 +114,8 @@ class BenchConfig(ABC):
         if not _within(self.state_hz, lo, hi):
             raise InputError(f"bench '{self.type}': state_hz {self.state_hz!r} is outside {lo:g}..{hi:g} Hz "
                              "(the arm's state sampling rate)")
+        if self.limits is not None:  # before any device opens (was: after the arm's lock and connection)
+            check_motion_settings(self.motion, self.limits)
 
     @classmethod
     def register(cls, name: str) -> Callable[[type], type]:
@@ -189,17 +197,17 @@ def _placed_objects(names, plate_pose=None) -> list:
 
 
 def workspace_limits(objects, base: SafetyLimits = SafetyLimits()) -> SafetyLimits:
-    """``base`` limits with the workspace box fitted around ``objects``: 150 mm around their
-    footprints, from the plate top (the membrane apex may reach down to it around a flat object;
-    the force limit guards the press) to 250 mm above the tallest."""
+    """``base`` limits with each workspace corner it leaves unset (None) fitted around ``objects``:
+    150 mm around their footprints, from the plate top (the membrane apex may reach down to it
+    around a flat object; the force limit guards the press) to 250 mm above the tallest. A bench
+    file's ``limits`` that lowers the force alone keeps the fitted box (was: a 1.2 m box from the
+    robot's base plane)."""
     lo = np.min([o.bounds_base()[0] for o in objects], axis=0)
     hi = np.max([o.bounds_base()[1] for o in objects], axis=0)
     plate_z = min(o.fixture_pose[2] for o in objects)
-    return SafetyLimits(
-        workspace_min=(float(lo[0] - 0.15), float(lo[1] - 0.15), float(plate_z)),
-        workspace_max=(float(hi[0] + 0.15), float(hi[1] + 0.15), float(hi[2] + 0.25)),
-        max_speed_m_s=base.max_speed_m_s, max_accel_m_s2=base.max_accel_m_s2,
-        force_limit_n=base.force_limit_n, max_tilt_deg=base.max_tilt_deg)
+    fitted_min = (float(lo[0] - 0.15), float(lo[1] - 0.15), float(plate_z))
+    fitted_max = (float(hi[0] + 0.15), float(hi[1] + 0.15), float(hi[2] + 0.25))
+    return replace(base, workspace_min=base.workspace_min or fitted_min, workspace_max=base.workspace_max or fitted_max)
 
 
 @BenchConfig.register("ur")
@@ -256,7 +264,7 @@ class URBenchConfig(BenchConfig):
         from collect.camera import DepthaiToFCamera
 
         objects = _placed_objects(self.objects, self.plate_pose)
-        limits = self.limits or workspace_limits(objects)
+        limits = workspace_limits(objects, self.limits or SafetyLimits())
         home = limits.check_pose(self.home_pose)
         library_said: list[str] = []
         with contextlib.ExitStack() as held:
@@ -318,7 +326,7 @@ class SimBenchConfig(BenchConfig):
             spec = SensorSpec.from_yaml(Path(self.sensor))
         faults = [f if isinstance(f, SimFault) else parse_sim_fault(f) for f in self.faults]
         objects = _placed_objects(self.objects)
-        limits = self.limits or workspace_limits(objects)
+        limits = workspace_limits(objects, self.limits or SafetyLimits())
         start = None if self.start_pose is None else limits.check_pose(self.start_pose)
         scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed, start_pose=start)
         scene.start()
@@ -372,18 +380,19 @@ class Bench:
     def safe_stop(self) -> bool:
         """Stop the arm and retract it from the object; True when it retracted.
 
-        Used on every fault and on Ctrl-C. A robot in protective stop cannot move: the failure to
-        retract is logged (the operator clears the stop on the pendant) and False returned.
+        Used on every fault and on Ctrl-C; never raises. A robot in protective stop cannot move: the
+        failure to retract is logged (the operator clears the stop on the pendant) and False returned.
         """
         try:
             self.arm.stop()
             self.arm.retract()
             self._unretracted = ""
             return True
-        except (HardwareFault, InputError) as err:  # InputError: the retract itself broke a safety limit
-            if str(err) != self._unretracted:  # open_bench's exit repeats the stop a run already made
-                log.error("bench: arm stopped but not retracted: %s", err)
-            self._unretracted = str(err)
+        except Exception as err:  # InputError: the retract broke a safety limit; anything else: logged, not raised
+            said = str(err) if isinstance(err, (HardwareFault, InputError)) else f"{type(err).__name__}: {err}"
+            if said != self._unretracted:  # open_bench's exit repeats the stop a run already made
+                log.error("bench: arm stopped but not retracted: %s", said)
+            self._unretracted = said
             return False
 
     def close(self) -> None:

@@ -66,6 +66,8 @@ class PlanSettings:
     reference_s: float = 0.4
 
     def __post_init__(self):
+        if not (isinstance(self.seed, (int, np.integer)) and not isinstance(self.seed, bool) and self.seed >= 0):
+            raise InputError(f"plan seed must be a whole number >= 0, got {self.seed!r}")
         if not 1 <= int(self.poses_per_object) <= MAX_POSES_PER_OBJECT:
             raise InputError(f"poses per object must be 1..{MAX_POSES_PER_OBJECT}, got {self.poses_per_object}")
         lo, hi = self.press_force_n
@@ -216,6 +218,10 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
             back = (top_z + s.clearance_m - points[k, 2]) / -axis[2]
             above = np.concatenate([points[k] - axis * back, rot.as_rotvec()])
             approach = back + s.approach_margin_m
+            if approach > motion.max_contact_travel_m:  # the arm would be sent further than the setting allows
+                raise InputError(
+                    f"plan: the guarded approach to {obj.name} (pose {k}) is {approach * 1e3:.1f} mm, longer than "
+                    f"motion.max_contact_travel_m {motion.max_contact_travel_m * 1e3:.3g} mm; raise that setting")
             # targets the arm is sent to: the guarded approach's end and the deepest press
             approach_end, deepest = above.copy(), above.copy()
             approach_end[:3] += axis * approach

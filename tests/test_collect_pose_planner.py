@@ -12,6 +12,8 @@ from collect.safety import SafetyLimits, tilt_deg, tool_z_axis
 from hw_mocks.objects import fixture_plate, load_object
 
 BUILTINS = ("mug", "wine_glass", "box", "fingers")
+#: a 1.2 m box around the robot's base, the plate inside it
+BOX = SafetyLimits(workspace_min=(-0.6, -0.6, 0.0), workspace_max=(0.6, 0.6, 0.6))
 
 
 @pytest.fixture(scope="module")
@@ -20,9 +22,9 @@ def plate():
 
 
 def test_plan_is_reproducible_and_varies_with_seed(plate):
-    a = plan_collection(plate, SafetyLimits(), PlanSettings(poses_per_object=3, seed=7))
-    b = plan_collection(plate, SafetyLimits(), PlanSettings(poses_per_object=3, seed=7))
-    c = plan_collection(plate, SafetyLimits(), PlanSettings(poses_per_object=3, seed=8))
+    a = plan_collection(plate, BOX, PlanSettings(poses_per_object=3, seed=7))
+    b = plan_collection(plate, BOX, PlanSettings(poses_per_object=3, seed=7))
+    c = plan_collection(plate, BOX, PlanSettings(poses_per_object=3, seed=8))
     first = np.array([p.above_pose for p in a.poses])
     np.testing.assert_array_equal(first, np.array([p.above_pose for p in b.poses]))
     assert np.abs(first - np.array([p.above_pose for p in c.poses])).max() > 1e-3
@@ -30,7 +32,7 @@ def test_plan_is_reproducible_and_varies_with_seed(plate):
 
 def test_poses_press_the_upper_surface_within_limits(plate):
     settings = PlanSettings(poses_per_object=8, seed=1)
-    plan = plan_collection(plate, SafetyLimits(), settings)
+    plan = plan_collection(plate, BOX, settings)
     assert [p.pose_id for p in plan.poses] == list(range(4 * 8))
     assert [s.name for s in plan.stops] == list(BUILTINS)
     tilts = []
@@ -65,19 +67,31 @@ def test_mesh_file_plans_and_unreachable_mesh_is_rejected(tmp_path):
     path = tmp_path / "column.stl"
     column.export(path)
     placed = fixture_plate([load_object(path)])
-    plan = plan_collection(placed, SafetyLimits(), PlanSettings(poses_per_object=2))
+    plan = plan_collection(placed, BOX, PlanSettings(poses_per_object=2))
     assert plan.stops[0].name == "column" and len(plan.poses) == 2
-    low_ceiling = SafetyLimits(workspace_max=(0.6, 0.6, 0.25))
+    low_ceiling = SafetyLimits(workspace_min=BOX.workspace_min, workspace_max=(0.6, 0.6, 0.25))
     with pytest.raises(InputError, match="object 'column' cannot be reached safely: .*outside the workspace"):
         plan_collection(placed, low_ceiling, PlanSettings(poses_per_object=2))
 
 
 def test_bad_plans(plate):
     with pytest.raises(InputError, match="no objects"):
-        plan_collection([], SafetyLimits())
+        plan_collection([], BOX)
     with pytest.raises(InputError, match="unique"):
-        plan_collection([plate[0], plate[0]], SafetyLimits())
+        plan_collection([plate[0], plate[0]], BOX)
     with pytest.raises(InputError, match="force"):
-        plan_collection(plate, SafetyLimits(force_limit_n=10.0), PlanSettings(max_press_force_n=15.0))
+        plan_collection(plate, SafetyLimits(BOX.workspace_min, BOX.workspace_max, force_limit_n=10.0), PlanSettings(max_press_force_n=15.0))
     with pytest.raises(InputError, match="poses per object"):
         PlanSettings(poses_per_object=0)
+
+
+def test_a_negative_seed_and_an_approach_beyond_the_contact_travel_setting_are_refused(plate):
+    """Was: a negative seed was numpy's ValueError after the real bench had connected; and
+    ``motion.max_contact_travel_m`` was ignored (the arm was sent the plan's 14-20 mm approach)."""
+    from collect.arm import MotionSettings
+
+    with pytest.raises(InputError, match="plan seed must be a whole number >= 0, got -1"):
+        PlanSettings(seed=-1)
+    with pytest.raises(InputError, match=r"the guarded approach to mug \(pose 0\) is 1\d\.\d mm, longer than "
+                                         r"motion.max_contact_travel_m 5 mm"):
+        plan_collection(plate, BOX, PlanSettings(poses_per_object=2), MotionSettings(max_contact_travel_m=0.005))

@@ -372,7 +372,7 @@ def test_bench_yaml_rates_are_checked_before_any_device_opens(tmp_path, capsys):
     bench = tmp_path / "bench.yaml"
     bench.write_text("type: ur\nrobot_ip: 127.0.0.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\nrtde_hz: 1000\n")
     assert main(["collect", "--bench", str(bench), "--objects", "box", "--quiet", "--out", str(tmp_path / "r.h5")]) == 2
-    assert "rtde_hz 1000 is outside 1..500 Hz" in _error_line(capsys)
+    assert "rtde_hz 1000 is outside 125..500 Hz" in _error_line(capsys)
 
 
 @pytest.fixture

@@ -247,7 +247,16 @@ BAD_BENCH_LINES = {
     "plate_pose: [0, 0, 0]": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers "
                              "[x, y, z, rx, ry, rz] (m, rotation vector in rad), got (0, 0, 0)",
     "plate_pose: flat": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers",
-    "state_hz: fast": "bench 'ur': state_hz 'fast' is outside 1..500 Hz (the arm's state sampling rate)",
+    "state_hz: fast": "bench 'ur': state_hz 'fast' is outside 125..500 Hz (the arm's state sampling rate)",
+    # was: accepted, and the force guards sampled at 10 Hz (a simulated press overshot its 15 N cap)
+    "state_hz: 10": "bench 'ur': state_hz 10 is outside 125..500 Hz (the arm's state sampling rate)",
+    "rtde_hz: 10": "bench 'ur': rtde_hz 10 is outside 125..500 Hz (the RTDE rates of a UR controller)",
+    # was: accepted (a yaw of 90 rad), or numpy's LinAlgError from the plate's transform (1e300)
+    "plate_pose: [0, 0, 0, 0, 0, 90]": "bench 'ur': plate_pose rotation vector [0, 0, 90] is longer than 6.283 rad "
+                                       "(one turn): give it in radians",
+    "home_pose: [0.45, 0, 0.25, 1.0e300, 0, 0]": "bench 'ur': home_pose rotation vector [1e+300, 0, 0] is longer than",
+    # was: found only after the arm's lock and the robot's connection (the retract runs at twice the approach)
+    "limits: {max_speed_m_s: 0.25}\nmotion: {approach_speed: 0.2}": "safety: speed 0.4 m/s is outside (0, 0.25] m/s",
     "limits: {workspace_min: low}": "safety: workspace_min must be 3 numbers [x, y, z] (m), got 'low'",
     "limits: {force_limit_n: []}": "safety: force_limit_n must be a positive number, got ()",
     "limits: {max_tilt_deg: .nan}": "safety: max_tilt_deg must be a positive number, got nan",
@@ -393,3 +402,16 @@ def test_a_frame_at_rest_shows_the_membrane_where_the_arm_stopped():
     # the stale solution's dent was deeper by the look-ahead (0.4 mm here)
     lead = abs(ahead.pose[2] - rest[2])
     assert lead > 2e-4 and np.nanmax(np.abs(ahead.state.true_depth - frame.state.true_depth)) == pytest.approx(lead, rel=0.2)
+
+
+def test_a_robot_lost_before_its_first_sample_is_a_fault_not_a_traceback(tmp_path, capsys, monkeypatch):
+    """Was: the arm's start failed before any sample, and the safe stop on the way out read no state:
+    ``AttributeError: 'NoneType' object has no attribute 'tcp_wrench'``, a traceback and exit 1."""
+    from calibrate.cli import main
+    from hw_mocks.fake_rtde import FakeRTDEReceive
+
+    monkeypatch.setattr(FakeRTDEReceive, "isConnected", lambda self: False)
+    out = tmp_path / "s.h5"
+    assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "1", "--quiet", "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "lost the RTDE connection" in err and "Traceback" not in err and "AttributeError" not in err

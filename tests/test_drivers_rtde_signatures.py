@@ -129,7 +129,7 @@ def test_every_call_of_the_driver_binds_to_the_real_ur_rtde_signature():
     # the simulated robot protective-stops above 6 N: the last press below runs into it
     controller = SimURController(_FlatFloor(), [0.4, 0.0, 0.11, np.pi, 0.0, 0.0], protective_force_n=6.0)
     arm = Arm(_Recorder(FakeRTDEControl(controller), calls), _Recorder(FakeRTDEReceive(controller), calls),
-              SafetyLimits(), state_hz=250)
+              SafetyLimits((0.2, -0.3, 0.0), (0.6, 0.3, 0.4)), state_hz=250)
     try:
         arm.move_to([0.4, 0.0, 0.105, np.pi, 0.0, 0.0], 0.05, 0.5)
         assert arm.move_until_contact(speed=0.02, force_threshold_n=0.5) is not None

@@ -394,3 +394,51 @@ def test_a_robot_state_that_stops_changing_is_a_dead_link():
         wait_until(lambda: np.linalg.norm(controller.tcp_speed()[:3]) == 0.0, 2.0)  # and stopped it
     finally:
         arm.close()
+
+
+def test_a_move_whose_tilt_passes_the_limit_on_the_way_is_refused_before_it_is_sent():
+    """Was: only the two ends were checked. Two poses 19 deg off vertical on opposite sides, their
+    yaws far apart, pass well beyond the 20 deg limit in between (the orientation turns about one axis)."""
+    from collect.pose_planner import pressing_rotation
+
+    start = np.array([0.4, 0.0, 0.2, *pressing_rotation(19.0, 0.314, -0.615).as_rotvec()])
+    across = np.array([0.4, 0.0, 0.2, *pressing_rotation(19.0, 5.659, 2.786).as_rotvec()])
+    assert tilt_deg(start) < 20.0 and tilt_deg(across) < 20.0
+    LIMITS.check_pose(across)
+    with pytest.raises(SafetyViolation, match=r"tilts the tool 2\d\.\d deg on the way .* beyond the limit 20.0 deg"):
+        LIMITS.check_path(start, across)
+    LIMITS.check_path(start, [0.4, 0.0, 0.2, *DOWN])  # straight down: fine
+    beyond = np.array([0.4, 0.0, 0.2, *pressing_rotation(25.0, 0.3, 0.0).as_rotvec()])
+    LIMITS.check_path(beyond, [0.4, 0.0, 0.2, *DOWN])  # the way back from beyond the limit stays allowed
+    controller = SimURController(_Still(), start)
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        with pytest.raises(SafetyViolation, match="on the way"):
+            arm.move_to(across)
+        assert control.moves == 0
+    finally:
+        arm.close()
+
+
+def test_a_rotation_vector_longer_than_a_turn_is_refused():
+    """Was: a rotation vector of 1e300 gave a NaN tilt, which passed the tilt check."""
+    for rotvec in ([1e300, 0.0, 0.0], [0.0, 0.0, 90.0]):
+        with pytest.raises(SafetyViolation, match="longer than 6.283 rad"):
+            LIMITS.check_pose([0.4, 0.0, 0.2, *rotvec])
+
+
+def test_limits_without_a_workspace_box_check_no_pose_and_the_bench_fits_the_missing_corners():
+    """Was: a bench file's ``limits: {force_limit_n: 15}`` replaced the box fitted around the plate
+    with a 1.2 m box from the robot's base plane, silently."""
+    from collect.bench import _placed_objects, workspace_limits
+
+    objects = _placed_objects(["mug", "box"])
+    fitted = workspace_limits(objects)
+    partial = workspace_limits(objects, SafetyLimits(force_limit_n=15.0))
+    assert (partial.workspace_min, partial.workspace_max) == (fitted.workspace_min, fitted.workspace_max)
+    assert partial.force_limit_n == 15.0
+    given = workspace_limits(objects, SafetyLimits(workspace_max=(1.0, 0.5, 0.5)))
+    assert given.workspace_max == (1.0, 0.5, 0.5) and given.workspace_min == fitted.workspace_min
+    with pytest.raises(InputError, match="the workspace box is not set"):
+        SafetyLimits(force_limit_n=15.0).check_pose([0.4, 0.0, 0.2, *DOWN])
