@@ -49,4 +49,4 @@ def run_tui(args) -> int:
 
     with stop_signals_handled(quit_app):
         app.run()
-    return exit_code(received[0]) if received else 0
+    return exit_code(received[0]) if received else (app.return_code or 0)  # a crashed app: non-zero

@@ -265,6 +265,12 @@ def _builtin(name: str) -> tuple[trimesh.Trimesh, dict | None]:
     return _BUILDERS[name]()
 
 
+def object_name(name_or_path: str | Path) -> str:
+    """The name ``load_object`` gives the object (a built-in's own, a mesh file's stem), without loading it."""
+    key = str(name_or_path)
+    return key if key in _BUILDERS else Path(key).stem
+
+
 def load_object(name_or_path: str | Path) -> BenchObject:
     """A built-in object by name or a watertight mesh file by path, at the object-frame origin.
 
@@ -283,7 +289,7 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         )
     if not path.is_file():
         raise InputError(f"mesh {path} is not a regular file" if path.exists() else f"mesh file not found: {path}")
-    if path.stem in _BUILDERS:
+    if object_name(path) in _BUILDERS:
         raise InputError(f"mesh {path} would be named '{path.stem}', as the built-in object; rename the file")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)  # merged below, once its vertices are checked
@@ -312,7 +318,7 @@ def load_object(name_or_path: str | Path) -> BenchObject:
     if abs(z0) > tol or not (x0 - tol <= 0 <= x1 + tol and y0 - tol <= 0 <= y1 + tol):
         raise InputError(f"mesh {path} spans x {x0:.4g}..{x1:.4g}, y {y0:.4g}..{y1:.4g}, z from {z0:.4g} m: its "
                          "origin must be on the fixture, under the object (lowest point at z = 0, +z up)")
-    return BenchObject(name=path.stem, mesh=mesh, primitive=None)
+    return BenchObject(name=object_name(path), mesh=mesh, primitive=None)
 
 
 def fixture_plate(objects: list[BenchObject]) -> list[BenchObject]:

@@ -824,3 +824,128 @@ def test_a_run_refused_before_the_bench_opened_leaves_the_arm_idle(in_tmp):
             return app.arm_state, app.bench_panel.arm_state, app.banner.level
 
     assert asyncio.run(scenario()) == ("idle", "idle", "fault")
+
+
+def test_paths_and_messages_with_brackets_are_shown_as_written(in_tmp):
+    """Was: read as markup. A run folder ``runs/sb42 [retry]`` was shown as ``runs/sb42 `` (the
+    banner named a session file that does not exist), and a ``[/b]`` in a path or a fault message
+    raised MarkupError and tore the app down."""
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events() + [FaultRaised("serial-unplug", "port [/dev/ttyUSB0 gone] [/b]")],
+                            error=HardwareFault("serial-unplug", "port [/dev/ttyUSB0 gone] [/b]"))
+        app = BenchApp(make_config(run_dir=Path("runs/sb42 [retry]/x[/b]")), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("c")
+            details = str(app.screen.query_one("#confirm-details").content)
+            assert "run dir: runs/sb42 [retry]/x[/b]" in details, details
+            await pilot.press("y")
+            await asyncio.to_thread(flow.emitted.wait, 10)
+            flow.release.set()
+            await wait_for(lambda: app.error is not None, pilot)
+            await pilot.pause()
+            assert app.is_running and "[/dev/ttyUSB0 gone] [/b]" in str(app.banner.content)
+
+    asyncio.run(scenario())
+
+
+def test_a_stop_before_collection_names_no_session_file_and_shows_no_verdict_meanwhile(in_tmp):
+    """Was: "Recorded data kept in run/session.h5" with no such file; and the flow's own Verdict
+    (rejected) was drawn as REJECTED until the run's end replaced it with NO VERDICT."""
+    async def scenario():
+        events = [StepStarted(Step.CONNECT, 2.0), StepFinished(Step.CONNECT, True, "serial SB-0042")]
+        flow = ScriptedFlow(events, finish=())
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("s")
+            app.apply_events([Verdict(False, [], "run/report.html")])  # as the stopped flow sends it
+            assert "REJECTED" not in str(app.acceptance.verdict_line.content)
+            await wait_for(lambda: app.result is not None, pilot)
+            text = str(app.banner.content)
+            assert "session.h5" not in text and "No calibration frames recorded yet" in text, text
+            assert "NO VERDICT" in str(app.acceptance.verdict_line.content)
+
+    asyncio.run(scenario())
+
+
+def test_an_error_banner_says_what_the_safe_stop_did_to_the_arm(in_tmp):
+    """Was: a recorder fault, an input error or an internal error named only itself, even where the
+    flow's safe stop could not retract the arm."""
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events(), error=RuntimeError("boom"),
+                            safe_stop=ArmSafeStopped(False, 0.0408, 0.0408, 12.0))
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.error is not None, pilot)
+            return str(app.banner.content)
+
+    text = asyncio.run(scenario())
+    assert text.startswith("Internal error: RuntimeError: boom | ") and "arm stopped but NOT retracted" in text, text
+
+
+def test_a_skipped_collection_leaves_the_bar_empty_and_mesh_objects_count_by_their_name(in_tmp):
+    """Was: a collection skipped after a failed gate drew every pose done; and a mesh file's object,
+    reported by the flow under its file's stem, was counted as a third object ("9/12 poses")."""
+    async def scenario():
+        app = BenchApp(make_config(objects=("mug", "parts/widget.stl"), poses_per_object=4), flow=ScriptedFlow([]))
+        async with app.run_test(size=SIZE):
+            assert app.collection.objects == ["mug", "widget"]
+            app.apply_events([CollectionProgress("widget", 1, 4, "press", 10, 3.0, 1066.0)])
+            assert app.collection.done == 5
+            app._bench_open = True
+            app.apply_events([StepFinished(Step.COLLECT, False, "not run: leak", skipped=True)])
+            assert app.collection.done == 5
+
+    asyncio.run(scenario())
+
+
+def test_quitting_gives_up_on_a_flow_that_does_not_end(in_tmp, monkeypatch):
+    """Was: q waited for ever on a flow that ignored its stop (QUIT_WAIT_S was only used on unmount)."""
+    import calibrate.tui.app as tui_app
+
+    monkeypatch.setattr(tui_app, "QUIT_WAIT_S", 0.3)
+
+    class Deaf(ScriptedFlow):
+        def __call__(self, config, on_event, stop_event):
+            self.emitted.set()
+            self.release.wait(10)
+            return self.result(config, True)
+
+    flow = Deaf([])
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            await pilot.press("q")
+            await wait_for(lambda: not app.is_running, pilot, timeout=5)
+        return app.return_code
+
+    try:
+        assert asyncio.run(scenario()) == 1
+    finally:
+        flow.release.set()
+
+
+def test_a_long_serial_is_cut_and_leaves_the_other_registry_columns_in_view(in_tmp):
+    """Was: a 64-character serial (``SENSOR_SERIAL_RE`` allows it) widened its column to the panel's
+    width, and every other column went off-screen behind a horizontal scroll bar."""
+    registry = SensorRegistry(Path("registry"))
+    long_serial = "SB-" + "7" * 61
+    for serial in ("SB-0042", long_serial):
+        registry.register(serial, accepted=True, run_dir=Path("run"), intrinsics={"width": 4, "height": 3},
+                          camera_in_tcp=None, simulated=True, acceptance={"accepted": True, "a1": 0.9})
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]))
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("4")
+            await pilot.pause()
+            table = app.registry.table
+            return table.max_scroll_x, [str(table.get_cell_at((r, 0))) for r in range(table.row_count)]
+
+    max_scroll_x, serials = asyncio.run(scenario())
+    assert max_scroll_x == 0
+    assert "SB-0042" in serials and any(s.startswith("SB-777") and s.endswith("…") and len(s) == 16 for s in serials)

@@ -49,6 +49,17 @@ def wait_for_stop(config, on_event, stop_event):
     return stop_event.wait(30.0)
 
 
+def signal_own_group_then_wait_for_stop(config, on_event, stop_event):
+    """Sends SIGHUP and SIGTERM to itself, as a closing terminal or a service manager sends them to
+    the whole process group, then waits (up to 30 s) for the UI's stop; returns whether it came."""
+    import signal
+
+    for signum in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT):
+        os.kill(os.getpid(), signum)
+    on_event(StepStarted(Step.COLLECT))
+    return stop_event.wait(30.0)
+
+
 def raise_fault(config, on_event, stop_event):
     raise HardwareFault("camera-stall", "camera: no frame for 0.50 s")
 
@@ -79,6 +90,13 @@ def test_child_sends_events_in_order_and_yields_the_cpu_more_from_fine_tuning_on
 
 def test_stop_request_reaches_the_child(config):
     runner = ProcessFlowRunner(wait_for_stop)
+    assert runner.run(config, lambda event: runner.request_stop()) is True
+
+
+def test_the_child_outlives_a_signal_to_the_process_group_and_stops_through_the_ui(config):
+    """Was: only SIGINT was ignored; a SIGHUP or SIGTERM to the group killed the flow at once: arm
+    not retracted, session file unclosed, no acceptance.json."""
+    runner = ProcessFlowRunner(signal_own_group_then_wait_for_stop)
     assert runner.run(config, lambda event: runner.request_stop()) is True
 
 

@@ -203,3 +203,20 @@ def test_tui_command_rejects_bad_input_in_one_line(tmp_path, monkeypatch, capsys
     assert main(["tui", *args]) == 2
     err = capsys.readouterr().err
     assert fragment in err and err.count("\n") == 1
+
+
+def test_a_crashed_app_is_a_non_zero_exit(tmp_path, monkeypatch):
+    """Was: ``bubble tui`` returned 0 after the app had crashed (a MarkupError traceback, then exit 0)."""
+    import sys
+
+    from calibrate.cli import main
+    from calibrate.tui.app import BenchApp
+
+    def crash(app, *args, **kwargs):
+        app._return_code = 1  # what textual sets when an exception ends the app
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys.stdin, "isatty", lambda: True, raising=False)
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True, raising=False)
+    monkeypatch.setattr(BenchApp, "run", crash)
+    assert main(["tui", "--sim", "--out", str(tmp_path / "run")]) == 1

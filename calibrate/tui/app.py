@@ -57,6 +57,7 @@ from calibrate.tui.widgets.sensor_view import SensorView
 from calibrate.tui.widgets.steps_panel import StepsPanel
 from calibrate.tui.widgets.training_curve import TrainingCurve
 from collect.errors import HardwareFault, InputError
+from hw_mocks.objects import object_name
 
 #: The banner's line when idle, and during a run until a stop, a fault or the outcome replaces it. It never
 #: hides once shown: hiding it would shift the whole screen up a line and re-lay every panel out in
@@ -68,7 +69,8 @@ RUN_HINT = "Commissioning... s or space stops the arm and retracts it; recorded 
 #: app says so once per shrink. The stop keys work at any size.
 MIN_TERMINAL = (100, 30)
 
-#: How long quitting waits for a stopping flow before giving up on a clean close, s.
+#: How long quitting waits for a stopping flow before giving up on a clean close, s: then the app
+#: leaves (exit code 1) and the flow's process, orphaned, stops by itself.
 QUIT_WAIT_S = 60.0
 
 #: textual's animation level unless the user sets ``TEXTUAL_ANIMATIONS``: none. The only animation
@@ -152,6 +154,8 @@ class BenchApp(App):
         self._flow_done.set()
         self._worker: Worker | None = None
         self._quit_requested = False
+        self._stop_requested = False  # this run was asked to stop: its flow's Verdict is no verdict
+        self._gave_up = False  # quitting gave up on the flow after QUIT_WAIT_S
         self._arm_state = "idle"
         self._bench_open = False  # the flow holds the bench (from the start until collection ends)
         self._connected = False
@@ -173,7 +177,9 @@ class BenchApp(App):
         self.live_sensor = SensorView(compact=True, id="live-sensor")
         self.tabs = TabbedContent(initial="tab-commission", id="tabs")
         self.steps = StepsPanel(id="steps")
-        self.collection = CollectionPanel(tuple(cfg.objects), int(cfg.poses_per_object), id="collection")
+        # as the flow names them: a mesh file by its stem (was: a third object, and "9/12 poses")
+        self.collection = CollectionPanel(tuple(object_name(o) for o in cfg.objects), int(cfg.poses_per_object),
+                                          id="collection")
         self.training = TrainingCurve(id="training")
         self.sensor = SensorView(id="sensor")
         self.acceptance = AcceptanceTable(id="acceptance")
@@ -298,6 +304,7 @@ class BenchApp(App):
         self._flow_done.clear()
         self._arm_state = "moving"
         self._bench_open = True
+        self._stop_requested = False
         self.result = None
         self.error = None
         self._worker = self.run_worker(
@@ -334,6 +341,7 @@ class BenchApp(App):
 
     def _request_stop(self, message: str) -> None:
         self._runner.request_stop()
+        self._stop_requested = True
         if self._bench_open and self._arm_state != "stopped":  # a second stop after the safe stop: stays stopped
             self._arm_state = "stopping"
         self.banner.show(message, "warning")
@@ -341,6 +349,8 @@ class BenchApp(App):
 
     async def action_quit(self) -> None:
         if self.running:
+            if not self._quit_requested:
+                self.set_timer(QUIT_WAIT_S, self._give_up_quitting)
             self._quit_requested = True
             if self._bench_open:
                 self._request_stop("Quitting: stopping the arm and closing the session file first...")
@@ -348,6 +358,13 @@ class BenchApp(App):
                 self._request_stop("Quitting: ending the run first...")
             return
         self.exit()
+
+    def _give_up_quitting(self) -> None:
+        """Quitting waited ``QUIT_WAIT_S`` for a flow that did not end: leave without it."""
+        if self.running:
+            self._gave_up = True
+            self.exit(return_code=1, message=f"bubble tui: the run did not end within {QUIT_WAIT_S:g} s of quitting; "
+                                             f"left it to stop by itself (see {Path(self.config.run_dir) / 'flow.log'})")
 
     def action_show_tab(self, tab: str) -> None:
         self.tabs.active = tab
@@ -377,7 +394,7 @@ class BenchApp(App):
             if steps.apply(event, now):
                 steps_changed = True
                 if isinstance(event, StepFinished) and event.step == Step.COLLECT:
-                    self._close_bench_view()
+                    self._close_bench_view(collected=event.ok and not event.skipped)
             elif isinstance(event, CollectionProgress):
                 self.collection.apply(event)
             elif isinstance(event, TrainingProgress):
@@ -389,21 +406,23 @@ class BenchApp(App):
             elif isinstance(event, FaultRaised):
                 self._fault_text = f"FAULT {event.kind}: {event.message}"
                 self.banner.show(self._fault_text, "fault")
-            elif isinstance(event, Verdict):
+            elif isinstance(event, Verdict) and not self._stop_requested:  # a stopped run's: "NO VERDICT" at its end
                 self.acceptance.show(event.accepted, event.checks, event.report_path)
         self.training.apply(points)
         if steps_changed:
             steps.tick(now)
 
-    def _close_bench_view(self) -> None:
-        """The flow has closed the bench (collection over): the arm is parked, no more snapshots."""
+    def _close_bench_view(self, collected: bool) -> None:
+        """The flow has closed the bench (collection over; ``collected``: every pose recorded, not a
+        collection skipped or failed): the arm is parked, no more snapshots."""
         snapshot = self._closing_snapshot()
         self._bench_open = False
         self._connected = False
         if self._arm_state == "moving":
             self._arm_state = "idle"
         self._update_bench_panel(snapshot)
-        self.collection.complete()
+        if collected:
+            self.collection.complete()
 
     def _closing_snapshot(self):
         """The snapshot waiting while the bench closes (the flow sends one of the arm as it left it, parked
@@ -484,7 +503,9 @@ class BenchApp(App):
             session = Path(result.run_dir) / "session.h5"
             report = str(result.report_path) if Path(result.report_path).is_file() else ""
             if result.stopped:
-                banner.show(f"Stopped by operator: {self._arm_outcome()}. Recorded data kept in {session}", "warning")
+                kept = (f"Recorded data kept in {session}" if session.is_file() else
+                        f"No calibration frames recorded yet; the completed steps are kept in {result.run_dir}")
+                banner.show(f"Stopped by operator: {self._arm_outcome()}. {kept}", "warning")
                 self.acceptance.show(None, result.checks, report, "stopped by operator")
             elif result.fault:
                 reported = self._fault_text or f"FAULT {result.fault}"
@@ -501,11 +522,13 @@ class BenchApp(App):
             self.error = err = event.worker.error
             self.steps.interrupt(now, "failed")
             if isinstance(err, HardwareFault):
-                banner.show(f"FAULT {err.kind}: {err}", "fault")
+                text = f"FAULT {err.kind}: {err}"
             elif isinstance(err, InputError):
-                banner.show(f"Input error: {err}", "fault")
+                text = f"Input error: {err}"
             else:
-                banner.show(f"Internal error: {type(err).__name__}: {err}", "fault")
+                text = f"Internal error: {type(err).__name__}: {err}"
+            # the flow safe-stopped the arm before it raised: what that did (not retracted: the pendant)
+            banner.show(text if self.safe_stop is None else f"{text} | {self._arm_outcome()}", "fault")
         # stopped: the flow safe-stopped the arm (ArmSafeStopped); a run that ended before the bench
         # opened, or after collection closed it, left the arm parked
         self._arm_state = "stopped" if self.safe_stop is not None else "idle"
@@ -524,6 +547,7 @@ class BenchApp(App):
         """Last line of defence (e.g. the terminal closed): stop the flow and wait for it."""
         if self.running and self._runner is not None:
             self._runner.request_stop()
-            self._flow_done.wait(QUIT_WAIT_S)
+            if not self._gave_up:
+                self._flow_done.wait(QUIT_WAIT_S)
         if self.gc_collector is not None:
             self.gc_collector.stop()

@@ -272,7 +272,11 @@ def _error_from_record(name: str, kind: str, message: str) -> BaseException:
 
 def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compute_nice: int, parent_pid: int) -> None:
     """Entry point of the child process: run the flow, send events, then the result or the error."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The UI stops the flow on each of these (a terminal's Ctrl-C, its closing, a service manager)
+    # and a signal to the whole process group reaches this process too: stopping here at once would
+    # leave the arm unretracted and the session file open. The orphan watch covers a UI that died.
+    for signum in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_IGN)
     _redirect_output(Path(config.run_dir))
     watch = threading.Thread(target=_stop_when_orphaned, args=(stop_event, parent_pid), name="orphan-watch", daemon=True)
     watch.start()

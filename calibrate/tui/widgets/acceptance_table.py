@@ -97,4 +97,4 @@ class AcceptanceTable(Vertical):
             if not passed and check.get("reason"):
                 why.append(Text.assemble((f"{check.get('name', '?')}: ", "bold red"), str(check["reason"])))
         self.table.update(Group(table, *([Text("")] + why if why else [])) if checks else "")
-        self.report_line.update(f"report: {report_path}" if report_path else "")
+        self.report_line.update(Text(f"report: {report_path}") if report_path else "")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from rich.text import Text
 from textual.widgets import Static
 
 LEVELS = ("fault", "warning", "info", "hint")
@@ -21,5 +22,5 @@ class Banner(Static):
         for name in LEVELS:
             self.set_class(name == level, f"-{name}")
         self.level = level
-        self.update(text)
+        self.update(Text(text))  # plain text: a path or message with [brackets] is no markup
         self.display = True

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from rich.text import Text
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.screen import ModalScreen
@@ -26,7 +27,7 @@ class ConfirmStart(ModalScreen[bool]):
         with Vertical(id="confirm-box"):
             yield Static("[b]Start commissioning?[/b]", id="confirm-title")
             yield Static("The arm will move. Clear the bench and keep the stop key [b]s[/b] at hand.")
-            yield Static(self.details, id="confirm-details")
+            yield Static(Text(self.details), id="confirm-details")  # paths are no markup
             with Horizontal(id="confirm-buttons"):
                 yield Button("Start (y)", variant="warning", id="confirm-yes")
                 yield Button("Cancel (n)", variant="primary", id="confirm-no")

@@ -13,6 +13,16 @@ from calibrate.tui.widgets.formatting import number
 from collect.errors import InputError
 
 
+#: Widest serial shown whole, in cells: a longer one (serials run to 64 characters) ends in an
+#: ellipsis, and the other columns stay in view (was: pushed off behind a horizontal scroll bar).
+SERIAL_WIDTH = 16
+
+
+def _short_serial(serial: str) -> str:
+    """``serial`` cut to ``SERIAL_WIDTH`` cells with an ellipsis."""
+    return serial if len(serial) <= SERIAL_WIDTH else serial[:SERIAL_WIDTH - 1] + "…"
+
+
 def _short_time(iso: str | None) -> str:
     """``YYYY-MM-DD HH:MM`` of an ISO-8601 time stamp (as stored), ``-`` when missing."""
     if not iso:
@@ -36,12 +46,11 @@ class RegistryView(Vertical):
         yield self.table
 
     def on_mount(self) -> None:
-        self.table.add_columns("serial", "status", "last run", "mode", "runs", "model", "abs_rel", "a1")
         self.reload()
 
     def reload(self) -> None:
         table, line = self.table, self.line
-        table.clear()
+        table.clear(columns=True)
         try:
             registry = SensorRegistry(self.registry_dir)
             listing = registry.survey()
@@ -49,6 +58,9 @@ class RegistryView(Vertical):
             line.update(Text(f"registry unreadable: {err}", style="bold red"))
             return
         profiles = listing.profiles
+        serial_width = max([len("serial")] + [len(_short_serial(p.serial)) for p in profiles])
+        table.add_column("serial", width=serial_width)
+        table.add_columns("status", "last run", "mode", "runs", "model", "abs_rel", "a1")
         summary = Text(f"{registry.root}  ({len(profiles)} sensor{'s' if len(profiles) != 1 else ''})  r: reload")
         problem = listing.problem()
         if problem is not None:
@@ -59,7 +71,7 @@ class RegistryView(Vertical):
             metrics = profile.model_metrics  # the kept model's (a rejected run changes neither)
             status = profile.status
             table.add_row(
-                profile.serial,
+                _short_serial(profile.serial),
                 Text(status, style="bold green" if status == "accepted" else "bold red"),
                 _short_time(data.get("last_commissioned")),
                 "sim" if data.get("simulated") else "real",
