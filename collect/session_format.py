@@ -6,6 +6,8 @@ and readers (``collect.session_reader``) take every name from here.
 
 from datetime import datetime, timezone
 
+import numpy as np
+
 FORMAT_NAME = "bubble-session"
 FORMAT_VERSION = 1
 
@@ -81,6 +83,14 @@ ATTR_PHASE_ENUM = "enum"  # frames/phase: JSON {name: value} of PHASES
 ATTR_CLOSED = "closed"  # root: ISO 8601 UTC time of the last clean close, "" while recording / after a crash
 ATTR_COLLECTION_PLAN = "collection_plan"  # root: JSON of the pose plan settings (objects, poses per object, seed)
 ATTR_RESUMED_AT_FRAMES = "resumed_at_frames"  # root: JSON list of the frame indices where resumed segments start
+
+
+def completed_pose_ids(phase: np.ndarray, pose_id: np.ndarray) -> set[int]:
+    """Pose ids with both hold and retract frames (pressed, held and let go), from the ``(N,)``
+    ``frames/phase`` and ``frames/pose_id`` columns."""
+    held = set(np.unique(pose_id[phase == PHASE_HOLD]).tolist())
+    retracted = set(np.unique(pose_id[phase == PHASE_RETRACT]).tolist())
+    return {int(p) for p in held & retracted if p >= 0}
 
 
 def utc_now() -> str:

@@ -16,19 +16,23 @@ def session_summary(path) -> dict:
     """Facts about the session at ``path`` (JSON-ready). Raises InputError for bad files.
 
     Keys: path, sensor_serial, simulated, created, software_version, closed_cleanly, frames,
-    width, height, duration_s (device clock, first to last frame), fps, dropped (missing sequence
-    numbers), non_increasing_t (frames whose device time did not increase), objects
-    ({name: {phase: frames, "poses": n, "reference": n}}), unassigned_frames, arm_samples,
-    pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
+    width, height, duration_s (device clock, first to last frame of each recorded segment, summed:
+    the pauses between a stop and its ``--resume`` are not recording time), fps, dropped (missing
+    sequence numbers), non_increasing_t (frames whose device time did not increase), objects
+    ({name: {phase: frames, "poses": contact poses pressed, held and let go, "reference": n}}),
+    unassigned_frames, arm_samples, pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
     """
     with Session.open(path) as s:
         n = s.n_frames
-        duration = float(s.t_device[-1] - s.t_device[0]) if n > 1 else 0.0
+        starts = [0] + [i for i in s.resumed_at_frames if i < n]
+        ends = starts[1:] + [n]
+        duration = sum(float(s.t_device[e - 1] - s.t_device[b]) for b, e in zip(starts, ends) if e > b)
+        complete = sf.completed_pose_ids(s.phase, s.pose_id)
         objects = {}
         for obj in s.objects:
             mine = s.object_index == obj.index
             counts = {name: int(np.count_nonzero(mine & (s.phase == sf.PHASES[name]))) for name in _PHASE_ORDER}
-            counts["poses"] = int(len(np.unique(s.pose_id[mine & (s.pose_id >= 0)])))
+            counts["poses"] = len(complete & set(np.unique(s.pose_id[mine]).tolist()))
             counts["reference"] = int(len(s.reference_frames(obj.name)))
             objects[obj.name] = counts
         return {
@@ -42,7 +46,7 @@ def session_summary(path) -> dict:
             "width": s.width,
             "height": s.height,
             "duration_s": duration,
-            "fps": (n - 1) / duration if duration > 0 else 0.0,
+            "fps": (n - len(starts)) / duration if duration > 0 else 0.0,
             "dropped": s.dropped_frames(),
             "non_increasing_t": int(np.count_nonzero(np.diff(s.t_device) <= 0)),
             "objects": objects,

@@ -185,6 +185,11 @@ class Session:
             lambda v: real_numbers(v, 6)), dtype=np.float64)
         plan = _text(attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
         self._collection_plan = _root_json(f, sf.ATTR_COLLECTION_PLAN, "a JSON object", _is_object) if plan else None
+        resumed = sf.ATTR_RESUMED_AT_FRAMES in attrs
+        #: frame indices where the recording's resumed segments start (``bubble collect --resume``)
+        self.resumed_at_frames = [int(i) for i in _root_json(
+            f, sf.ATTR_RESUMED_AT_FRAMES, "a JSON list of frame indices",
+            lambda v: isinstance(v, list) and all(isinstance(i, int) and i > 0 for i in v))] if resumed else []
         try:
             serial, simulated = attrs[sf.ATTR_SENSOR_SERIAL], attrs[sf.ATTR_SIMULATED]
             if not isinstance(serial, (str, bytes)):

@@ -49,6 +49,7 @@ import json
 import os
 import queue
 import shutil
+import stat
 import threading
 import time
 import zlib
@@ -63,6 +64,7 @@ from collect.errors import RECORDER_FAULT, HardwareFault, InputError
 from collect.json_files import plain_json
 from collect.output_files import check_parent_dirs, exclusive_lock
 from collect.session_reader import h5_error_text, in_use_error, open_h5
+from collect.stop_signals import stop_signals_deferred
 
 #: Filters of the per-frame image datasets: shuffle + deflate level 1, the standard HDF5 filters
 #: every HDF5 reader decodes (h5py, h5dump, MATLAB, HDFView; LZF is h5py-only). The writer
@@ -88,6 +90,14 @@ _STR = h5py.string_dtype("utf-8")
 #: writing (the file complete with every accepted frame) when less is left. 200 MiB is ~20 s of a
 #: simulated recording (~10 MB/s with the true depth), 40 times what one flush interval adds.
 MIN_FREE_BYTES = 200 * 2**20
+#: Bytes the writer holds in ``PATH.reserve`` while it records and gives back just before it closes
+#: the file. A disk that another program fills faster than the free-space check stops the
+#: recording leaves HDF5 no room to flush its caches: its close failed part-way ("No space left on
+#: device"), the file stayed unmarked as closed, and the dataset ids it left were closed by HDF5 at
+#: the interpreter's exit, after the file's own structures (a segfault where the run exits 3). With
+#: the reserve given back the close has room (the caches of a recording hold a few MB at most).
+RESERVE_BYTES = 16 * 2**20
+RESERVE_SUFFIX = ".reserve"
 
 #: Gap (s) between the last recorded sample and a resumed segment whose clock restarted.
 RESUME_GAP_S = 1.0
@@ -292,8 +302,8 @@ class SessionWriter:
         plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
         check_free_space(self.path, self.min_free_bytes)
         if resume:
-            self._file = _open_for_resume(self.path, sensor_serial, self.height, self.width, self.simulated, plan_text,
-                                          objects)
+            self._file = _open_for_resume(self.path, sensor_serial, intrinsics, camera_in_tcp, self.simulated,
+                                          plan_text, objects)
         else:
             self._file = _create(self.path)
         if plan_text is not None:
@@ -313,7 +323,7 @@ class SessionWriter:
         self.n_frames_at_open = len(self._file[sf.FRAMES_SEQ])
         phase, pose_id = self._file[sf.FRAMES_PHASE][()], self._file[sf.FRAMES_POSE_ID][()]
         #: pose ids with hold and retract frames already in the file (resume skips them)
-        self.completed_pose_ids = frozenset(_completed_pose_ids(phase, pose_id))
+        self.completed_pose_ids = frozenset(sf.completed_pose_ids(phase, pose_id))
         #: object indices with a complete no-contact reference already in the file
         self.referenced_objects = frozenset(_referenced_objects(phase, self._file[sf.FRAMES_OBJECT][()], pose_id))
         self.stats.frames_flushed = self.n_frames_at_open
@@ -328,6 +338,11 @@ class SessionWriter:
         if self.simulated:
             self._frames[sf.SIM_TRUE_DEPTH] = self._file[sf.SIM_TRUE_DEPTH]
         self._images = {name: _ImageDataset(self._frames[name]) for name in _IMAGE_DATASETS if name in self._frames}
+        #: every dataset stays open until ``close()``: one closed after each batch flushed its cache as
+        #: it went, and on a full disk that close failed inside h5py's dealloc, silently, leaving an
+        #: id that HDF5 closed at the interpreter's exit, after the file (a segfault)
+        self._streams = {name: self._file[name] for name in (*sf.ARM_DATASETS, *sf.PRESSURE_DATASETS)}
+        self._reserve = _reserve_space(self.path)
         self._pool = ThreadPoolExecutor(COMPRESS_THREADS, thread_name_prefix="session-compress")
         self._thread = threading.Thread(target=self._run, name="session-writer", daemon=True)
         self._thread.start()
@@ -406,16 +421,20 @@ class SessionWriter:
         with self._accepting:
             self._closed = True
             self._queue.put(None)
-        self._thread.join()
-        self._pool.shutdown()
-        try:
-            if self._error is None or isinstance(self._error, _StoppedWriting):  # every accepted item written
-                self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
-        finally:
+        with stop_signals_deferred():  # a stop arriving now is delivered once the file is closed
+            self._thread.join()
+            self._pool.shutdown()
             try:
-                self._file.close()
-            except (OSError, RuntimeError) as err:  # the disk filled up after all (another program)
-                self._error = self._error or err
+                if self._error is None or isinstance(self._error, _StoppedWriting):  # every accepted item written
+                    self._file.attrs[sf.ATTR_CLOSED] = sf.utc_now()
+            finally:
+                _give_back(self._reserve)  # room for the close's flushes, however full the disk is
+                self._frames, self._images, self._streams = {}, {}, {}  # closed here, before the file (see _run)
+                try:
+                    self._file.close()
+                except (OSError, RuntimeError) as err:  # the disk filled up after all (another program)
+                    self._error = self._error or err.with_traceback(None)
+                    _close_after_failed_close(self._file)
         self._raise_if_failed()
 
     def __enter__(self) -> "SessionWriter":
@@ -473,7 +492,9 @@ class SessionWriter:
                         done = self._stop_writing(_LowDiskSpace(free, self.min_free_bytes)) or done
                 self.stats.write_s += time.perf_counter() - t0
             except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
-                self._error = err
+                # without its frames: their datasets would outlive the file's close, and on a full disk
+                # h5py closed them at the interpreter's exit, after HDF5 itself (a segfault, not exit 3)
+                self._error = err.with_traceback(None)
 
     def _flush(self) -> None:
         self._file.flush()
@@ -554,12 +575,12 @@ class SessionWriter:
                 _append_rows(self._frames[name], values)
             self.stats.frames_written += len(frames)
         if arms:
-            _append_rows(self._file[sf.ARM_T], np.array([a[1] for a in arms]))
-            _append_rows(self._file[sf.ARM_TCP_POSE], np.stack([a[2] for a in arms]))
-            _append_rows(self._file[sf.ARM_TCP_WRENCH], np.stack([a[3] for a in arms]))
+            _append_rows(self._streams[sf.ARM_T], np.array([a[1] for a in arms]))
+            _append_rows(self._streams[sf.ARM_TCP_POSE], np.stack([a[2] for a in arms]))
+            _append_rows(self._streams[sf.ARM_TCP_WRENCH], np.stack([a[3] for a in arms]))
         if pressures:
-            _append_rows(self._file[sf.PRESSURE_T], np.array([p[1] for p in pressures]))
-            _append_rows(self._file[sf.PRESSURE_HPA], np.array([p[2] for p in pressures]))
+            _append_rows(self._streams[sf.PRESSURE_T], np.array([p[1] for p in pressures]))
+            _append_rows(self._streams[sf.PRESSURE_HPA], np.array([p[2] for p in pressures]))
 
 
 class _ImageDataset:
@@ -725,16 +746,16 @@ def _merge_objects(f: h5py.File, objects: list[dict]) -> list[int]:
     return indices
 
 
-def _open_for_resume(path: str, serial: str, height: int, width: int, simulated: bool,
+def _open_for_resume(path: str, serial: str, intrinsics: dict, camera_in_tcp, simulated: bool,
                      plan_text: str | None, objects: list[dict]) -> h5py.File:
     """Open an existing session for appending, after checking (read-only) that it can be resumed
-    with this sensor, image size and plan; one whose writer died is rewritten first
+    with this sensor, camera and plan; one whose writer died is rewritten first
     (``_recover_crashed``)."""
     from collect.session_reader import Session
 
     check_output_path(path, resume=True)
     with Session.open(path) as session:  # every attribute and dataset a session needs
-        _check_resumable(session, serial, height, width, simulated, plan_text, objects)
+        _check_resumable(session, serial, intrinsics, camera_in_tcp, simulated, plan_text, objects)
         crashed = not session.closed_cleanly
     if crashed:
         f = _recover_crashed(path)
@@ -763,8 +784,8 @@ class ResumeProgress:
     closed_cleanly: bool  # False: the last recording was cut off (a resume rewrites the file first)
 
 
-def resume_progress(path, *, sensor_serial: str, intrinsics: dict, simulated: bool, objects: list[dict],
-                    collection_plan: dict | None = None, **_metadata) -> ResumeProgress:
+def resume_progress(path, *, sensor_serial: str, intrinsics: dict, camera_in_tcp, simulated: bool,
+                    objects: list[dict], collection_plan: dict | None = None, **_metadata) -> ResumeProgress:
     """What ``path`` holds already, after the checks of ``SessionWriter(path, resume=True, ...)``
     (same keywords; ``InputError`` for what such a resume would refuse). Read-only: the file is
     left exactly as it was."""
@@ -774,29 +795,41 @@ def resume_progress(path, *, sensor_serial: str, intrinsics: dict, simulated: bo
     plan_text = json.dumps(collection_plan, sort_keys=True) if collection_plan is not None else None
     check_output_path(path, resume=True)
     with Session.open(path) as session:
-        _check_resumable(session, sensor_serial, int(intrinsics["height"]), int(intrinsics["width"]),
-                         bool(simulated), plan_text, objects)
+        _check_resumable(session, sensor_serial, intrinsics, camera_in_tcp, bool(simulated), plan_text, objects)
         names = session.object_names
         return ResumeProgress(
-            completed_pose_ids=frozenset(_completed_pose_ids(session.phase, session.pose_id)),
+            completed_pose_ids=frozenset(sf.completed_pose_ids(session.phase, session.pose_id)),
             referenced_objects=frozenset(names[i] for i in _referenced_objects(session.phase, session.object_index, session.pose_id)
                                          if i < len(names)),
             closed_cleanly=session.closed_cleanly,
         )
 
 
-def _check_resumable(session, serial: str, height: int, width: int, simulated: bool, plan_text: str | None,
+def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simulated: bool, plan_text: str | None,
                      objects: list[dict]) -> None:
-    """Raise InputError unless ``session`` (a ``Session``) was recorded with this sensor, size and
-    plan, and its objects of the names in ``objects`` with the same meshes."""
+    """Raise InputError unless ``session`` (a ``Session``) was recorded with this sensor, camera
+    (``intrinsics`` px, ``camera_in_tcp`` (6,) m + rotvec: the file's root attributes describe every
+    frame in it) and plan, and its objects of the names in ``objects`` with the same meshes."""
     path = session.path
+    height, width = int(intrinsics["height"]), int(intrinsics["width"])
     if str(session.sensor_serial) != str(serial):
         raise InputError(f"cannot resume {path}: it was recorded with sensor {session.sensor_serial}, not {serial}")
     if (session.height, session.width) != (height, width):
         raise InputError(f"cannot resume {path}: image size {(session.height, session.width)} != {(height, width)}")
     if session.simulated != simulated:
         raise InputError(f"cannot resume {path}: simulated={session.simulated} there")
+    for name in ("fx", "fy", "cx", "cy"):  # a camera calibrated anew, or swapped, behind the same serial
+        there, now = float(session.intrinsics[name]), float(intrinsics[name])
+        if not np.isclose(there, now, rtol=1e-9, atol=0.0):
+            raise InputError(f"cannot resume {path}: it was recorded with other camera intrinsics ({name} {there:g} "
+                             f"there, {now:g} now); record into a new file")
+    if not np.allclose(session.camera_in_tcp, np.asarray(camera_in_tcp, dtype=float).reshape(6), rtol=0.0, atol=1e-9):
+        raise InputError(f"cannot resume {path}: it was recorded with the camera at another pose in the tool "
+                         f"(camera_in_tcp); record into a new file")
     stored = session.collection_plan()
+    if plan_text is not None and stored is None and bool(np.any(session.pose_id >= 0)):
+        raise InputError(f"cannot resume {path}: it holds contact poses but no collection plan to check this run's "
+                         f"against (recorded by another tool or version); record into a new file")
     if plan_text is not None and stored is not None and json.dumps(stored, sort_keys=True) != plan_text:
         changes = "; ".join(f"{key} {old} there, {new} now" for key, old, new in _differences(stored, json.loads(plan_text)))
         raise InputError(f"cannot resume {path}: it was recorded with another plan (objects, poses per object, "
@@ -820,14 +853,6 @@ def _differences(old, new, key: str = "") -> list[tuple[str, object, object]]:
 def _last_value(f: h5py.File, *names: str) -> float:
     """Largest last value of the 1-D datasets ``names`` (-inf when all are empty)."""
     return max((float(f[name][-1]) for name in names if f[name].shape[0]), default=-np.inf)
-
-
-def _completed_pose_ids(phase: np.ndarray, pose_id: np.ndarray) -> set[int]:
-    """Pose ids with both hold and retract frames (pressed, held and let go), from the ``(N,)``
-    ``frames/phase`` and ``frames/pose_id`` columns."""
-    held = set(np.unique(pose_id[phase == sf.PHASE_HOLD]).tolist())
-    retracted = set(np.unique(pose_id[phase == sf.PHASE_RETRACT]).tolist())
-    return {int(p) for p in held & retracted if p >= 0}
 
 
 def _referenced_objects(phase: np.ndarray, obj: np.ndarray, pose_id: np.ndarray) -> set[int]:
@@ -868,22 +893,86 @@ def _recover_crashed(path: str) -> h5py.File:
     from its creation on. A second resume of the same file is refused (``in_use_error``), instead of
     copying it too and replacing the copy the first one records into.
     """
-    tmp = path + ".recover.tmp"
-    with exclusive_lock(path, in_use_error(path)) as fd:
+    real = os.path.realpath(path)  # through a symlink: the file it names is rewritten, the link kept
+    tmp = real + ".recover.tmp"
+    parent = os.path.dirname(real)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot resume {path}: it was not closed cleanly, and rewriting it needs a writable "
+                         f"directory; {parent} is not")
+    check_free_space(real, os.path.getsize(real) + MIN_FREE_BYTES)  # the copy, and room to record after it
+    with exclusive_lock(path, in_use_error(path)) as fd, stop_signals_deferred():
         if _file_replaced(fd, path):  # another resume rewrote it since this one opened it
             raise in_use_error(path)
-        dst = h5py.File(tmp, "w", libver=LIBVER)
+        dst = None
         try:
+            dst = h5py.File(tmp, "w", libver=LIBVER)
             with open_h5(path, locking=False) as src:  # this process holds the lock
                 for key, value in src.attrs.items():
                     dst.attrs[key] = value
                 for key in src:
                     src.copy(src[key], dst, name=key)
             dst.flush()
-            os.replace(tmp, path)
-        except BaseException:
-            dst.close()
+            _keep_owner_and_mode(real, tmp)
+            os.replace(tmp, real)
+        except BaseException as err:
+            try:
+                if dst is not None:
+                    dst.close()
+            except (OSError, RuntimeError):  # the disk that failed the copy fails its close too
+                pass
             if os.path.exists(tmp):
                 os.remove(tmp)
+            if isinstance(err, (OSError, RuntimeError)):  # h5py's: a full disk, a damaged chunk index
+                raise InputError(f"cannot resume {path}: rewriting the file, which was not closed cleanly, failed: "
+                                 f"{h5_error_text(err)}") from None
             raise
         return dst
+
+
+def _close_after_failed_close(f: h5py.File) -> None:
+    """Close ``f`` again after its ``close()`` failed (a full disk): that close stops at the first
+    object whose flush fails and leaves the file's id open, and HDF5 closed it at the interpreter's
+    exit, after its own structures for the file were gone (a segfault where the run exits 3). The
+    second close has nothing left to flush; a failure of it too is left to that exit."""
+    try:
+        f.close()
+    except (OSError, RuntimeError):
+        pass
+
+
+def _reserve_space(path: str) -> str | None:
+    """Allocate ``RESERVE_BYTES`` in ``path`` + ``RESERVE_SUFFIX`` (one a killed writer left is
+    taken over); returns its name, or None where the file system gives no such file."""
+    name = path + RESERVE_SUFFIX
+    try:
+        fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    except OSError:
+        return None
+    try:
+        os.posix_fallocate(fd, 0, RESERVE_BYTES)  # written as zeros where the file system has no fallocate
+    except OSError:
+        os.close(fd)
+        _give_back(name)
+        return None
+    os.close(fd)
+    return name
+
+
+def _give_back(reserve: str | None) -> None:
+    """Delete the reserve file ``reserve`` (None: there is none)."""
+    if reserve is not None:
+        try:
+            os.remove(reserve)
+        except FileNotFoundError:
+            pass
+
+
+def _keep_owner_and_mode(original: str, copy: str) -> None:
+    """Give ``copy`` the permission bits and (where this process may) the owner of ``original``:
+    a session rewritten by a resume under sudo stays its owner's."""
+    st = os.stat(original)
+    os.chmod(copy, stat.S_IMODE(st.st_mode))
+    try:
+        os.chown(copy, st.st_uid, st.st_gid)
+    except PermissionError:  # not root: the copy is this user's, as the original was
+        pass

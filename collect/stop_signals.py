@@ -118,3 +118,24 @@ def raise_interrupt(signum: int) -> None:
     """``on_signal`` of a command that stops on ``KeyboardInterrupt``: raise it (``Terminated`` for
     ``STOP_SIGNALS``)."""
     raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
+
+
+@contextmanager
+def stop_signals_deferred(signals: tuple = INTERRUPTS) -> Iterator[None]:
+    """Hold each of ``signals`` that arrives during the block, and deliver the first of them again
+    at its end (to the handler in place before it): for work a stop must not cut in two, such as
+    closing a session file. A Ctrl-C inside the writer thread's join, or inside h5py while it held
+    its lock, left the file unmarked as closed, and now and then hung the exiting process for good.
+    Outside the main thread (where no handler can be set) the block runs unchanged."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, frame: held.append(signum)) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, signal.SIG_DFL if old is None else old)  # None: a handler set outside Python
+        if held:
+            signal.raise_signal(held[0])

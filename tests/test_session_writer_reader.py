@@ -449,11 +449,11 @@ def test_images_read_back_bit_exact_with_any_filters(tmp_path, compression):
 
 def test_resume_reports_completed_poses_and_references(synthetic_session):
     with Session.open(synthetic_session) as s:
-        intrinsics, objects = s.intrinsics, s.objects
+        intrinsics, objects, camera_in_tcp = s.intrinsics, s.objects, s.camera_in_tcp
     records = [{"name": o.name, "fixture_pose": o.fixture_pose, "mesh_sha256": o.mesh_sha256,
                 "primitive": o.primitive, "vertices": o.vertices, "faces": o.faces} for o in objects]
     with SessionWriter(synthetic_session, sensor_serial="SYN-0001", sensor_spec={}, intrinsics=intrinsics,
-                       camera_in_tcp=np.zeros(6), simulated=True, objects=records, resume=True) as w:
+                       camera_in_tcp=camera_in_tcp, simulated=True, objects=records, resume=True) as w:
         assert w.completed_pose_ids == {0, 1, 2, 3} and w.referenced_objects == {0, 1}
         # a pose with only approach + retract frames (no contact) is not complete
         ir = np.zeros((172, 224), np.uint16)
@@ -461,7 +461,7 @@ def test_resume_reports_completed_poses_and_references(synthetic_session):
             w.append_frame(ir, ir, 100.0 + k, 100.0 + k, 1000 + k, 0, 9, phase, np.zeros(6),
                            true_depth=np.full((172, 224), 0.09, np.float32))
     with SessionWriter(synthetic_session, sensor_serial="SYN-0001", sensor_spec={}, intrinsics=intrinsics,
-                       camera_in_tcp=np.zeros(6), simulated=True, objects=records, resume=True) as w:
+                       camera_in_tcp=camera_in_tcp, simulated=True, objects=records, resume=True) as w:
         assert w.completed_pose_ids == {0, 1, 2, 3}
 
 
@@ -498,3 +498,130 @@ def test_every_gap_in_the_sequence_numbers_is_a_dropped_frame(tmp_path):
         w.append_frame(*_frame(6), 1.0, 1.0, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
     with Session.open(path) as s:
         assert s.dropped_frames() == 1 + 195
+
+
+def test_a_stop_signal_while_the_file_closes_is_delivered_after_it_is_closed(tmp_path, interrupt_handlers_restored):
+    """Was: a Ctrl-C or SIGTERM inside ``close()`` (the writer thread's join, h5py's attribute write)
+    raised there: the file stayed unmarked as closed, and now and then the exit hung on h5py's lock."""
+    path = tmp_path / "s.h5"
+    w = _writer(path)
+    w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    join = w._thread.join
+
+    def signalled_join(*args):
+        os.kill(os.getpid(), signal.SIGINT)  # handled in this (main) thread at once
+        return join(*args)
+
+    w._thread.join = signalled_join
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    with pytest.raises(KeyboardInterrupt):
+        w.close()
+    with Session.open(path) as s:
+        assert s.closed_cleanly and s.n_frames == 1
+
+
+def _metadata_with(**changes) -> dict:
+    return dict(_metadata("S1"), **changes)
+
+
+@pytest.mark.parametrize("changes, says", [
+    ({"intrinsics": dict(INTRINSICS, fx=31.5)}, r"other camera intrinsics \(fx 30 there, 31.5 now\)"),
+    ({"camera_in_tcp": [0, 0, -0.095, 0, 0, 0]}, r"the camera at another pose in the tool"),
+])
+def test_a_resume_with_another_camera_behind_the_same_serial_is_refused(tmp_path, changes, says):
+    """Was: only the serial and image size were compared: frames of a recalibrated or swapped camera
+    were appended under the file's old intrinsics, and training lifted them with those."""
+    path = tmp_path / "s.h5"
+    _one_frame_session(path, closed=True)
+    with pytest.raises(InputError, match=says):
+        SessionWriter(path, **_metadata_with(**changes), resume=True)
+    with Session.open(path) as s:
+        assert s.n_frames == 1 and s.closed_cleanly
+
+
+def test_a_session_with_poses_but_no_plan_is_not_resumed_with_one(tmp_path):
+    """Was: any plan was accepted, and two plans' pose ids mixed in one file."""
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, 0, sf.PHASE_APPROACH, np.zeros(6))
+    with pytest.raises(InputError, match="holds contact poses but no collection plan"):
+        SessionWriter(path, **_metadata("S1"), collection_plan={"poses_per_object": 3}, resume=True)
+
+
+def test_rewriting_a_crashed_file_keeps_its_link_owner_and_mode(tmp_path):
+    """Was: the rewrite replaced a symlink by a regular file (its target stayed crashed) and gave the
+    file this process's owner and the umask's mode."""
+    store = tmp_path / "store"
+    store.mkdir()
+    real = store / "real.h5"
+    _one_frame_session(real, closed=False)
+    os.chmod(real, 0o640)
+    link = tmp_path / "link.h5"
+    link.symlink_to(real)
+    with _writer(link, resume=True) as w:
+        w.append_frame(*_frame(1), 0.1, 0.1, 1, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    assert link.is_symlink() and (real.stat().st_mode & 0o777) == 0o640
+    with Session.open(real) as s:
+        assert s.n_frames == 2 and s.closed_cleanly
+    assert sorted(os.listdir(store)) == ["real.h5"]
+
+
+def test_a_crashed_file_that_cannot_be_rewritten_is_one_line_and_left_as_it_was(tmp_path, monkeypatch):
+    """Was: a copy failing on a full disk or a damaged chunk index was a traceback (or a two-line
+    error), and on a full disk it left the temporary copy behind, filling the disk."""
+    path = tmp_path / "s.h5"
+    _one_frame_session(path, closed=False)
+    before = path.read_bytes()
+    monkeypatch.setattr(session_writer, "_free_bytes", lambda p: os.path.getsize(path) + 1)
+    with pytest.raises(InputError, match=r"only .* free on the disk of .*; recording needs at least"):
+        _writer(path, resume=True)
+    monkeypatch.undo()
+
+    def damaged(self, *args, **kwargs):
+        raise RuntimeError("Unable to synchronously copy object (bad coordinate offset)")
+
+    monkeypatch.setattr(h5py.Group, "copy", damaged)
+    with pytest.raises(InputError) as err:
+        _writer(path, resume=True)
+    assert str(err.value).endswith("was not closed cleanly, failed: bad coordinate offset") and "\n" not in str(err.value)
+    assert path.read_bytes() == before and sorted(os.listdir(tmp_path)) == ["s.h5"]
+
+
+def test_a_recording_holds_a_reserve_on_its_disk_and_gives_it_back_before_it_closes(tmp_path, monkeypatch):
+    """The reserve gives HDF5 room to close a file whose disk another program filled (was: its close
+    failed part-way and the process segfaulted at exit, where it should exit 3)."""
+    path = tmp_path / "s.h5"
+    reserve = tmp_path / ("s.h5" + session_writer.RESERVE_SUFFIX)
+    reserve.write_bytes(b"left by a killed recording")
+    w = _writer(path)
+    assert reserve.stat().st_size == session_writer.RESERVE_BYTES
+    seen_at_close = []
+    close = w._file.close
+
+    def closing():
+        seen_at_close.append((reserve.exists(), dict(w._streams), dict(w._frames)))
+        close()
+
+    w._file.close = closing
+    w.append_arm(0.0, np.zeros(6), np.zeros(6))
+    w.close()
+    assert seen_at_close == [(False, {}, {})]  # given back, and every dataset closed, before the file
+    assert not reserve.exists()
+
+
+def test_info_counts_pressed_poses_and_recording_time_without_the_pause_of_a_resume(tmp_path):
+    """Was: a pose only approached counted in "poses", and a resumed session's fps took the pause
+    between its segments for recording time (37.5 fps for a 45 fps recording)."""
+    from collect.session_info import session_summary
+
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        for i in range(45):  # pose 0 approached, then the run stopped
+            w.append_frame(*_frame(i), i / 45, i / 45, i, 0, 0, sf.PHASE_APPROACH, np.zeros(6))
+    with _writer(path, resume=True) as w:  # pose 1 pressed, held and let go
+        for i, phase in enumerate([sf.PHASE_APPROACH] * 15 + [sf.PHASE_PRESS] * 15 + [sf.PHASE_HOLD] * 15
+                                  + [sf.PHASE_RETRACT] * 15):
+            w.append_frame(*_frame(i), i / 45, i / 45, i, 0, 1, phase, np.zeros(6))
+    info = session_summary(path)
+    assert info["frames"] == 105 and info["objects"]["mug"]["poses"] == 1
+    assert info["fps"] == pytest.approx(45.0) and info["duration_s"] == pytest.approx(44 / 45 + 59 / 45)
