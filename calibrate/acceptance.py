@@ -117,6 +117,17 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
         if unknown:  # a misspelt min or max would leave the packaged limit in force without a word
             raise InputError(f"{where}: check {name!r}: unknown key {unknown[0]!r} (known: {', '.join(CHECK_KEYS)})")
         prior = out.get(name)
+        for key in ("min", "max"):
+            if key in entry and entry[key] is None:  # `max: null` (was: the packaged limit dropped, a gate too)
+                raise InputError(f"{where}: check {name!r}: {key} must be a finite number, got None")
+        if prior is not None and ("min" in entry) != ("max" in entry):
+            side, given = ("max", "min") if "min" in entry else ("min", "max")
+            if getattr(prior, "hi" if side == "max" else "lo") is not None and getattr(
+                    prior, "lo" if side == "max" else "hi") is None:
+                # a lone limit on the other side would turn a one-sided check into a range
+                raise InputError(f"{where}: check {name!r} is a {'maximum' if side == 'max' else 'minimum'} "
+                                 f"check; a {given} alone would add a second limit: give {side}, or both "
+                                 f"min and max")
         lo = entry.get("min", prior.lo if prior else None)
         hi = entry.get("max", prior.hi if prior else None)
         for key, val in (("min", lo), ("max", hi)):
@@ -153,6 +164,9 @@ def _read_yaml(path: Path) -> dict:
         raise InputError(f"thresholds file {path} is not valid YAML: {str(err).splitlines()[0]}") from None
     if not isinstance(raw, dict) or "version" not in raw or "checks" not in raw:
         raise InputError(f"thresholds file {path} must hold 'version' and 'checks'")
+    unknown = sorted(str(key) for key in raw if key not in ("version", "checks"))
+    if unknown:  # a misspelt block (`chekcs:`) would leave its limits unused without a word
+        raise InputError(f"thresholds file {path}: unknown key {unknown[0]!r} (known: version, checks)")
     return raw
 
 

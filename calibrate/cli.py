@@ -21,6 +21,7 @@ import sys
 
 from collect.stop_signals import INTERRUPTS, Terminated, exit_code, raise_interrupt, stop_signals_handled
 from collect.errors import (
+    DISK_FULL_ERRNOS,
     EXIT_BAD_INPUT,
     EXIT_BROKEN_PIPE,
     EXIT_FAULT,
@@ -98,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"bubble: error: {err.filename}: a name in this path is longer than the file system's "
                   "limit", file=sys.stderr)
             return EXIT_BAD_INPUT
-        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+        if err.errno not in DISK_FULL_ERRNOS:
             raise
         print(f"bubble: error: cannot write {err.filename or 'the output'}: {err.strerror}; free some space "
               "or write elsewhere", file=sys.stderr)

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 from calibrate import acceptance
 from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
-from trainer.training_defaults import MAX_MINUTES
+from trainer.training_defaults import MAX_MINUTES, MAX_SEED
 
 if TYPE_CHECKING:
     from collect.bench import BenchConfig
@@ -113,8 +113,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         # object's poses
         raise InputError(f"poses per object must be 2..{MAX_POSES_PER_OBJECT} (one or more is held out), got "
                          f"{config.poses_per_object}")
-    if int(config.seed) < 0:
-        raise InputError(f"seed must be >= 0, got {config.seed}")
+    if not 0 <= int(config.seed) <= MAX_SEED:  # the fine-tune's limit (was: refused there, after the collection)
+        raise InputError(f"seed must be 0..{MAX_SEED}, got {config.seed}")
     if not (math.isfinite(config.finetune_minutes) and 0 < config.finetune_minutes <= MAX_MINUTES):
         raise InputError(f"fine-tune minutes must be in (0, {MAX_MINUTES:g}] (a week), got {config.finetune_minutes}")
     if config.total_minutes is not None and not config.total_minutes > 0:  # inf: no budget

@@ -86,8 +86,8 @@ from calibrate.run_directory import (
 )
 from calibrate.run_report import write_run_report
 from calibrate.run_statistics import collection_stats, nocontact_maps, pick_examples, registry_reference
-from collect.atomic_files import remove_leftovers
-from collect.errors import RECORDER_FAULT, HardwareFault, InputError, StopRequested
+from collect.atomic_files import remove_leftovers, save_npz
+from collect.errors import DISK_FULL_ERRNOS, RECORDER_FAULT, HardwareFault, InputError, StopRequested
 from collect.json_files import plain_json, write_json
 from collect.loop_thread import LoopThread
 from collect.output_files import output_folder_lock
@@ -287,7 +287,7 @@ class _Flow:
             if t:
                 self.progress(Step.LEAK_TEST, (t[-1] - t[0]) / hold_s, f"{hpa[-1]:.2f} hPa")
         result = analyse_leak(np.array(t), np.array(hpa))
-        np.savez_compressed(self.run_dir / LEAK_FILE, t=result.t, hpa=result.hpa)
+        save_npz(self.run_dir / LEAK_FILE, t=result.t, hpa=result.hpa)
         checks = [
             acceptance.evaluate(self.thresholds, "leak_rate_hpa_per_min", result.rate_hpa_per_min),
             acceptance.evaluate(self.thresholds, "inflation_pressure_hpa", result.mean_hpa),
@@ -299,7 +299,7 @@ class _Flow:
 
         frames = self._grab(HEALTH_FRAMES, Step.CAMERA_HEALTH, "no-contact frames")
         health = assess_camera(np.stack([f.ir for f in frames]), np.stack([f.depth for f in frames]))
-        np.savez_compressed(self.run_dir / CAMERA_FILE, **health.maps())
+        save_npz(self.run_dir / CAMERA_FILE, **health.maps())
         th = self.thresholds
         checks = [
             acceptance.evaluate(th, "dead_pixels", health.dead_pixels),
@@ -479,7 +479,7 @@ class _Flow:
         )
         if held.true_depth is not None:
             arrays["example_true"] = held.true_depth[pick]
-        np.savez_compressed(self.run_dir / VALIDATION_FILE, **arrays)
+        save_npz(self.run_dir / VALIDATION_FILE, **arrays)
         th = self.thresholds
         checks = [
             acceptance.evaluate(th, "heldout_a1", metrics["a1"]),
@@ -582,6 +582,10 @@ class _Flow:
         elif not accepted and not reason:
             reason = "not every step completed"
         doc = self.write_outcome(accepted, reason, fault, stopped)
+        if fault is None and not stopped and self.stop_event.is_set():
+            # a stop while the verdict's report was written: no registration, the run ends stopped and
+            # a re-run reaches the verdict again (was: registered, exit 0 or 1)
+            return self.finish(stopped=True)
         report_path = self.run_dir / REPORT_FILE
         serial = self.state.data.get("serial")
         if not stopped and serial:
@@ -655,9 +659,17 @@ class _Flow:
                 self.check_stop()
                 if step not in (Step.COLLECT, Step.FINETUNE):  # these announce their own ETA
                     self.emit(StepStarted(step, etas.get(step)))
-                rec = handlers[step]()
-                rec.setdefault("ok", all(c["passed"] for c in rec.get("checks", [])))
-                self.state.record(step, rec)
+                try:
+                    rec = handlers[step]()
+                    rec.setdefault("ok", all(c["passed"] for c in rec.get("checks", [])))
+                    self.state.record(step, rec)
+                except OSError as err:
+                    if err.errno not in DISK_FULL_ERRNOS:
+                        raise
+                    # this computer's disk, not the sensor: a recorder fault (exit 3, nothing registered;
+                    # was: exit 2, "bad input", after the arm had moved)
+                    raise HardwareFault(RECORDER_FAULT, f"cannot write {err.filename or self.run_dir}: "
+                                                        f"{err.strerror or err}") from None
                 gate_failure = _gate_failure(rec)
                 if step == Step.COLLECT or gate_failure is not None:
                     self.close_bench(safe_stop=False)  # before the step's end: its last snapshot shows the arm parked

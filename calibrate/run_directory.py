@@ -42,8 +42,9 @@ PLOTS_DIR = "plots"
 FLOW_LOG = "flow.log"
 
 #: Settings that must match when a run directory is resumed (or a finished run reported again):
-#: what was recorded, the model it starts from, and the limits that judge it. The time budgets, the
-#: simulated faults and the simulation speed may change between attempts.
+#: what was recorded, the model it starts from, and the limits that judge it. The time budgets (the
+#: leak test's hold included: a finished leak test is kept), the simulated faults and the
+#: simulation speed may change between attempts.
 RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed", "base_model", "limits_sha256")
 
 
@@ -57,6 +58,7 @@ def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Threshold
         "poses_per_object": int(config.poses_per_object),
         "seed": int(config.seed),
         "finetune_minutes": float(config.finetune_minutes),
+        "leak_hold_s": float(config.leak_hold_s),
         "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
         "base_model": str(config.base_model) if config.base_model else "base",
         "thresholds": str(config.thresholds) if config.thresholds else "packaged",

@@ -64,6 +64,15 @@ def replacing(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def save_npz(path: str | Path, **arrays) -> None:
+    """``np.savez_compressed`` of ``arrays`` to ``path``, whole or not at all (``replacing``; was: a
+    full disk left a cut-off ``.npz``)."""
+    import numpy as np
+
+    with replacing(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
 def is_leftover(path: Path) -> bool:
     """Whether ``path`` is a temporary file of ``replacing`` (one a killed writer may have left)."""
     return bool(_TEMP_NAME.fullmatch(path.name)) and path.is_file() and not path.is_symlink()

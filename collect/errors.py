@@ -10,6 +10,7 @@
 """
 
 import argparse
+import errno
 
 EXIT_OK = 0
 EXIT_REJECTED = 1
@@ -28,6 +29,8 @@ class InputError(Exception):
 #: Kind of the ``HardwareFault`` of the session recorder once it stopped writing (a full disk, the
 #: file deleted): the host's fault, not a device's (``collect.session_writer``).
 RECORDER_FAULT = "recorder"
+#: ``OSError.errno`` of a write that found no room: the disk full, or the user's quota spent.
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
 class HardwareFault(Exception):

@@ -34,7 +34,22 @@ def _with_yaml12_floats(resolvers: dict) -> dict:
 
 
 class Loader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` reading YAML 1.2 floats (``1e6`` is 1000000.0, not the text '1e6')."""
+    """``yaml.SafeLoader`` reading YAML 1.2 floats (``1e6`` is 1000000.0, not the text '1e6'), that
+    refuses a key given twice in one mapping (PyYAML keeps the last, and a limit written twice
+    was silently the second one)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode) and not any(k.tag == "tag:yaml.org,2002:merge" for k, _ in node.value):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if isinstance(key, (str, int, float, bool)) or key is None:
+                    if key in seen:
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"duplicate key {key!r} (line {key_node.start_mark.line + 1}): give each key once",
+                            key_node.start_mark)
+                    seen.add(key)
+        return super().construct_mapping(node, deep)
 
 
 class Dumper(yaml.SafeDumper):

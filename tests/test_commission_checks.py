@@ -55,6 +55,19 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
         ("version: 1\nchecks:\n  dead_pixels: {max: -3}\n", "max must be >= 0"),
         ("version: 1\nchecks:\n  heldout_rmse_mm: {max: -0.5}\n", "max must be >= 0"),
         ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: -5, max: 1000}\n", "min must be >= 0"),
+        # was: the packaged limit dropped, a gate's included (a leaking sensor passed its leak test)
+        ("version: 1\nchecks:\n  leak_rate_hpa_per_min: {max: null, min: 0}\n",
+         "check 'leak_rate_hpa_per_min': max must be a finite number, got None"),
+        # was: a misspelt block ignored, its limit unused; a check given twice was its last
+        ("version: 1\nchecks:\n  heldout_a1: {min: 0.9}\nchekcs:\n  heldout_rmse_mm: {max: 0.5}\n",
+         r"unknown key 'chekcs' \(known: version, checks\)"),
+        ("version: 1\nchecks:\n  heldout_a1: {min: 0.97}\n  heldout_a1: {min: 0.5}\n",
+         r"not valid YAML: duplicate key 'heldout_a1' \(line 4\): give each key once"),
+        # was: a one-sided check turned into a range that rejected healthy sensors
+        ("version: 1\nchecks:\n  leak_rate_hpa_per_min: {min: 0.3}\n",
+         "check 'leak_rate_hpa_per_min' is a maximum check; a min alone would add a second limit"),
+        ("version: 1\nchecks:\n  heldout_a1: {max: 0.99}\n",
+         "check 'heldout_a1' is a minimum check; a max alone would add a second limit: give min"),
     ],
 )
 def test_bad_threshold_files_are_one_line_input_errors(tmp_path, text, fragment):

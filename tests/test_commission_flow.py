@@ -360,6 +360,8 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
         (None, ["--total-minutes", "0"], "total minutes"),
         # was: refused by the trainer after the whole recording
         (None, ["--finetune-minutes", "1e6"], "fine-tune minutes must be in (0, 10080] (a week), got 1000000.0"),
+        # was: refused by the trainer after the whole recording, and so again on every resume
+        (None, ["--seed", "4294967296"], "seed must be 0..4294967295, got 4294967296"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragment):
@@ -593,3 +595,45 @@ def test_a_finished_runs_deleted_report_is_written_again(faulted_then_resumed, t
                                lambda e: None)
     assert result.accepted and result.report_path.is_file() and "ACCEPTED" in result.report_path.read_text()
     assert not (tmp_path / "reg").exists()  # registered at the time, not again
+
+
+def test_a_stop_while_the_verdict_is_written_registers_nothing(faulted_then_resumed, tmp_path, monkeypatch):
+    """Was: a Ctrl-C while the report was written was acknowledged, then the sensor was registered
+    and the command exited 0."""
+    from calibrate.commissioning import _Flow
+
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    stop = threading.Event()
+    write_outcome = _Flow.write_outcome
+
+    def stopped_while_writing(self, *args):
+        doc = write_outcome(self, *args)
+        stop.set()
+        return doc
+
+    monkeypatch.setattr(_Flow, "write_outcome", stopped_while_writing)
+    result = run_commissioning(config, lambda e: None, stop)
+    assert result.stopped and not result.accepted
+    assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 2
+    assert "verdict" not in json.loads((config.run_dir / "state.json").read_text())["steps"]
+    assert json.loads((config.run_dir / "acceptance.json").read_text())["stopped"]
+
+
+def test_a_full_disk_outside_the_recorder_is_a_recorder_fault(tmp_path, capsys, monkeypatch):
+    """Was: exit 2 ("bad input") after the arm had moved, and a cut-off leak_test.npz."""
+    import errno
+
+    from calibrate import commissioning
+
+    def disk_full(path, **arrays):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(commissioning, "save_npz", disk_full)
+    config = tiny_config(tmp_path)
+    argv = ["commission", "--sim", "--objects", "box", "--poses-per-object", "2", "--seed", "3", "--sim-speed", "2",
+            "--leak-hold-s", "1", "--thresholds", str(config.thresholds),
+            "--out", str(config.run_dir), "--registry", str(config.registry_dir), "--quiet"]
+    assert main(argv) == 3
+    err = capsys.readouterr().err
+    assert err == f"bubble: fault: recorder: cannot write {config.run_dir / 'leak_test.npz'}: No space left on device\n"
+    assert not config.registry_dir.exists() or SensorRegistry(config.registry_dir).survey().profiles == []
