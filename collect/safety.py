@@ -173,14 +173,11 @@ class SafetyLimits:
         if not (np.isfinite(force_n) and 0 < force_n <= self.force_limit_n):
             raise SafetyViolation(f"safety: force {force_n} N is outside (0, {self.force_limit_n}] N")
 
-    def check_move(self, target_pose, speed_m_s: float, accel_m_s2: float, from_pose=None) -> np.ndarray:
-        """Validate a whole linear move (target pose, speed, acceleration; ``from_pose`` (6,): where
-        it starts, to check the tilt on the way, see ``check_path``); returns the target pose (6,)."""
+    def check_move(self, target_pose, speed_m_s: float, accel_m_s2: float) -> np.ndarray:
+        """Validate a linear move's target pose, speed and acceleration (its way: ``check_path``);
+        returns the pose (6,)."""
         self.check_motion(speed_m_s, accel_m_s2)
-        target = self.check_pose(target_pose)
-        if from_pose is not None:
-            self.check_path(from_pose, target)
-        return target
+        return self.check_pose(target_pose)
 
     def check_path(self, from_pose, to_pose) -> None:
         """Validate the tilt along a linear move from ``from_pose`` to ``to_pose`` (6,) each: the

@@ -434,7 +434,6 @@ class SessionWriter:
                     self._file.close()
                 except (OSError, RuntimeError) as err:  # the disk filled up after all (another program)
                     self._error = self._error or err.with_traceback(None)
-                    _close_after_failed_close(self._file)
         self._raise_if_failed()
 
     def __enter__(self) -> "SessionWriter":
@@ -492,8 +491,7 @@ class SessionWriter:
                         done = self._stop_writing(_LowDiskSpace(free, self.min_free_bytes)) or done
                 self.stats.write_s += time.perf_counter() - t0
             except BaseException as err:  # noqa: BLE001 - re-raised in the producer's thread
-                # without its frames: their datasets would outlive the file's close, and on a full disk
-                # h5py closed them at the interpreter's exit, after HDF5 itself (a segfault, not exit 3)
+                # kept without its frames, which hold the batch's arrays and datasets until the run ends
                 self._error = err.with_traceback(None)
 
     def _flush(self) -> None:
@@ -927,17 +925,6 @@ def _recover_crashed(path: str) -> h5py.File:
                                  f"{h5_error_text(err)}") from None
             raise
         return dst
-
-
-def _close_after_failed_close(f: h5py.File) -> None:
-    """Close ``f`` again after its ``close()`` failed (a full disk): that close stops at the first
-    object whose flush fails and leaves the file's id open, and HDF5 closed it at the interpreter's
-    exit, after its own structures for the file were gone (a segfault where the run exits 3). The
-    second close has nothing left to flush; a failure of it too is left to that exit."""
-    try:
-        f.close()
-    except (OSError, RuntimeError):
-        pass
 
 
 def _reserve_space(path: str) -> str | None:
