@@ -290,8 +290,15 @@ BAD_SIM_BENCH_LINES = {
 }
 
 
-@pytest.mark.parametrize("bench_text, message", [(UR_BENCH + line, m) for line, m in BAD_BENCH_LINES.items()]
-                         + [(SIM_BENCH + line, m) for line, m in BAD_SIM_BENCH_LINES.items()],
+def _with_line(base: str, line: str) -> str:
+    """``base`` with ``line`` in place of the base's line of the same key (a key given twice is refused)."""
+    key = line.split(":", 1)[0] + ":"
+    kept = [kept for kept in base.splitlines() if not kept.startswith(key)]
+    return "\n".join(kept + [line]) + "\n"
+
+
+@pytest.mark.parametrize("bench_text, message", [(_with_line(UR_BENCH, line), m) for line, m in BAD_BENCH_LINES.items()]
+                         + [(_with_line(SIM_BENCH, line), m) for line, m in BAD_SIM_BENCH_LINES.items()],
                          ids=[*BAD_BENCH_LINES, *BAD_SIM_BENCH_LINES])
 def test_a_bench_field_of_the_wrong_kind_is_one_line_before_anything_connects(tmp_path, capsys, bench_text, message):
     from calibrate.cli import main
