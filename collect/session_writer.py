@@ -832,12 +832,19 @@ def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simu
         changes = "; ".join(f"{key} {old} there, {new} now" for key, old, new in _differences(stored, json.loads(plan_text)))
         raise InputError(f"cannot resume {path}: it was recorded with another plan (objects, poses per object, "
                          f"seed or settings differ): {changes}")
-    stored = {o.name: o.mesh_sha256 for o in session.objects}
+    stored = {o.name: o for o in session.objects}
     for obj in objects:
         name, sha = str(obj["name"]), obj["mesh_sha256"]
-        if name in stored and stored[name] != sha:
-            raise InputError(f"object {name!r} in {path} has another mesh (sha256 {stored[name][:12]}...) "
+        if name in stored and stored[name].mesh_sha256 != sha:
+            raise InputError(f"object {name!r} in {path} has another mesh (sha256 {stored[name].mesh_sha256[:12]}...) "
                              f"than the one given ({sha[:12]}...)")
+        if name in stored and not np.allclose(stored[name].fixture_pose, np.asarray(obj["fixture_pose"], dtype=float),
+                                              rtol=0.0, atol=1e-6):
+            # its frames' object poses (the pose check's prior, the true pose) would mix two placements
+            raise InputError(f"object {name!r} in {path} stood elsewhere on the bench (fixture pose "
+                             f"{np.round(stored[name].fixture_pose, 4).tolist()} there, "
+                             f"{np.round(np.asarray(obj['fixture_pose'], dtype=float), 4).tolist()} now: a plate_pose "
+                             f"changed?); record into a new file")
 
 
 def _differences(old, new, key: str = "") -> list[tuple[str, object, object]]:

@@ -625,3 +625,14 @@ def test_info_counts_pressed_poses_and_recording_time_without_the_pause_of_a_res
     info = session_summary(path)
     assert info["frames"] == 105 and info["objects"]["mug"]["poses"] == 1
     assert info["fps"] == pytest.approx(45.0) and info["duration_s"] == pytest.approx(44 / 45 + 59 / 45)
+
+
+def test_a_resume_with_an_object_moved_on_the_bench_is_refused(tmp_path):
+    """Was: only the mesh was compared; a plate_pose edited between two runs mixed two placements of
+    the object in one file (the pose check's prior and true pose come from it)."""
+    path = tmp_path / "s.h5"
+    _one_frame_session(path, closed=True)
+    moved = dict(OBJECT, fixture_pose=[0.5, 0.02, 0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match=r"object 'mug' in .* stood elsewhere on the bench \(fixture pose "
+                                         r"\[0.5, 0.0, 0.0, 0.0, 0.0, 0.0\] there, \[0.5, 0.02, 0.0, 0.0, 0.0, 0.0\] now"):
+        _writer(path, resume=True, objects=[moved])
