@@ -43,6 +43,7 @@ from calibrate.commission_events import (
     TrainingProgress,
     Verdict,
 )
+from calibrate.run_directory import FLOW_LOG
 from calibrate.tui.flow_runner import (BENCH_NICE, COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner,
                                        start_resource_tracker)
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, FrameGapCollector
@@ -364,7 +365,7 @@ class BenchApp(App):
         if self.running:
             self._gave_up = True
             self.exit(return_code=1, message=f"bubble tui: the run did not end within {QUIT_WAIT_S:g} s of quitting; "
-                                             f"left it to stop by itself (see {Path(self.config.run_dir) / 'flow.log'})")
+                                             f"left it to stop by itself (see {Path(self.config.run_dir) / FLOW_LOG})")
 
     def action_show_tab(self, tab: str) -> None:
         self.tabs.active = tab
