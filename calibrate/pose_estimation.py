@@ -43,6 +43,9 @@ from collect.errors import InputError
 #: Fewest contact points a fit accepts (the pose has 6 degrees of freedom; a handful of points
 #: gives a meaningless fit).
 MIN_POINTS = 30
+#: Largest object a mesh may describe (m, across): the bench's objects (``hw_mocks.objects``, 5 mm
+#: to 0.5 m). Beyond, a mesh is in other units, and its signed-distance grid would not fit in memory.
+MAX_MESH_SIZE_M = 0.5
 #: Relative tolerances (``xtol``, ``ftol``) of the Levenberg-Marquardt fit. Tighter ones (1e-10)
 #: made a quarter to half of the fits of a held-out mug pose run out of evaluations while creeping
 #: along the cylinder's symmetric directions (held there only by the then weak prior), skipping those
@@ -171,6 +174,9 @@ class GridSDF:
                                process=False)
         if len(mesh.faces) == 0:
             raise InputError("object mesh has no faces; cannot build its signed-distance field")
+        size = float(np.max(mesh.extents)) if np.all(np.isfinite(mesh.vertices)) else float("nan")
+        if not size <= MAX_MESH_SIZE_M:  # the grid grows as its cube (a mesh in mm asked for 2.56 PiB)
+            raise InputError(f"object mesh is {size:.3g} m across; expected metres (at most {MAX_MESH_SIZE_M:g} m)")
         n_samples = int(np.clip(mesh.area / (0.5 * spacing) ** 2, 20_000, 300_000))
         samples, face_idx = trimesh.sample.sample_surface(mesh, n_samples, seed=0)
         normals = mesh.face_normals[face_idx]
@@ -225,13 +231,14 @@ class GridSDF:
         d_y = (c10 - c00) * (1 - fz) + (c11 - c01) * fz
         d_z = c1 - c0
         grad = np.stack([d_x, d_y, d_z], axis=1) / self.spacing
-        # Outside the grid box: add the distance to the box, along the clamping direction.
+        # Outside the grid box: add the distance to the box, along the clamping direction; the
+        # gradient keeps the interpolation's along the axes not clamped (was: dropped there)
         out = (g - g_in) * self.spacing
         out_norm = np.linalg.norm(out, axis=1)
         outside = out_norm > 0.0
         if np.any(outside):
             phi = phi + out_norm
-            grad[outside] = out[outside] / out_norm[outside, None]
+            grad[outside] = grad[outside] * (out[outside] == 0.0) + out[outside] / out_norm[outside, None]
         return phi, grad
 
 
@@ -253,7 +260,9 @@ def shape_from_object(primitive: dict | None, vertices: np.ndarray | None = None
             axis = tuple(float(c) for c in primitive.get("axis", (0.0, 0.0, 1.0)))
         except (KeyError, TypeError, ValueError) as err:
             raise InputError(f"cylinder primitive needs numeric radius, height, center, axis: {primitive}") from err
-        if not (radius > 0.0 and height > 0.0) or len(center) != 3 or len(axis) != 3 or not any(axis):
+        numbers = np.array([radius, height, *center, *axis]) if len(center) == len(axis) == 3 else None
+        if (numbers is None or not np.all(np.isfinite(numbers)) or not (radius > 0.0 and height > 0.0)
+                or np.linalg.norm(axis) < 1e-9):  # json reads NaN and Infinity; an axis of 1e-320 has no direction
             raise InputError(f"bad cylinder primitive: {primitive}")
         return Cylinder(radius=radius, height=height, center=center, axis=axis)
     if vertices is not None and faces is not None and len(faces):

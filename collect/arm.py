@@ -6,7 +6,7 @@ e-Series, or ``hw_mocks.fake_rtde.FakeRTDEControl`` / ``FakeRTDEReceive`` for th
 
 Calls made (the twin implements exactly these, a test checks them against the installed ur_rtde):
 control ``moveL(pose, speed, acceleration, asynchronous)``, ``stopL(a, asynchronous)``,
-``zeroFtSensor()``, ``setWatchdog(min_frequency)``, ``kickWatchdog()``, ``disconnect()``; receive
+``zeroFtSensor()``, ``setWatchdog(min_frequency)``, ``getStepTime()``, ``disconnect()``; receive
 ``getActualTCPPose()``, ``getActualTCPForce()``, ``getActualTCPSpeed()``, ``getSafetyStatusBits()``,
 ``getTimestamp()``, ``isConnected()``, ``disconnect()``. ur_rtde raises ``RuntimeError`` from a
 call whose reconnect failed (the robot unreachable): every call is made through ``_LinkGuard``,
@@ -23,7 +23,14 @@ the robot's safety stops (``getSafetyStatusBits``: a protective stop is
 ``HardwareFault('safety-stop')``) and the measured force against ``SafetyLimits.force_limit_n``.
 Each sample also kicks the controller's watchdog (``setWatchdog`` at ``watchdog_hz``, set when the
 monitor starts): should this host hang or the link die mid-move, the robot stops by itself
-instead of finishing an asynchronous move unsupervised. A link that dies without closing its
+instead of finishing an asynchronous move unsupervised. The kick is ``getStepTime()``, not
+ur_rtde's ``kickWatchdog()``: the watchdog watches the command register, which any command
+updates, and the control script that ur_rtde 1.6 uploads has no branch for ``kickWatchdog``'s
+command (99). It takes 99 for an ordinary command that never reports done, and then leaves every
+later ordinary command (``moveL``, ``zeroFtSensor``, ``stopL``) unprocessed until the host gives
+up on it (3-300 s; read from the script in ``librtde.so.1.6``; the twin models it).
+``getStepTime`` is one of the script's real-time commands, processed whatever else runs and
+without a handshake to clear. A link that dies without closing its
 socket leaves ur_rtde returning its last state with ``isConnected()`` still true: a controller
 clock (``getTimestamp``) that has not moved for ``STALE_STATE_S`` of the bench clock is
 ``HardwareFault('arm-disconnected')`` too, not a force check on frozen values.
@@ -263,7 +270,10 @@ class Arm:
         if self._monitor_loop.running:
             return
         with self._ctl_lock:
-            self._ctl.setWatchdog(self.watchdog_hz)
+            armed = self._ctl.setWatchdog(self.watchdog_hz)
+        if not armed:  # ur_rtde returns False where the control script refused or timed out
+            raise HardwareFault("arm-refused", "arm: the robot refused to arm its watchdog (setWatchdog); is its "
+                                               "control script running?")
         self._monitor_ended = False
         self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
@@ -316,7 +326,7 @@ class Arm:
                 self.stop()
                 return
             with self._ctl_lock:
-                self._ctl.kickWatchdog()
+                self._ctl.getStepTime()  # the watchdog's kick (module docstring)
             sample = self._read()
             force = float(np.linalg.norm(sample.tcp_wrench[:3]))
             bits = self._rcv.getSafetyStatusBits()
@@ -526,7 +536,10 @@ class Arm:
                            f"read (motion max_preload_n): the bubble touches something; force sensor not zeroed, "
                            f"arm not moved")
         with self._ctl_lock:
-            self._ctl.zeroFtSensor()
+            zeroed = self._ctl.zeroFtSensor()
+        if not zeroed:  # the approach would stop on the old zero's offset (up to max_preload_n)
+            raise HardwareFault("arm-refused", "arm: the robot refused to zero its force sensor (zeroFtSensor); "
+                                               "arm not moved")
         self._retract_pose = start.tcp_pose.copy()
         sample, touched = self._run_move(target, speed, s.accel,
                                          guard=lambda smp: smp.pressing_force_n(axis) >= threshold)

@@ -216,6 +216,7 @@ class DepthaiToFCamera(QueueToFCamera):
         self.profile = profile
         self.serial = device_id or ""
         self._pipeline = None
+        self._device = None
         self._intrinsics: dict | None = None
 
     def start(self) -> None:
@@ -228,9 +229,20 @@ class DepthaiToFCamera(QueueToFCamera):
         except RuntimeError as err:
             said = folded(DEPTHAI_IMPORT_SAID + library_said)
             raise HardwareFault("camera-missing", f"camera: cannot open the OAK ToF device: {err}{said}") from err
+        try:
+            self._start_on(dai, device)
+            self._device = device
+        except BaseException as err:  # the device closed whatever failed: a later attempt finds it free
+            device.close()
+            if isinstance(err, RuntimeError):  # depthai's (XLinkError, EepromError: a calibration, a pipeline)
+                raise HardwareFault("camera-setup", f"camera: cannot set the ToF pipeline up on device "
+                                                    f"{device.getDeviceId()}: {err}") from err
+            raise
+
+    def _start_on(self, dai, device) -> None:
+        """Read ``device``'s ToF camera and calibration, then build and start the pipeline."""
         tof_cams = [c for c in device.getConnectedCameraFeatures() if dai.CameraSensorType.TOF in c.supportedTypes]
         if not tof_cams:
-            device.close()
             raise HardwareFault("camera-missing", f"camera: device {device.getDeviceId()} has no ToF sensor")
         cam = tof_cams[0]
         calib = device.readCalibration()
@@ -256,6 +268,9 @@ class DepthaiToFCamera(QueueToFCamera):
         if self._pipeline is not None:
             self._pipeline.stop()
             self._pipeline = None
+        if self._device is not None:  # a pipeline built on a given device may leave it open
+            self._device.close()
+            self._device = None
 
     def intrinsics(self) -> dict:
         if self._intrinsics is None:

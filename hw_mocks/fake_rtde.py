@@ -212,7 +212,8 @@ class SimURController:
         with self._lock:
             self._watchdog_s, self._kicked = 1.0 / min_frequency, time.monotonic()
 
-    def kick_watchdog(self) -> None:
+    def command_received(self) -> None:
+        """A command updated the register the watchdog watches (any command is a kick)."""
         with self._lock:
             self._update()  # a watchdog that ran out before this kick has fired
             self._kicked = time.monotonic()
@@ -233,36 +234,63 @@ class SimURController:
 
 
 class FakeRTDEControl:
-    """``rtde_control.RTDEControlInterface`` twin over a ``SimURController``."""
+    """``rtde_control.RTDEControlInterface`` twin over a ``SimURController``.
+
+    It keeps the command handshake of the control script ur_rtde 1.6 uploads: an ordinary command
+    runs only while the script is not marked as executing one; the host clears that mark after the
+    command reports done. ``kickWatchdog``'s command (99) has no branch in that script: it marks
+    the script as executing without ever reporting done, so every later ordinary command is left
+    unprocessed and ur_rtde returns False once it gives up (here at once). Real-time commands
+    (``getStepTime``) run whatever the mark. Every command kicks the watchdog."""
+
+    #: s per control cycle of an e-Series controller (500 Hz), what ``getStepTime`` reports
+    STEP_TIME_S = 0.002
 
     def __init__(self, controller: SimURController):
         self._c = controller
         self._connected = True
+        self._stuck = False  # the script took a command it never reports done
+
+    def _ordinary(self) -> bool:
+        """An ordinary command reaches the script: whether it runs."""
+        self._c.command_received()
+        return self._connected and not self._stuck
 
     def moveL(self, pose: list[float], speed: float = 0.25, acceleration: float = 1.2,
               asynchronous: bool = False) -> bool:
-        if not self._connected or not self._c.move_linear(pose, speed, acceleration):
+        if not self._ordinary() or not self._c.move_linear(pose, speed, acceleration):
             return False
         if not asynchronous:
             self._c.wait_move()
         return True
 
     def stopL(self, a: float = 10.0, asynchronous: bool = False) -> None:
+        if not self._ordinary():
+            return
         self._c.stop_linear(a)
         if not asynchronous:
             self._c.wait_move()
 
     def zeroFtSensor(self) -> bool:
+        if not self._ordinary():
+            return False
         self._c.zero_ft()
         return True
 
     def setWatchdog(self, min_frequency: float = 10.0) -> bool:
+        if not self._ordinary():
+            return False
         self._c.set_watchdog(min_frequency)
         return True
 
     def kickWatchdog(self) -> bool:
-        self._c.kick_watchdog()
+        self._c.command_received()
+        self._stuck = True
         return True
+
+    def getStepTime(self) -> float:
+        self._c.command_received()
+        return self.STEP_TIME_S
 
     def disconnect(self) -> None:
         self._connected = False

@@ -80,3 +80,35 @@ def test_the_attributes_and_enums_the_camera_driver_reads_exist():
     for flag in ("enableOpticalCorrection", "enableDistortionCorrection"):
         setattr(config, flag, True)
         assert getattr(config, flag) is True
+
+
+def test_a_camera_that_fails_after_it_opened_is_closed_and_a_fault(monkeypatch):
+    """Was: only opening the device was guarded; depthai's RuntimeError from the calibration or the
+    pipeline was a traceback, and the device stayed open (a later attempt in the process found it busy)."""
+    import collect.camera as camera
+    from collect.errors import HardwareFault
+
+    class Device:
+        closed = False
+
+        def __init__(self, *args):
+            pass
+
+        def getConnectedCameraFeatures(self):
+            return [type("Features", (), {"supportedTypes": [dai.CameraSensorType.TOF]})()]
+
+        def readCalibration(self):
+            raise RuntimeError("There is no Intrinsic data available in the EEPROM")
+
+        def getDeviceId(self):
+            return "18443010E1"
+
+        def close(self):
+            Device.closed = True
+
+    fake = type("depthai", (), {"Device": Device, "DeviceInfo": lambda *a: None,
+                                "CameraSensorType": dai.CameraSensorType, "ToFConfig": dai.ToFConfig})
+    monkeypatch.setattr(camera, "import_depthai", lambda: fake)
+    with pytest.raises(HardwareFault) as err:
+        DepthaiToFCamera("18443010E1").start()
+    assert err.value.kind == "camera-setup" and "no Intrinsic data" in str(err.value) and Device.closed

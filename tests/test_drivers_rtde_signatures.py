@@ -159,6 +159,25 @@ def test_every_call_of_the_driver_binds_to_the_real_ur_rtde_signature():
             if name == "moveL":  # the pose overload: 6 floats, then speed, acceleration, asynchronous
                 assert len(args[0]) == 6 and all(isinstance(v, float) for v in args[0])
         assert bound, f"driver called {name}{args} which binds to no overload of {real[twin_cls].__name__}.{name}"
+    # ur_rtde's kickWatchdog leaves its control script unable to run the next ordinary command: the
+    # twin keeps it to show that (below), and the driver must never call it
+    assert "kickWatchdog" not in used[FakeRTDEControl]
     for twin_cls, names in used.items():  # the twin implements what the driver calls, and nothing else
-        unused = set(_public_methods(twin_cls)) - names
+        unused = set(_public_methods(twin_cls)) - names - {"kickWatchdog"}
         assert not unused, f"{twin_cls.__name__} has methods the driver never calls: {sorted(unused)}"
+
+
+def test_the_twin_keeps_the_control_scripts_handshake_after_a_kick_watchdog():
+    """The control script ur_rtde 1.6 uploads has no branch for kickWatchdog's command (99): it takes
+    it for an ordinary command that never reports done, and leaves the next ordinary ones unrun (was:
+    the monitor kicked that way in every sample; on a real arm the first move would have failed).
+    A real-time command such as getStepTime still runs, and any command kicks the watchdog."""
+    controller = SimURController(_FlatFloor(), [0.4, 0.0, 0.2, np.pi, 0.0, 0.0])
+    control = FakeRTDEControl(controller)
+    assert control.setWatchdog(2.0) and control.zeroFtSensor()
+    assert control.getStepTime() == FakeRTDEControl.STEP_TIME_S
+    assert control.moveL([0.4, 0.0, 0.19, np.pi, 0.0, 0.0], 0.05, 0.5, True)
+    control.kickWatchdog()
+    assert not control.moveL([0.4, 0.0, 0.2, np.pi, 0.0, 0.0], 0.05, 0.5, True)
+    assert not control.zeroFtSensor() and not control.setWatchdog(2.0)
+    assert control.getStepTime() == FakeRTDEControl.STEP_TIME_S

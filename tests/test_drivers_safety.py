@@ -442,3 +442,23 @@ def test_limits_without_a_workspace_box_check_no_pose_and_the_bench_fits_the_mis
     assert given.workspace_max == (1.0, 0.5, 0.5) and given.workspace_min == fitted.workspace_min
     with pytest.raises(InputError, match="the workspace box is not set"):
         SafetyLimits(force_limit_n=15.0).check_pose([0.4, 0.0, 0.2, *DOWN])
+
+
+@pytest.mark.parametrize("refused", ["setWatchdog", "zeroFtSensor"])
+def test_a_command_the_robot_refuses_is_a_fault_before_any_motion(refused):
+    """Was: the bool of setWatchdog and zeroFtSensor was ignored (ur_rtde returns False, not an
+    exception, for a stopped script or a timed-out handshake): a guarded approach on the old zero."""
+    class Refusing(_CountingControl):
+        pass
+
+    setattr(Refusing, refused, lambda self, *args: False)
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    control = Refusing(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        with pytest.raises(HardwareFault, match=f"refused .*{refused}") as err:
+            arm.start()
+            arm.move_until_contact(force_threshold_n=1.0, max_travel_m=0.01)
+        assert err.value.kind == "arm-refused" and control.moves == 0
+    finally:
+        arm.close()
