@@ -527,7 +527,7 @@ class _Flow:
             acceptance.evaluate(th, "pose_e_theta_median", result.e_theta.median),
         ]
         pose = {  # labels as the report shows them (POSE_BY_POSE_KEY, pose_vs_true_key: read back by benchmarks)
-            "hold frames used / with contact": f"{result.n_used}/{result.n_hold_frames}",
+            "hold frames used / held": f"{result.n_used}/{result.n_hold_frames}",
             "e_x (mm), predicted vs measured depth: median / mean / variance (mm^2)":
                 [result.e_x_mm.median, result.e_x_mm.mean, result.e_x_mm.variance],
             "e_theta, predicted vs measured depth: median / mean / variance":

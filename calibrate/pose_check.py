@@ -97,7 +97,7 @@ class PoseCheckResult:
     object_name: str
     shape: str  # "cylinder" or "mesh_sdf"
     n_hold_frames: int  # hold frames of the object in the session
-    n_used: int  # frames with a pose from both predicted and measured depth
+    n_used: int  # frames with a pose from both predicted and measured depth (the true depth's fit may fail)
     skipped: dict[str, int]  # reason -> frames
     e_x_mm: ErrorStats  # predicted vs measured
     e_theta: ErrorStats
@@ -165,12 +165,12 @@ def perturbed_prior(pose: Pose, rng: np.random.Generator, error_mm: float, error
 
 def _frame_stats(frames: list[FramePoses]) -> dict:
     """``e_x_mm``, ``e_theta`` and ``vs_true`` (``PoseCheckResult`` fields) over ``frames``."""
-    sources = frames[0].vs_true.keys()
+    sources = [s for s in SOURCES if any(s in f.vs_true for f in frames)]  # the true depth's: where it fitted
     return {
         "e_x_mm": ErrorStats.of([f.e_x_mm for f in frames]),
         "e_theta": ErrorStats.of([f.e_theta for f in frames]),
-        "vs_true": {s: {"e_x_mm": ErrorStats.of([f.vs_true[s]["e_x_mm"] for f in frames]),
-                        "e_theta": ErrorStats.of([f.vs_true[s]["e_theta"] for f in frames])}
+        "vs_true": {s: {key: ErrorStats.of([f.vs_true[s][key] for f in frames if s in f.vs_true])
+                        for key in ("e_x_mm", "e_theta")}
                     for s in sources},
     }
 
@@ -227,6 +227,8 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
     from collect.session_reader import Session
     from trainer.evaluation import predict_frames
 
+    if not MIN_POINTS <= int(n_points):
+        raise InputError(f"points per contact patch must be at least {MIN_POINTS} (a fit needs that many), got {n_points}")
     estimator = _load_estimator(model)
     with Session.open(session_path) as session:
         obj = session.objects[session.object_id(object_name)]
@@ -246,7 +248,9 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         sources = [s for s in SOURCES if s != "true" or session.simulated]
         depth = {"predicted": predict_frames(estimator, session.ir(hold_idx)),
                  "measured": session.depth_m(hold_idx)}
-        metrics = depth_metrics(np.where(np.isfinite(depth["predicted"]), depth["predicted"], 0.0), depth["measured"])
+        # over the frames with a finite prediction (those the check can use; was: NaN read as 0 m)
+        finite = np.isfinite(depth["predicted"]).all(axis=(1, 2))
+        metrics = depth_metrics(depth["predicted"][finite], depth["measured"][finite])
         ref_pred = predict_frames(estimator, session.ir(ref_idx))
         references = {"predicted": reference_depth(np.where(np.isfinite(ref_pred), ref_pred, 0.0)),
                       "measured": reference_depth(session.depth_m(ref_idx))}
@@ -284,17 +288,19 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
             points = contact_points(depth[src][k], references[src], intrinsics, threshold_m, n_points)
             if len(points) == 0:
                 reason = SKIP_NO_CONTACT
-                break
-            if len(points) < MIN_POINTS:
+            elif len(points) < MIN_POINTS:
                 reason = SKIP_TOO_FEW_POINTS
+            else:
+                fit = fitter.fit(points, prior, start=warm.get(src))
+                fit_seconds += time.perf_counter() - start
+                n_fits += 1
+                reason = None if fit.success else SKIP_FIT_FAILED
+            if reason is None:
+                fits[src] = fit
+            elif src != "true":  # the simulator's own depth decides no frame's use (only its vs-true row)
                 break
-            fit = fitter.fit(points, prior, start=warm.get(src))
-            fit_seconds += time.perf_counter() - start
-            n_fits += 1
-            if not fit.success:
-                reason = SKIP_FIT_FAILED
-                break
-            fits[src] = fit
+            else:
+                reason = None
         if reason is not None:
             skipped[reason] += 1
             continue
@@ -332,6 +338,10 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
     return result
 
 
+#: The histograms ``write_histograms`` writes: predicted vs measured, and each source vs the true pose.
+PLOT_FILES = ("pose_errors.png", "pose_vs_true.png")
+
+
 def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Path]:
     """Histograms of the errors (the paper's Fig. 7) as PNG files in ``plots_dir``; returns their paths.
 
@@ -345,6 +355,7 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
 
     plots_dir = Path(plots_dir)
     plots_dir.mkdir(parents=True, exist_ok=True)
+    errors_png, vs_true_png = (plots_dir / name for name in PLOT_FILES)
     written = []
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
     for ax, key, label in ((axes[0], "e_x_mm", "position error $e_x$ (mm)"),
@@ -354,20 +365,20 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
         ax.set_ylabel("frames")
     fig.suptitle(f"{result.object_name}: pose from predicted vs measured depth ({result.n_used} frames)")
     fig.tight_layout()
-    written.append(plots_dir / "pose_errors.png")
+    written.append(errors_png)
     _save_figure(fig, written[-1])
     if result.vs_true:
         fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
         for ax, key, label in ((axes[0], "e_x_mm", "position error vs true pose (mm)"),
                                (axes[1], "e_theta", "orientation error vs true pose")):
-            values = {src: [f.vs_true[src][key] for f in result.frames] for src in result.vs_true}
+            values = {src: [f.vs_true[src][key] for f in result.frames if src in f.vs_true] for src in result.vs_true}
             ax.hist(list(values.values()), bins=20, label=list(values), histtype="step", linewidth=1.5)
             ax.set_xlabel(label)
             ax.set_ylabel("frames")
             ax.legend()
         fig.suptitle(f"{result.object_name}: each depth source vs the true pose")
         fig.tight_layout()
-        written.append(plots_dir / "pose_vs_true.png")
+        written.append(vs_true_png)
         _save_figure(fig, written[-1])
     return written
 

@@ -32,14 +32,15 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    from calibrate.pose_check import run_pose_check
+    from calibrate.pose_check import PLOT_FILES, run_pose_check
+    from calibrate.pose_estimation import MIN_POINTS
     from collect.errors import InputError
     from trainer.cli import check_model_arg
 
     if not 0 < args.threshold_mm <= MAX_THRESHOLD_MM:
         raise InputError(f"--threshold-mm must be within (0, {MAX_THRESHOLD_MM:g}], got {args.threshold_mm:g}")
-    if args.points < 1:
-        raise InputError(f"--points must be at least 1, got {args.points}")
+    if args.points < MIN_POINTS:  # was: 1, and a patch of fewer than MIN_POINTS was skipped as too few
+        raise InputError(f"--points must be at least {MIN_POINTS} (a fit needs that many), got {args.points}")
     if args.seed < 0:
         raise InputError(f"--seed must be 0 or more, got {args.seed}")
     check_model_arg(args.model, "--model")
@@ -48,7 +49,16 @@ def _run(args) -> int:
     if args.plots:
         if os.path.exists(args.plots) and not os.path.isdir(args.plots):
             raise InputError(f"--plots {args.plots} is a file, not a directory")
-        check_parent_dirs(Path(args.plots) / "pose_errors.png")
+        plots = [Path(args.plots) / name for name in PLOT_FILES]
+        check_parent_dirs(plots[0])
+        for png in plots:
+            if png.is_dir():
+                raise InputError(f"--plots {args.plots}: {png} is a directory; the histogram is written there")
+        if args.json is not None:  # the JSON and the histograms must not land on one another
+            json_path = Path(args.json).resolve()
+            if json_path in [p.resolve() for p in plots] or Path(args.plots).resolve() in (json_path, *json_path.parents):
+                raise InputError(f"--json {args.json} lies where --plots {args.plots} writes its histograms; "
+                                 f"give them separate places")
     result = run_pose_check(args.model, args.data, args.object.strip(), threshold_m=1e-3 * args.threshold_mm,
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
     if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)

@@ -1,5 +1,6 @@
 """The pose check over a session: a geometric session (membrane wrapped on a lying cylinder)."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -169,3 +170,44 @@ def test_pose_check_counts_skipped_frames_and_fails_with_no_usable_frame(tmp_pat
         run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[])
     with pytest.raises(InputError, match=r"among pose_ids \[7\] \(its poses: \[0, 1\]\)"):  # was: as if none held
         run_pose_check(DecodingEstimator(), path, "mug", pose_ids=[7])
+
+
+def test_a_frame_whose_true_depth_does_not_fit_still_counts_and_bad_points_are_refused(tmp_path, monkeypatch):
+    """Was: a failed fit of the simulator's own depth dropped the frame from the predicted-vs-measured
+    statistics (the acceptance number); and n_points below MIN_POINTS skipped every frame as
+    "too few points" (0: as "no contact"; -1: numpy's ValueError)."""
+    from calibrate.pose_estimation import ProximityPoseEstimator
+
+    path = write_cylinder_session(tmp_path / "cyl.h5", n_poses=2, hold_frames=2)
+    fit = ProximityPoseEstimator.fit
+    calls = []
+
+    def true_fails(self, points, prior, start=None):
+        calls.append(1)
+        result = fit(self, points, prior, start=start)
+        return dataclasses.replace(result, success=False) if len(calls) % 3 == 0 else result  # every "true" fit
+
+    monkeypatch.setattr(ProximityPoseEstimator, "fit", true_fails)
+    result = run_pose_check(DecodingEstimator(), path, "mug", plots_dir=tmp_path / "plots")
+    assert result.n_used == 4 and sum(result.skipped.values()) == 0
+    assert set(result.vs_true) == {"predicted", "measured"} and all("true" not in f.vs_true for f in result.frames)
+    monkeypatch.undo()
+    for n_points in (-1, 0, 29):
+        with pytest.raises(InputError, match=f"points per contact patch must be at least 30 .*got {n_points}"):
+            run_pose_check(DecodingEstimator(), path, "mug", n_points=n_points)
+
+
+def test_the_depth_metrics_leave_out_frames_whose_prediction_is_not_finite(tmp_path):
+    """Was: a non-finite predicted pixel was read as 0 m (clipped to 0.04 m): abs_rel 0.18 for a model
+    whose finite frames read 0.001."""
+    path = write_cylinder_session(tmp_path / "cyl.h5", n_poses=2, hold_frames=2)
+
+    class SomeNonFinite(DecodingEstimator):
+        def predict_batch(self, ir):
+            depth = super().predict_batch(ir)
+            depth[::2] = np.inf
+            return depth
+
+    result = run_pose_check(SomeNonFinite(), path, "mug")
+    assert result.skipped[SKIP_NON_FINITE] == 2 and result.depth_metrics["n_images"] == 2
+    assert result.depth_metrics["abs_rel"] < 0.01

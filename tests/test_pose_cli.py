@@ -97,8 +97,26 @@ def test_pose_command_bad_input_exits_2_with_one_line(tmp_path, capsys):
     for option, value, message in (("--threshold-mm", "0", "--threshold-mm must be within (0, 20], got 0"),
                                    ("--threshold-mm", "nan", "--threshold-mm must be within (0, 20], got nan"),
                                    ("--threshold-mm", "1e308", "--threshold-mm must be within (0, 20], got 1e+308"),
-                                   ("--points", "0", "--points must be at least 1, got 0"),
+                                   ("--points", "0", "--points must be at least 30 (a fit needs that many), got 0"),
+                                   ("--points", "29", "--points must be at least 30 (a fit needs that many), got 29"),
                                    ("--seed=-1", None, "--seed must be 0 or more, got -1")):  # was: one line for all
         argv = ["pose", "--model", str(model), "--data", str(session), option] + ([value] if value else [])
         assert cli.main(argv) == 2
         assert capsys.readouterr().err.splitlines() == [f"bubble: error: {message}"]
+
+
+def test_json_and_plots_that_would_land_on_one_another_are_refused_before_the_run(tmp_path, capsys):
+    """Was: the plots written into a folder named as the JSON (a traceback after the whole run, the
+    JSON lost), a histogram's name taken by a folder (a traceback), or the JSON over a histogram."""
+    session = write_cylinder_session(tmp_path / "s.h5", n_poses=1, hold_frames=2)
+    model = _untrained_model(tmp_path / "m")
+    (tmp_path / "busy" / "pose_errors.png").mkdir(parents=True)
+    (tmp_path / "p").mkdir()
+    base = ["pose", "--model", str(model), "--data", str(session)]
+    for extra, says in (
+            (["--json", str(tmp_path / "dup.json"), "--plots", str(tmp_path / "dup.json")], "lies where --plots"),
+            (["--json", str(tmp_path / "p" / "pose_errors.png"), "--plots", str(tmp_path / "p")], "lies where --plots"),
+            (["--plots", str(tmp_path / "busy")], "pose_errors.png is a directory")):
+        assert cli.main(base + extra) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("bubble: error: ") and err.count("\n") == 1 and says in err, err

@@ -299,3 +299,42 @@ def test_a_start_several_mm_off_keeps_the_whole_patch():
     assert start.max() > 5e-3 and np.median(start) > 3e-3
     fit = ProximityPoseEstimator(CYL).fit(good, prior)
     assert fit.success and fit.n_outliers < 10
+
+
+@pytest.mark.parametrize("bad", [{"center": [float("nan"), 0.0, 0.05]}, {"axis": [float("inf"), 0.0, 0.0]},
+                                 {"axis": [1e-320, 0.0, 0.0]}, {"radius": float("inf")}])
+def test_a_cylinder_with_a_non_finite_or_directionless_value_is_refused(bad):
+    """Was: json reads NaN and Infinity; such a primitive passed, and the first fit raised scipy's
+    ValueError ("Residuals are not finite"), a traceback of `bubble pose`."""
+    with pytest.raises(InputError, match="bad cylinder primitive"):
+        shape_from_object({"type": "cylinder", "radius": 0.041, "height": 0.095, **bad})
+
+
+def test_a_mesh_in_other_units_than_metres_is_refused():
+    """Was: a mesh in mm asked numpy for a 2.56 PiB grid (MemoryError, exit 1)."""
+    mesh = trimesh.creation.box(extents=[70.0, 50.0, 40.0])  # millimetres
+    with pytest.raises(InputError, match="object mesh is 70 m across; expected metres"):
+        shape_from_object({"type": "mesh"}, mesh.vertices, mesh.faces)
+
+
+def test_grid_sdf_gradient_matches_finite_differences_off_the_grid_too():
+    """Was: off the grid the gradient was the clamping direction alone, the interpolation's slope
+    along the axes not clamped dropped (analytic [-1, 0, 0] where finite differences give
+    [-1, 0.21, 0]): a wrong Jacobian for points beyond the grid."""
+    mesh = trimesh.creation.box(extents=[0.07, 0.05, 0.04])
+    mesh.apply_translation([0, 0, 0.02])
+    grid = shape_from_object({"type": "mesh"}, mesh.vertices, mesh.faces)
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.15, 0.15, (400, 3)) + [0, 0, 0.02]
+    lo, hi = grid.origin, grid.origin + grid.spacing * (np.asarray(grid.values.shape) - 1)
+    h = 1e-7
+    points = points[~np.all((points > lo - 2 * h) & (points < hi + 2 * h), axis=1)]  # off the grid
+    # away from cell faces: the trilinear field's kinks would spoil central differences
+    clamped = (points < lo) | (points > hi)
+    cell = (np.clip(points, lo, hi) - lo) / grid.spacing
+    points = points[np.all(clamped | (np.abs(cell - np.round(cell)) > 1e-3), axis=1)]
+    assert len(points) > 50
+    _, grad = grid.signed_distance(points)
+    numeric = np.stack([(grid.signed_distance(points + h * e)[0] - grid.signed_distance(points - h * e)[0]) / (2 * h)
+                        for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(grad, numeric, atol=1e-4)
