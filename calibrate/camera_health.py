@@ -113,8 +113,11 @@ def assess_camera(ir: np.ndarray, depth: np.ndarray) -> CameraHealth:
     coverage = float(valid.mean())
 
     # Dots are judged away from the edge of the lit region, where the background estimate
-    # runs off the membrane (the housing would look like a dark blob).
-    core = ndimage.binary_erosion(lit, iterations=BACKGROUND_WINDOW // 2) & ~dead & ~stuck
+    # runs off the membrane (the housing would look like a dark blob), and on the membrane: the
+    # region of valid depth in most frames, the holes its dots make in it filled (was: the housing
+    # at the image's top and bottom edges passed as 1-3 dots of full contrast on a sensor with none).
+    membrane = ndimage.binary_fill_holes(valid_count > n // 2)
+    core = ndimage.binary_erosion(lit, iterations=BACKGROUND_WINDOW // 2) & membrane & ~dead & ~stuck
     ratio = np.where(core, ir_mean / np.maximum(background, 1.0), 1.0)
     _, labels, stats, _ = cv2.connectedComponentsWithStats((core & (ratio < DOT_RATIO)).astype(np.uint8), connectivity=8)
     areas = stats[1:, cv2.CC_STAT_AREA]

@@ -180,7 +180,10 @@ class BubbleSim:
         # Full image: interpolate the displacement, clamp against the interpolated object.
         u_full = cv2.remap(sol.u.astype(np.float32), self._map_x, self._map_y, cv2.INTER_LINEAR)
         membrane = self._rest_depth64 + u_full
-        far = np.where(np.isfinite(depth_obj), depth_obj, self._d_phys + 10 * REACH_OUT_M).astype(np.float32)
+        # where no object is: a depth beyond the membrane, and 1 m off it (was: 40 mm there too, where
+        # the rest depth is 0: interpolated across the rim, a false contact and a 10 mm dip at rest)
+        none = np.where(self._d_phys > 0, self._d_phys + 10 * REACH_OUT_M, 1.0)
+        far = np.where(np.isfinite(depth_obj), depth_obj, none).astype(np.float32)
         obj_full = cv2.remap(far, self._map_x, self._map_y, cv2.INTER_LINEAR, borderValue=1.0)
         contact = self.membrane_mask & (membrane >= obj_full - 1e-5)
         true_depth = np.where(self.membrane_mask, np.minimum(membrane, obj_full), 0.0).astype(np.float32)

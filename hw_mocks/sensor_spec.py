@@ -330,7 +330,8 @@ def draw_sensor(seed: int, defect: str | None = None) -> SensorSpec:
         gauge_pressure_pa=vary(5000.0, 0.08),
         gas_volume_m3=vary(140e-6, 0.06),
         dot_seed=int(rng.integers(0, 2**31 - 1)),
-        dot_coverage=float(rng.uniform(0.10, 0.20)) if defect != "no-dots" else 0.0,
+        # drawn for every sensor, so that no-dots is the same sensor without its dots (was: another one)
+        dot_coverage=float(rng.uniform(0.10, 0.20)) * (defect != "no-dots"),
         dot_radius_m=vary(0.0010, 0.12),
         membrane_albedo=vary(0.85, 0.04),
         dot_albedo=vary(0.10, 0.2),

@@ -208,3 +208,21 @@ def test_a_failed_value_never_reads_as_its_limit(tmp_path, name, value, shown):
     html = write_report(ReportData(serial="SB-1", accepted=False, simulated=True, reason="x", checks=[check]),
                         tmp_path / "report.html").read_text()
     assert f"<td>{shown}</td>" in html and ("&lt;= " in html or "&gt;= " in html)  # the comparison escaped
+
+
+@pytest.mark.parametrize("seed", [2, 4])
+def test_the_housing_at_the_image_edges_is_no_dot(seed):
+    """Was: on a simulated sensor printed without dots, the dark housing at the image's top and
+    bottom edges passed as 1-4 dots of 0.95 contrast: dot_contrast passed, dot_count alone rejected."""
+    import numpy as np
+
+    from calibrate.camera_health import assess_camera
+    from hw_mocks.bubble_sim import BubbleSim
+    from hw_mocks.sensor_spec import draw_sensor
+
+    sim = BubbleSim(draw_sensor(seed, "no-dots"), [])
+    state = sim.solve(np.array([0.45, -0.3, 0.3, np.pi, 0, 0]), 0.0)
+    rng = np.random.default_rng(seed)
+    frames = [sim.render(state, rng) for _ in range(4)]
+    health = assess_camera(np.array([f[0] for f in frames]), np.array([f[1] for f in frames]))
+    assert health.dot_count == 0 and health.dot_contrast == 0.0

@@ -462,3 +462,22 @@ def test_a_command_the_robot_refuses_is_a_fault_before_any_motion(refused):
         assert err.value.kind == "arm-refused" and control.moves == 0
     finally:
         arm.close()
+
+
+def test_the_monitor_samples_state_hz_of_a_fast_simulated_clock():
+    """Was: the monitor paced itself in real time, so a simulated clock at 4x real time got a quarter
+    of its samples per simulated second (the recorded arm stream at 31 Hz, presses overshooting)."""
+    scene = _Still()
+    scene.clock = SimClock(4.0)
+    controller = SimURController(scene, [0.4, 0.0, 0.2, *DOWN])
+    arm = Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=MOTION,
+              clock=scene.clock, state_hz=125)
+    try:
+        arm.start()
+        arm.drain_states()
+        time.sleep(0.5)
+        stream = arm.drain_states()
+    finally:
+        arm.close()
+    bench_s = stream[-1].t - stream[0].t
+    assert bench_s > 1.5 and (len(stream) - 1) / bench_s > 90  # 125 asked; 31 before

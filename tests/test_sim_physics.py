@@ -143,3 +143,23 @@ def test_warm_start_matches_a_cold_solve(spec, plate):
     assert state.wrench[2] == pytest.approx(cold.wrench[2], rel=0.01)
     assert warm.solve(press_pose(top, 0.007), 0.0) is state  # same pose: cached
 
+
+
+def test_a_free_bubble_reads_its_rest_depth_up_to_the_rim():
+    """Was: where no object was, the clamp's placeholder depth was 40 mm off the membrane too (rest
+    depth 0 there); interpolated across the rim it made a false contact and a 10 mm dip at rest on
+    some sensors (seed 8: pixel (48, 20))."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.010)
+    sphere.apply_translation([0, 0, 0.03])
+    probe = fixture_plate([BenchObject("probe", sphere)])[0]
+    sim = BubbleSim(draw_sensor(8), [probe])
+    free = sim.solve(press_pose(probe.top_point(), -0.02), 0.0)
+    mask = sim.membrane_mask
+    assert np.abs(free.true_depth - sim.rest_depth)[mask].max() < 1e-6 and not free.contact.any()
+
+
+def test_a_no_dots_sensor_is_the_same_sensor_without_its_dots():
+    """Was: the dot coverage was not drawn for it, and every later draw shifted: another sensor."""
+    healthy, no_dots = draw_sensor(1).to_dict(), draw_sensor(1, "no-dots").to_dict()
+    differ = sorted(k for k in healthy if healthy[k] != no_dots[k])
+    assert differ == ["defect", "dot_coverage", "serial"] and no_dots["dot_coverage"] == 0.0  # its serial names the defect
