@@ -120,14 +120,12 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
         for key in ("min", "max"):
             if key in entry and entry[key] is None:  # `max: null` (was: the packaged limit dropped, a gate too)
                 raise InputError(f"{where}: check {name!r}: {key} must be a finite number, got None")
-        if prior is not None and ("min" in entry) != ("max" in entry):
-            side, given = ("max", "min") if "min" in entry else ("min", "max")
-            if getattr(prior, "hi" if side == "max" else "lo") is not None and getattr(
-                    prior, "lo" if side == "max" else "hi") is None:
-                # a lone limit on the other side would turn a one-sided check into a range
-                raise InputError(f"{where}: check {name!r} is a {'maximum' if side == 'max' else 'minimum'} "
-                                 f"check; a {given} alone would add a second limit: give {side}, or both "
-                                 f"min and max")
+        given = [key for key in ("min", "max") if key in entry]
+        if prior is not None and len(given) == 1 and {"min": prior.lo, "max": prior.hi}[given[0]] is None:
+            # a lone limit on the other side would turn a one-sided check into a range
+            own = "max" if given[0] == "min" else "min"
+            raise InputError(f"{where}: check {name!r} is a {'maximum' if own == 'max' else 'minimum'} check; "
+                             f"a {given[0]} alone would add a second limit: give {own}, or both min and max")
         lo = entry.get("min", prior.lo if prior else None)
         hi = entry.get("max", prior.hi if prior else None)
         for key, val in (("min", lo), ("max", hi)):
