@@ -229,6 +229,7 @@ class DepthaiToFCamera(QueueToFCamera):
         except RuntimeError as err:
             said = folded(DEPTHAI_IMPORT_SAID + library_said)
             raise HardwareFault("camera-missing", f"camera: cannot open the OAK ToF device: {err}{said}") from err
+        device_id = device.getDeviceId()
         try:
             self._start_on(dai, device)
             self._device = device
@@ -236,7 +237,7 @@ class DepthaiToFCamera(QueueToFCamera):
             device.close()
             if isinstance(err, RuntimeError):  # depthai's (XLinkError, EepromError: a calibration, a pipeline)
                 raise HardwareFault("camera-setup", f"camera: cannot set the ToF pipeline up on device "
-                                                    f"{device.getDeviceId()}: {err}") from err
+                                                    f"{device_id}: {err}") from err
             raise
 
     def _start_on(self, dai, device) -> None:
