@@ -597,7 +597,9 @@ class Arm:
 
         Without a remembered pose (e.g. a force fault while travelling, the bubble's side against an
         object) it backs off ``settings.retract_m`` along the measured contact force (``backoff_direction``:
-        never toward the plate) if that force is above ``settings.contact_force_n``, and only as far
+        never toward the plate) if that force is above ``settings.max_preload_n`` (what finds the bubble
+        touching something; below it the F/T sensor's drift since its last zero would move the arm
+        30 mm through free air at the end of every run: was ``contact_force_n``), and only as far
         as the workspace box allows; otherwise it stays put. Moves away after any fault, a force fault
         included (the fault already recorded does not stop it); a new fault on the way (a collision
         over the force limit) stops it there and is raised, and so is ``HardwareFault('protective-stop')``
@@ -609,7 +611,7 @@ class Arm:
         if self._retract_pose is not None:
             target = self._retract_pose
         else:
-            away = backoff_direction(now.tcp_wrench, self.settings.contact_force_n)
+            away = backoff_direction(now.tcp_wrench, self.settings.max_preload_n)
             if away is None:
                 return now
             target = now.tcp_pose.copy()
