@@ -457,6 +457,7 @@ class _Flow:
             raise InputError("the calibration set has no held-out contact poses; record more poses per object")
         self.progress(Step.VALIDATE, 0.1, f"{len(held)} held-out frames")
         pred = predict_frames(estimator, held.ir)
+        self.check_stop()  # the step's longest part is done: a stop ends the run here (was: at the step's end)
         metrics = depth_metrics(pred, held.depth, **kw)
         per_object = per_object_metrics(pred, held.depth, held.object_name, meta.min_depth, meta.max_depth)
         truth = None

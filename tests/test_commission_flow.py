@@ -637,3 +637,29 @@ def test_a_full_disk_outside_the_recorder_is_a_recorder_fault(tmp_path, capsys, 
     err = capsys.readouterr().err
     assert err == f"bubble: fault: recorder: cannot write {config.run_dir / 'leak_test.npz'}: No space left on device\n"
     assert not config.registry_dir.exists() or SensorRegistry(config.registry_dir).survey().profiles == []
+
+
+def test_a_stop_during_the_validation_ends_the_run_there(faulted_then_resumed, tmp_path, monkeypatch):
+    """Was: a stop during the validate step let the step finish (its statistics, its files) first."""
+    import trainer.evaluation
+
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    state_path = config.run_dir / "state.json"
+    state = json.loads(state_path.read_text())
+    for step in ("validate", "pose_check"):
+        del state["steps"][step]
+    from calibrate.run_directory import RunState
+
+    RunState(state_path, state).save()
+    stop = threading.Event()
+    predict = trainer.evaluation.predict_frames
+
+    def predict_then_stop(*args, **kwargs):
+        out = predict(*args, **kwargs)
+        stop.set()
+        return out
+
+    monkeypatch.setattr(trainer.evaluation, "predict_frames", predict_then_stop)
+    result = run_commissioning(config, lambda e: None, stop)
+    assert result.stopped
+    assert "validate" not in json.loads(state_path.read_text())["steps"]
