@@ -196,8 +196,8 @@ def _placed_objects(names, plate_pose=None) -> list:
     return [o.placed(matrix_to_pose(plate @ o.object_to_base())) for o in placed]
 
 
-def workspace_limits(objects, base: SafetyLimits = SafetyLimits()) -> SafetyLimits:
-    """``base`` limits with each workspace corner it leaves unset (None) fitted around ``objects``:
+def workspace_limits(objects, base: SafetyLimits | None = None) -> SafetyLimits:
+    """``base`` limits (None: the defaults) with each workspace corner they leave unset fitted around ``objects``:
     150 mm around their footprints, from the plate top (the membrane apex may reach down to it
     around a flat object; the force limit guards the press) to 250 mm above the tallest. A bench
     file's ``limits`` that lowers the force alone keeps the fitted box (was: a 1.2 m box from the
@@ -207,6 +207,7 @@ def workspace_limits(objects, base: SafetyLimits = SafetyLimits()) -> SafetyLimi
     plate_z = min(o.fixture_pose[2] for o in objects)
     fitted_min = (float(lo[0] - 0.15), float(lo[1] - 0.15), float(plate_z))
     fitted_max = (float(hi[0] + 0.15), float(hi[1] + 0.15), float(hi[2] + 0.25))
+    base = base or SafetyLimits()
     return replace(base, workspace_min=base.workspace_min or fitted_min, workspace_max=base.workspace_max or fitted_max)
 
 
@@ -264,7 +265,7 @@ class URBenchConfig(BenchConfig):
         from collect.camera import DepthaiToFCamera
 
         objects = _placed_objects(self.objects, self.plate_pose)
-        limits = workspace_limits(objects, self.limits or SafetyLimits())
+        limits = workspace_limits(objects, self.limits)
         home = limits.check_pose(self.home_pose)
         library_said: list[str] = []
         with contextlib.ExitStack() as held:
@@ -326,7 +327,7 @@ class SimBenchConfig(BenchConfig):
             spec = SensorSpec.from_yaml(Path(self.sensor))
         faults = [f if isinstance(f, SimFault) else parse_sim_fault(f) for f in self.faults]
         objects = _placed_objects(self.objects)
-        limits = workspace_limits(objects, self.limits or SafetyLimits())
+        limits = workspace_limits(objects, self.limits)
         start = None if self.start_pose is None else limits.check_pose(self.start_pose)
         scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed, start_pose=start)
         scene.start()
