@@ -772,11 +772,6 @@ def run_commissioning(
     """
     thresholds = validate_config(config)
     spec = load_sensor_spec(config) if config.simulated else None
-    if config.base_model is None:
-        from trainer.model_dir import BASE_MODEL_DIR
-
-        if not BASE_MODEL_DIR.is_dir():
-            raise InputError(f"the packaged base model {BASE_MODEL_DIR} is missing; give --base-model MODEL_DIR")
     flow = _Flow(config, on_event, stop_event or threading.Event(), thresholds, spec)
     flow.run_dir.mkdir(parents=True, exist_ok=True)
     with output_folder_lock(flow.run_dir, "bubble commission (or bubble tui)"):

@@ -26,7 +26,8 @@ if TYPE_CHECKING:
     from calibrate.commission_config import CommissionConfig
 
 STATE_FILE = "state.json"
-STATE_VERSION = 3  # 2: with its checksum (CHECKSUM_KEY); 3: base model and acceptance limits must match
+STATE_VERSION = 4  # 2: with its checksum (CHECKSUM_KEY); 3: base model and acceptance limits must match;
+#                   4: the base model compared by its weights' SHA-256 (was: by the path as typed)
 CHECKSUM_KEY = "sha256"
 SESSION_FILE = "session.h5"
 REFERENCE_FILE = "reference.h5"
@@ -42,15 +43,20 @@ PLOTS_DIR = "plots"
 FLOW_LOG = "flow.log"
 
 #: Settings that must match when a run directory is resumed (or a finished run reported again):
-#: what was recorded, the model it starts from, and the limits that judge it. The time budgets (the
-#: leak test's hold included: a finished leak test is kept), the simulated faults and the
+#: what was recorded, the weights it starts from and the limits that judge it, both by content (the same
+#: base model given by another path is the same run; other weights at the same path are not). The time
+#: budgets (the leak test's hold included: a finished leak test is kept), the simulated faults and the
 #: simulation speed may change between attempts.
-RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed", "base_model", "limits_sha256")
+RESUME_KEYS = ("simulated", "sensor", "objects", "poses_per_object", "seed", "base_model_sha256", "limits_sha256")
 
 
 def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Thresholds) -> dict:
     """The settings of a run as ``state.json`` records them (``sensor_id``: the simulated sensor's
-    serial, or ``"hardware"``; ``thresholds``: the acceptance thresholds in force)."""
+    serial, or ``"hardware"``; ``thresholds``: the acceptance thresholds in force). The base model's
+    weights must be readable (``validate_config`` checks them first)."""
+    from trainer.dataset import file_sha256  # here: torch, which these two import, is slow to load
+    from trainer.model_dir import WEIGHTS_FILE, resolve_model_dir
+
     return {
         "simulated": bool(config.simulated),
         "sensor": sensor_id,
@@ -61,6 +67,7 @@ def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Threshold
         "leak_hold_s": float(config.leak_hold_s),
         "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
         "base_model": str(config.base_model) if config.base_model else "base",
+        "base_model_sha256": file_sha256(resolve_model_dir(config.base_model or "base") / WEIGHTS_FILE),
         "thresholds": str(config.thresholds) if config.thresholds else "packaged",
         "limits_sha256": thresholds.limits_sha256(),
         "sim_faults": list(config.sim_faults),
@@ -138,6 +145,12 @@ class RunState:
         for key in RESUME_KEYS:
             if saved.get(key) == settings.get(key):
                 continue
+            if key == "base_model_sha256":
+                raise InputError(
+                    f"{run_dir} holds a run fine-tuned from other base-model weights (--base-model "
+                    f"{saved.get('base_model')!r}) than --base-model gives now ({settings.get('base_model')!r}); use a "
+                    "new --out directory to commission from another base model"
+                )
             if key == "limits_sha256":
                 raise InputError(
                     f"{run_dir} holds a run judged by other acceptance limits (thresholds {saved.get('thresholds')!r}) "

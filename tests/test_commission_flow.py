@@ -227,7 +227,7 @@ def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
 def test_a_finished_run_is_not_reported_again_under_other_limits_or_another_base_model(faulted_then_resumed, tmp_path):
     """Was: re-run with a stricter --thresholds, a finished run printed ACCEPTED under the limits it
     was judged by, and a resumed one mixed the two; another --base-model was taken the same way."""
-    from trainer.model_dir import BASE_MODEL_DIR
+    from trainer.model_dir import BASE_MODEL_DIR, WEIGHTS_FILE, load_weights, write_safetensors
 
     config = faulted_then_resumed["config"]
     strict = tmp_path / "strict.yaml"
@@ -235,9 +235,17 @@ def test_a_finished_run_is_not_reported_again_under_other_limits_or_another_base
     with pytest.raises(InputError, match=r"holds a run judged by other acceptance limits \(thresholds '.*lenient.yaml'\) "
                                          r"than --thresholds gives now \('.*strict.yaml'\)"):
         run_commissioning(dataclasses.replace(config, thresholds=strict), lambda e: None)
-    other_model = tmp_path / "other_model"
+    same_model = tmp_path / "same_model"  # the same weights by another path: the same run (was: refused)
+    shutil.copytree(BASE_MODEL_DIR, same_model)
+    assert run_commissioning(dataclasses.replace(config, base_model=same_model), lambda e: None).accepted
+    other_model = tmp_path / "other_model"  # other weights (was: taken when given by the same path)
     shutil.copytree(BASE_MODEL_DIR, other_model)
-    with pytest.raises(InputError, match="holds a run with base_model='base', not '.*other_model'"):
+    weights = load_weights(other_model)
+    first = next(k for k, t in weights.items() if t.is_floating_point())
+    weights[first] = weights[first] + 1e-3
+    write_safetensors(weights, other_model / WEIGHTS_FILE)
+    with pytest.raises(InputError, match=r"holds a run fine-tuned from other base-model weights \(--base-model "
+                                         r"'base'\) than --base-model gives now \('.*other_model'\)"):
         run_commissioning(dataclasses.replace(config, base_model=other_model), lambda e: None)
     reworded = tmp_path / "reworded.yaml"  # the same limits in another file, with other wording: the same run
     reworded.write_text(LENIENT_MODEL_CHECKS + "  leak_rate_hpa_per_min: {describe: leak rate at rest}\n")
