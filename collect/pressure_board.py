@@ -21,7 +21,10 @@ in a row (a tenth of a second of the stream: noise on the cable, a wrong baud ra
 ``HPA_RANGE``; replies such as ``ERR`` do not count) came for ``stale_timeout_s``, both on
 the bench clock and on the host's (the same clock on real hardware; on the simulated bench, whose
 clock runs ``--sim-speed`` times faster, a reader thread the OS holds back for a quarter of a
-second is not a silent board).
+second is not a silent board). ``HardwareFault('pressure-frozen')`` is a board that streams
+``MAX_FROZEN_RUN`` readings in a row of exactly the same pressure: a sensor that stopped converting,
+whose firmware repeats its last value (a live sensor's noise moves the line's last digit; a frozen
+one would pass the leak test of a leaking bubble).
 """
 
 from __future__ import annotations
@@ -58,6 +61,10 @@ BOOT_RETRY_S = 0.5
 #: hPa a reading may hold: the board's MPRLS-class sensor spans 0-25 psi (0-1724 hPa absolute). A
 #: value outside (a ``nan`` or ``inf`` a driver prints for a failed conversion) is a corrupt line.
 HPA_RANGE = (0.0, 1724.0)
+#: Readings in a row of exactly the same pressure that make a ``pressure-frozen`` fault: 1 s of the
+#: 100 Hz stream. The sensor's noise (about 0.03 hPa, twice the line's 0.01 hPa resolution) changes
+#: nine in ten live readings; a hundred equal ones in a row never come from a converting sensor.
+MAX_FROZEN_RUN = 100
 
 
 def checksum(body: bytes) -> str:
@@ -116,6 +123,7 @@ class PressureBoard:
         self._last_valid = 0.0  # bench clock, s
         self._last_valid_host = 0.0  # time.monotonic(), s
         self._bad_run = 0
+        self._same_run = 0  # readings in a row equal to the latest (``pressure-frozen`` after MAX_FROZEN_RUN)
         self._heard = False  # a valid line came since the port opened
         self._boot_deadline = 0.0  # time.monotonic() until which silence is a board booting
         self.stats = {"readings": 0, "replies": 0, "bad_checksum": 0, "malformed": 0, "overlong": 0, "seq_gaps": 0}
@@ -188,11 +196,16 @@ class PressureBoard:
             with self._lock:
                 if self._latest is not None:
                     self.stats["seq_gaps"] += (seq - self._latest.seq - 1) % SEQ_MODULO
+                self._same_run = self._same_run + 1 if self._latest is not None and hpa == self._latest.hpa else 1
                 reading = PressureReading(t, seq, hpa)
                 self._latest = reading
                 self._readings.append(reading)
                 self.stats["readings"] += 1
                 self._lock.notify_all()
+            if self._same_run == MAX_FROZEN_RUN:
+                self._set_fault(HardwareFault(
+                    "pressure-frozen", f"pressure board: {MAX_FROZEN_RUN} readings in a row of {hpa:.2f} hPa on "
+                                       f"{self.port} (its sensor stopped converting; power-cycle the board)"))
         elif fields[0] in ("ID", "VER", "OK", "ERR"):
             self._good(reading=False)
             with self._lock:

@@ -11,7 +11,8 @@ solution, the leak of a leaky sensor included) plus the sensor's noise (``NOISE_
 rounded to the 0.01 hPa resolution of the line.
 
 Faults from the scene's schedule: ``serial-garbage`` replaces the stream with random bytes,
-broken lines and bad checksums while active; ``serial-unplug`` closes the pty (the port vanishes).
+broken lines and bad checksums while active; ``serial-unplug`` closes the pty (the port vanishes);
+``pressure-frozen`` repeats the last reading's pressure (a sensor that stopped converting).
 Like a UART nobody listens to, output is dropped while the pty buffer is full.
 """
 
@@ -106,6 +107,7 @@ class PressureFirmware:
         t_next = clock.now()
         seq = 0
         pending = b""
+        hpa = None  # the last reading's pressure, hPa as printed
         while not self._loop.stop_event.is_set():
             if self.scene.fault_active("serial-unplug"):
                 self._close()
@@ -123,8 +125,9 @@ class PressureFirmware:
             if self.scene.fault_active("serial-garbage", t_next):
                 self._write(self._garbage())
             elif self.streaming:
-                hpa = self.scene.pressure_hpa(t_next) + NOISE_HPA * self._rng.standard_normal()
-                self._write(encode_line(f"P,{seq},{hpa:.2f}"))
+                if hpa is None or not self.scene.fault_active("pressure-frozen", t_next):
+                    hpa = f"{self.scene.pressure_hpa(t_next) + NOISE_HPA * self._rng.standard_normal():.2f}"
+                self._write(encode_line(f"P,{seq},{hpa}"))
             seq = (seq + 1) % SEQ_MODULO
             t_next += period
             self.scene.pace(PACE_NAME, t_next)

@@ -46,12 +46,13 @@ from collect.numbers import real_number
 log = logging.getLogger(__name__)
 
 #: Fault kinds ``--sim-fault`` accepts.
-FAULT_KINDS = ("camera-stall", "serial-garbage", "serial-unplug", "protective-stop", "force-spike")
+FAULT_KINDS = ("camera-stall", "serial-garbage", "serial-unplug", "pressure-frozen", "protective-stop", "force-spike")
 #: How long each fault lasts once injected (s of simulated time); None = until the end.
 FAULT_DURATION_S = {
     "camera-stall": None,
     "serial-garbage": 0.3,
     "serial-unplug": None,
+    "pressure-frozen": None,
     "protective-stop": None,
     "force-spike": 0.25,
 }

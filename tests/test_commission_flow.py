@@ -579,6 +579,15 @@ def test_an_early_fault_names_itself_where_the_checks_would_be(tmp_path):
     assert f"Acceptance checks</h2><p class='note'>Not available: {result.reason}." in report
 
 
+def test_a_frozen_pressure_board_fails_the_run_not_passes_the_leak_test(tmp_path):
+    """Was: a board repeating one reading gave a leak rate of 0 hPa/min, and a leaking bubble passed."""
+    events: list = []
+    result = run_commissioning(tiny_config(tmp_path, sim_faults=("pressure-frozen@0",)), events.append)
+    assert not result.accepted and result.fault.startswith("pressure-frozen: pressure board: 100 readings in a row")
+    assert not [c for c in result.checks if c["name"] == "leak_rate_hpa_per_min"]
+    assert not (tmp_path / "run" / "leak_test.npz").exists()
+
+
 def test_a_folder_of_other_files_is_refused_as_a_run_folder(tmp_path, capsys):
     """Was: a run into a folder holding no run wrote over its report.html and acceptance.json."""
     folder = tmp_path / "results"

@@ -17,8 +17,10 @@ from collect.bench import BenchConfig, open_bench
 from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.errors import HardwareFault, InputError
 from collect.pose_planner import PlanSettings
+from collect.pressure_board import MAX_FROZEN_RUN
 from collect.session_reader import Session
 from collect.transforms import rotation_between_rad
+from hw_mocks.pressure_firmware import RATE_HZ
 from hw_mocks.sim_bench import FAULT_KINDS, SimFault, parse_sim_fault
 
 
@@ -150,7 +152,8 @@ def test_fault_during_a_collection_stops_the_arm_retracts_and_keeps_the_data(kin
         (fault,) = bench.sim.faults
         (t_detect, retracted), = safe_stops
         assert err.value.kind == kind
-        assert fault.at_s < t_detect < fault.at_s + 0.8  # bounded detection (camera: silent > 0.5 s)
+        # bounded detection (camera: silent > 0.5 s; a frozen pressure: MAX_FROZEN_RUN readings of the 100 Hz stream)
+        assert fault.at_s < t_detect < fault.at_s + 0.8 + (MAX_FROZEN_RUN / RATE_HZ if kind == "pressure-frozen" else 0.0)
         time.sleep(0.1)  # the last millimetre of the retract's braking ramp
         state = bench.arm.state()
         assert np.linalg.norm(bench.sim.arm.tcp_speed()[:3]) == 0.0  # at rest

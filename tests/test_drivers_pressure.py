@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from collect.errors import HardwareFault, InputError
-from collect.pressure_board import MAX_CORRUPT_RUN, PressureBoard, checksum, decode_line, encode_line
+from collect.pressure_board import MAX_CORRUPT_RUN, MAX_FROZEN_RUN, PressureBoard, checksum, decode_line, encode_line
 from conftest import wait_until
 
 
@@ -91,6 +91,30 @@ def test_a_run_of_corrupt_lines_is_a_serial_garbage_fault(pty_board, caplog):
         board.check()
     assert err.value.kind == "serial-garbage"
     assert "recovered" not in caplog.text
+
+
+def test_a_run_of_equal_readings_is_a_pressure_frozen_fault(pty_board):
+    """Was: a board whose sensor stopped converting streamed its last value, and a leaking bubble
+    passed the leak test on it (0 hPa/min)."""
+    board, master = pty_board
+    seq = 0
+
+    def send(hpa: str, n: int) -> None:
+        nonlocal seq
+        for _ in range(n):
+            os.write(master, encode_line(f"P,{seq},{hpa}"))
+            seq += 1
+            time.sleep(0.0005)
+        assert wait_until(lambda: board.latest() is not None and board.latest().seq == seq - 1)
+
+    send("1060.00", MAX_FROZEN_RUN - 1)
+    send("1060.01", 1)  # one reading moved: the run starts again
+    send("1060.01", MAX_FROZEN_RUN - 2)
+    board.check()  # live: 99 equal readings in a row at most
+    send("1060.01", 1)
+    with pytest.raises(HardwareFault, match=r"pressure board: 100 readings in a row of 1060.01 hPa") as err:
+        board.check()
+    assert err.value.kind == "pressure-frozen"
 
 
 def test_command_replies_errors_and_timeouts(pty_board):
