@@ -20,7 +20,9 @@
 
 Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInterrupt`` or any
 other error, the loop calls ``bench.safe_stop()`` (stop the arm, retract when possible), stops the
-recorder thread (every frame taken so far is queued to the writer) and re-raises. The caller owns
+recorder thread (every frame taken so far is queued to the writer) and re-raises; a Ctrl-C (or
+SIGTERM, SIGHUP) during that stop is only acknowledged, so that it neither cuts the retract short
+nor hides the fault (``stop_signals.acknowledge_stop``). The caller owns
 the writer and closes it (``with SessionWriter(...)``), which keeps every frame. A set
 ``stop_event`` ends the run the same way but returns normally with ``result.stopped = True``; the
 arm watches it (``Arm.stop_on``), so a stop in the middle of a motion halts the arm at once.
@@ -43,6 +45,7 @@ from collect.arm import retract_speed
 from collect.errors import HardwareFault, InputError, StopRequested
 from collect.pose_planner import CollectionPlan, PlanSettings, plan_collection
 from collect.session_writer import SessionWriter
+from collect.stop_signals import INTERRUPTS, acknowledge_stop, stop_signals_handled
 
 log = logging.getLogger(__name__)
 
@@ -322,7 +325,9 @@ def run_collection(
         result.stopped = True
         _safe_stop(bench, recorder)
     except BaseException as err:
-        _safe_stop(bench, recorder)
+        # a fault's stop: a signal now is only acknowledged (a Ctrl-C's own stop acknowledges repeats already)
+        with stop_signals_handled(acknowledge_stop, INTERRUPTS):
+            _safe_stop(bench, recorder)
         if isinstance(err, HardwareFault) and isinstance(recorder.error, HardwareFault) and err is not recorder.error:
             # the arm's error followed from the device fault (e.g. a retract aborted by it): report the cause
             raise recorder.error from err

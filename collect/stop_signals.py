@@ -79,11 +79,7 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
         return
 
     def still_stopping(signum, frame) -> None:
-        if signum == signal.SIGINT:
-            try:
-                os.write(2, STILL_STOPPING)
-            except OSError:  # no terminal any more
-                pass
+        acknowledge_stop(signum)
 
     def handler(signum, frame) -> None:
         if _stops_before_exit is not None:  # the process ends after this stop: any signal repeats it
@@ -112,6 +108,17 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
         if not stopping:
             for sig, old in previous.items():
                 signal.signal(sig, old)
+
+
+def acknowledge_stop(signum: int) -> None:
+    """``on_signal`` for a stop already under way, such as a fault's safe stop: the signal would only
+    ask for it again, so a Ctrl-C says ``STILL_STOPPING`` and nothing else happens (was, for a fault:
+    the ``KeyboardInterrupt`` cut the retract short, and the run exited 130, its fault unsaid)."""
+    if signum == signal.SIGINT:
+        try:
+            os.write(2, STILL_STOPPING)
+        except OSError:  # no terminal any more
+            pass
 
 
 def raise_interrupt(signum: int) -> None:

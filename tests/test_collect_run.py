@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import signal
 import tempfile
 import threading
@@ -14,11 +15,12 @@ import pytest
 from calibrate.cli import main
 from collect import session_format as sf
 from collect.arm import MotionSettings
-from collect.bench import BenchConfig, arm_lock, open_bench
+from collect.bench import Bench, BenchConfig, arm_lock, open_bench
 from collect.collection import open_collection_writer, plan_bench_collection, run_collection
 from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
+from collect.stop_signals import INTERRUPTS, STILL_STOPPING
 from conftest import interrupt_once_recording
 
 
@@ -352,6 +354,33 @@ def test_a_second_ctrl_c_does_not_cut_the_stop_short(tmp_path):
     assert code == 130, err
     *before, last = err.strip().splitlines()
     assert last == "bubble: interrupted" and set(before) <= {"bubble: still stopping (arm retracting, files closing) ..."}
+    with Session.open(out) as s:
+        assert s.closed_cleanly and s.n_frames > 0
+
+
+def test_a_ctrl_c_during_a_faults_stop_neither_cuts_it_short_nor_hides_the_fault(tmp_path, monkeypatch, capfd):
+    """Ctrl-C as the safe stop of a fault begins: acknowledged, the arm retracts, the run exits 3 naming
+    its fault (was: the KeyboardInterrupt raised inside that stop, and the run exited 130, "interrupted")."""
+    real_safe_stop = Bench.safe_stop
+    retracted: list[bool] = []
+
+    def interrupted_safe_stop(self) -> bool:
+        if not retracted:
+            os.kill(os.getpid(), signal.SIGINT)  # the operator's Ctrl-C, as the fault's stop begins
+        retracted.append(real_safe_stop(self))
+        return retracted[-1]
+
+    monkeypatch.setattr(Bench, "safe_stop", interrupted_safe_stop)
+    handlers = {sig: signal.getsignal(sig) for sig in INTERRUPTS}
+    try:
+        code, out = _collect(tmp_path, "--sim-fault", "force-spike@3")
+    finally:  # the command leaves them ignored, as the process would end after it
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    err = capfd.readouterr().err.strip().splitlines()  # the acknowledgement is written to the descriptor
+    assert code == 3, err
+    assert err[-1].startswith("bubble: fault: force-spike: ") and STILL_STOPPING.decode().strip() in err
+    assert retracted[0]
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 0
 
