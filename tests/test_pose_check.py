@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from calibrate.pose_check import SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, pooled_result, run_pose_check
+from calibrate.pose_check import (SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, perturbed_prior, pooled_result,
+                                  run_pose_check)
 from calibrate.pose_estimation import Pose, align_symmetry, position_error, quat_to_matrix, shape_from_object
 from collect import session_format as sf
 from collect.errors import InputError
@@ -136,6 +137,18 @@ def test_pose_check_on_a_geometric_session(tmp_path):
     assert frame.e_x_mm != pytest.approx(1e3 * position_error(aligned, meas), rel=1e-3)
 
 
+def test_the_prior_is_off_by_its_error_at_the_shapes_centre():
+    """A 2 mm, 2 deg prior puts the mug's cylinder (94 mm from the object's origin) 2 mm off (was: turned
+    about the origin, up to 5.3 mm off)."""
+    center = np.array(MUG["center"])
+    truth = Pose(np.array([0.01, -0.02, 0.09]), np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2]))
+    for seed in range(20):
+        prior = perturbed_prior(truth, np.random.default_rng(seed), 2.0, 2.0, center)
+        assert 1e3 * position_error(prior, truth, center) == pytest.approx(2.0)
+        turn = quat_to_matrix(prior.quaternion) @ quat_to_matrix(truth.quaternion).T
+        assert np.degrees(np.arccos((np.trace(turn) - 1) / 2)) == pytest.approx(2.0)
+
+
 def test_pooled_result_takes_the_errors_over_every_run_frame(tmp_path):
     runs = [run_pose_check(DecodingEstimator(noise_m=noise), write_cylinder_session(tmp_path / f"c{i}.h5", seed=i), "mug")
             for i, noise in enumerate((5e-5, 3e-4))]
@@ -147,6 +160,10 @@ def test_pooled_result_takes_the_errors_over_every_run_frame(tmp_path):
     assert pooled.vs_true["true"]["e_x_mm"].median == pytest.approx(
         np.median([f.vs_true["true"]["e_x_mm"] for r in runs for f in r.frames]))
     assert pooled.session == f"{runs[0].session}; {runs[1].session}"
+    # the rate over all fits (was: the mean of the runs' rates, a run of 10 fits weighed as one of 1000)
+    fast, slow = dataclasses.replace(runs[0], hz=1000.0, n_fits=1000), dataclasses.replace(runs[1], hz=10.0, n_fits=10)
+    assert pooled_result([fast, slow]).hz == pytest.approx(1010 / 2.0)
+    assert pooled.n_fits == runs[0].n_fits + runs[1].n_fits > 0
     assert pooled.depth_metrics["n_images"] == 18  # the depth metrics: per image, so the mean of the two runs
     assert pooled.depth_metrics["rmse"] == pytest.approx((runs[0].depth_metrics["rmse"] + runs[1].depth_metrics["rmse"]) / 2)
     assert runs[0].depth_metrics["rmse"] < runs[1].depth_metrics["rmse"]  # the noisier decoder
