@@ -11,7 +11,9 @@ from conftest import make_synthetic_session
 import trainer.training
 from trainer.checkpoint import has_checkpoint
 from trainer.model_dir import BASE_MODEL_DIR, WEIGHTS_FILE, load_metadata
-from trainer.pretrain import TRAIN_DIR, main, write_model_card_section
+from collect.errors import InputError
+from trainer.model_dir import METADATA_FILE, ONNX_FILE
+from trainer.pretrain import MAX_BASE_MODEL_BYTES, TRAIN_DIR, main, package_base_model, write_model_card_section
 
 
 def _sensor_sessions(work, n):
@@ -181,6 +183,11 @@ def test_pretrain_stopped_by_a_signal_checkpoints_the_step_reached(tmp_path, mon
                                           "and --resume", err[0]), err
     assert json.loads((model / "checkpoint.json").read_text())["progress"]["step"] == 2
     assert not (model / WEIGHTS_FILE).exists() and not out.exists()
+    assert main(train) == 2  # without --resume: refused (was: trained anew, the checkpoint written over)
+    assert capsys.readouterr().err.splitlines() == [
+        f"pretrain: error: {model} holds the checkpoint of an interrupted training; add --resume to continue it, "
+        "or remove it to train anew"]
+    assert json.loads((model / "checkpoint.json").read_text())["progress"]["step"] == 2
     monkeypatch.undo()
     save_model = trainer.training.save_model
 
@@ -206,3 +213,27 @@ def test_pretrain_collect_checks_objects_and_sim_speed_before_recording(tmp_path
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and err[0].startswith("pretrain: error: ") and says in err[0], err
     assert not (tmp_path / "w").exists()
+
+
+def test_packaging_a_base_model_over_budget_leaves_the_old_one(tmp_path):
+    """Was: the oversized files were copied over the base model, then refused."""
+    out = tmp_path / "base"
+    out.mkdir()
+    for name in (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE):
+        (out / name).write_text(f"old {name}")
+    big = tmp_path / "big"
+    big.mkdir()
+    (big / METADATA_FILE).write_text("{}")
+    with open(big / WEIGHTS_FILE, "wb") as f:  # sparse: over the budget without writing it
+        f.truncate(MAX_BASE_MODEL_BYTES + 1)
+    with pytest.raises(InputError, match=rf"base model is 20.0 MB, over the 20 MB budget; {re.escape(str(out))} is left as it was"):
+        package_base_model(big, out)
+    assert sorted(p.name for p in out.iterdir()) == sorted((WEIGHTS_FILE, METADATA_FILE, ONNX_FILE))
+    assert all((out / name).read_text() == f"old {name}" for name in (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE))
+    small = tmp_path / "small"  # within budget and without an ONNX export: the old export goes
+    small.mkdir()
+    (small / METADATA_FILE).write_text("{}")
+    (small / WEIGHTS_FILE).write_bytes(b"w")
+    assert package_base_model(small, out) == out
+    assert sorted(p.name for p in out.iterdir()) == sorted((WEIGHTS_FILE, METADATA_FILE))
+    assert (out / WEIGHTS_FILE).read_bytes() == b"w"

@@ -156,10 +156,13 @@ def test_the_deadline_binds_before_the_first_step_and_in_a_resumed_run(session, 
 
 
 @pytest.mark.parametrize("change, named", [(dict(seed=1), "--seed"), (dict(holdout_object="box"), "split (--split"),
-                                           (dict(frame_stride=2), "--frame-stride")])
+                                           (dict(frame_stride=2), "--frame-stride"), (dict(lr=1e-4), "--lr"),
+                                           (dict(contact_weight=0.0), "--contact-weight"),
+                                           (dict(augment=False), "--no-augment")])
 def test_a_checkpoint_resumes_only_with_the_frames_it_trained_on(session, tmp_path, change, named):
     """Was: ``--resume --seed 1`` after a seed-0 start validated on poses the first part had trained on,
-    and wrote held-out metrics for them."""
+    and wrote held-out metrics for them; and a resume with another recipe (learning rate, loss,
+    augmentation) was taken, the model's metadata recording the resumed run's alone."""
     out = tmp_path / "model"
     _interrupted_after_3_steps(session, out)
     with pytest.raises(InputError, match=f"the checkpoint in {out} was trained with other settings \\(.*{re.escape(named)}"):
@@ -266,7 +269,33 @@ def test_evaluate_command_writes_metrics_latency_and_truth_comparison(bubble, tr
     assert vs["tof"]["a1"] > 0.99 and 0 < vs["tof_coverage"] < 1
     assert vs["model_on_tof_dropout"]["n_pixels"] > 0
     out = capsys.readouterr().out
-    assert "Abs.Rel" in out and "RMSE [m]" in out  # was: "RMSE", its unit taken for a rich markup tag
+    assert "Abs.Rel" in out and "RMSE [mm]" in out  # was: "RMSE", its unit taken for a rich markup tag
+
+
+def test_the_metrics_table_shows_rmse_in_mm_and_names_as_text():
+    """Was: "RMSE [m]" to 4 decimals (0.14 and 0.24 mm both 0.0001-0.0002), and a row named after a mesh
+    ``bracket[v2].stl`` showed as "bracket" (its name read as rich markup)."""
+    from rich.console import Console
+
+    from trainer.cli import metrics_table
+
+    metrics = {"abs_rel": 0.0021, "rmse": 0.00014, "rmse_log": 0.003, "silog": 0.2, "a1": 1.0, "n_images": 3}
+    console = Console(record=True, width=120)
+    console.print(metrics_table("t", {"bracket[v2]": metrics, "cup[bold]": {**metrics, "rmse": 0.00024}}))
+    text = console.export_text()
+    assert "RMSE [mm]" in text and "bracket[v2]" in text and "cup[bold]" in text
+    assert "0.140" in text and "0.240" in text
+
+
+def test_train_refuses_a_json_result_inside_its_model_directory(bubble, session, tmp_path, capsys):
+    """Was: ``--json MODEL/metadata.json`` passed the check on an existing --out, and the result was written
+    over the model's metadata (the model no longer loaded)."""
+    out = tmp_path / "m"
+    out.mkdir()
+    assert bubble("train", "--data", session, "--out", out, "--epochs", "0.1", "--json", out / "metadata.json") == 2
+    assert capsys.readouterr().err == (f"bubble: error: --json {out / 'metadata.json'} is inside the model directory "
+                                       f"{out}, whose files training writes; write the result elsewhere\n")
+    assert list(out.iterdir()) == []
 
 
 def test_an_object_without_tof_depth_is_a_row_of_dashes(bubble, trained, session, tmp_path, capsys):
@@ -489,6 +518,12 @@ def test_ctrl_c_during_training_checkpoints_the_step_reached(bubble, session, tm
     assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
     assert json.loads((out / "checkpoint.json").read_text())["progress"]["step"] == 2
     monkeypatch.setattr(Progress, "update", update)
+    checkpoint = (out / "checkpoint.json").read_text()
+    assert bubble(*train) == 2  # the same command without --resume: refused (was: trained anew over the checkpoint)
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"bubble: error: {out} holds the checkpoint of an interrupted training; add --resume to continue it, or "
+        "choose another --out")
+    assert (out / "checkpoint.json").read_text() == checkpoint
     assert bubble(*train, "--resume") == 0
     assert load_metadata(out).training["steps"] > 2 and not has_checkpoint(out)
 

@@ -24,8 +24,10 @@ from trainer.training_defaults import (
     DEFAULT_MINUTES,
 )
 
-#: Columns of the paper's tables: (metric key, header).
-PAPER_COLUMNS = (("abs_rel", "Abs.Rel"), ("rmse", "RMSE [m]"), ("rmse_log", "RMSE_log"), ("silog", "SILog"), ("a1", "δ<1.05"))
+#: Columns of the paper's tables: (metric key, header, scale, decimals). RMSE in mm: the bubble's are
+#: 0.05-2 mm, which "RMSE [m]" to 4 decimals showed as 0.0001-0.0020 (two models 0.1 mm apart alike).
+PAPER_COLUMNS = (("abs_rel", "Abs.Rel", 1.0, 4), ("rmse", "RMSE [mm]", 1e3, 3), ("rmse_log", "RMSE_log", 1.0, 4),
+                 ("silog", "SILog", 1.0, 4), ("a1", "δ<1.05", 1.0, 4))
 
 
 def add_training_options(parser: argparse.ArgumentParser, *, init_help: str, minutes: float, frame_stride: int) -> None:
@@ -129,11 +131,12 @@ def metrics_table(title: str, rows: dict[str, dict]):
 
     table = Table(title=title)
     table.add_column("data")
-    for _, header in PAPER_COLUMNS:
-        table.add_column(escape(header), justify="right")  # "RMSE [m]": [m] is no rich markup tag
+    for _, header, _, _ in PAPER_COLUMNS:
+        table.add_column(escape(header), justify="right")  # "RMSE [mm]": [mm] is no rich markup tag
     table.add_column("images", justify="right")
-    for name, m in rows.items():
-        table.add_row(name, *(f"{m[key]:.4f}" if math.isfinite(m[key]) else "-" for key, _ in PAPER_COLUMNS),
+    for name, m in rows.items():  # a name is text too: an object "bracket[v2]" showed as "bracket"
+        table.add_row(escape(name), *(f"{m[key] * scale:.{decimals}f}" if math.isfinite(m[key]) else "-"
+                                      for key, _, scale, decimals in PAPER_COLUMNS),
                       str(m["n_images"]))  # "-": no image of that row has a valid pixel (was: nan)
     return table
 
@@ -162,7 +165,7 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from collect.errors import InputError
-    from trainer.checkpoint import check_resumable
+    from trainer.checkpoint import check_resumable, has_checkpoint
     from trainer.model_dir import WEIGHTS_FILE
     from trainer.stop_on_signal import TrainingStop
     from trainer.training import TrainConfig, train_model
@@ -180,6 +183,9 @@ def run_train(args: argparse.Namespace) -> int:
         raise InputError(f"{' and '.join(chosen)} each choose the validation frames; give one of them")
     if args.json is not None:
         check_json_output(args.json, "bubble train")
+        if Path(args.json).resolve().is_relative_to(out.resolve()):  # was: e.g. written over its metadata.json
+            raise InputError(f"--json {args.json} is inside the model directory {out}, whose files training "
+                             "writes; write the result elsewhere")
     config = TrainConfig(
         data=args.data,
         out=args.out,
@@ -229,6 +235,9 @@ def run_train(args: argparse.Namespace) -> int:
                                  "it further)")
             if args.resume:
                 check_resumable(out, "choose another --out, or drop --resume")
+            elif has_checkpoint(out):  # was: trained anew, and its first checkpoint wrote over the interrupted one
+                raise InputError(f"{out} holds the checkpoint of an interrupted training; add --resume to continue "
+                                 "it, or choose another --out")
             with stop.handled():
                 result = train_model(config, on_progress, stop.event)
     finally:

@@ -21,6 +21,7 @@ model sees exactly what commissioning records.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import shutil
 import subprocess
@@ -28,6 +29,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from collect.atomic_files import replacing
 from collect.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, OneLineParser
 from collect.output_files import check_parent_dirs, named_path
 from collect.stop_signals import Terminated
@@ -120,14 +122,22 @@ def run_collect(args: argparse.Namespace) -> int:
 
 
 def package_base_model(model_dir: Path, out: Path) -> Path:
-    """Copy the deployable files of ``model_dir`` into ``out`` and check the size budget."""
-    out.mkdir(parents=True, exist_ok=True)
-    for name in (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE):
-        if (model_dir / name).is_file():
-            shutil.copy2(model_dir / name, out / name)
-    size = sum(p.stat().st_size for p in out.iterdir() if p.is_file())
+    """Copy the deployable files of ``model_dir`` into ``out`` once they fit the size budget (``InputError``
+    otherwise, ``out`` untouched; was: copied over the base model, then refused). Each file is
+    copied whole beside its target and renamed over it (``atomic_files.replacing``), the three
+    renames last, and a deployable file of ``out`` that ``model_dir`` lacks (an ONNX export) is
+    removed: a failed copy leaves the earlier model, never new weights beside old metadata."""
+    names = [name for name in (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE) if (model_dir / name).is_file()]
+    size = sum((model_dir / name).stat().st_size for name in names)
     if size > MAX_BASE_MODEL_BYTES:
-        raise InputError(f"base model is {size / 2**20:.1f} MB, over the {MAX_BASE_MODEL_BYTES / 2**20:.0f} MB budget")
+        raise InputError(f"base model is {size / 2**20:.1f} MB, over the {MAX_BASE_MODEL_BYTES / 2**20:.0f} MB "
+                         f"budget; {out} is left as it was")
+    out.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as copies:  # every copy written before the first rename
+        for name in names:
+            shutil.copy2(model_dir / name, copies.enter_context(replacing(out / name)))
+    for name in {WEIGHTS_FILE, METADATA_FILE, ONNX_FILE} - set(names):
+        (out / name).unlink(missing_ok=True)
     return out
 
 
@@ -171,7 +181,7 @@ def run_train(args: argparse.Namespace) -> int:
     """Train on the sessions of ``--work`` and package the base model. A stop (Ctrl-C, SIGTERM, SIGHUP)
     ends it as it ends ``bubble train`` (``trainer.stop_on_signal``): at once while the data loads,
     else after the step in progress, checkpointed in ``--work``/model for ``--resume``."""
-    from trainer.checkpoint import check_resumable
+    from trainer.checkpoint import check_resumable, has_checkpoint
     from trainer.stop_on_signal import TrainingStop
 
     work = Path(args.work)
@@ -198,6 +208,9 @@ def run_train(args: argparse.Namespace) -> int:
     options = training_options(args)
     if args.resume:  # was: a fresh training when there was nothing to resume
         check_resumable(work / TRAIN_DIR, "drop --resume to train anew")
+    elif has_checkpoint(work / TRAIN_DIR):  # was: trained anew over it, its progress lost at the first checkpoint
+        raise InputError(f"{work / TRAIN_DIR} holds the checkpoint of an interrupted training; add --resume to "
+                         "continue it, or remove it to train anew")
 
     stop = TrainingStop()
 

@@ -39,13 +39,14 @@ from trainer.dataset import (
     NetworkTensors,
     check_each_recording_once,
     check_each_session_once,
+    file_sha256,
     load_frames,
     to_network_tensors,
 )
 from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
-from trainer.model_dir import ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model
+from trainer.model_dir import WEIGHTS_FILE, ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, check_width, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
 from trainer.splits import TRAIN_FRACTION, split_holdout_object, split_in_class
@@ -200,8 +201,11 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
 
 
 def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, split_info: dict, world_size: int) -> dict:
-    """What decides which frames train, which validate and in what order: a checkpoint resumes only
-    with the same (``_check_resume``)."""
+    """What decides which frames train, which validate and in what order, and the recipe they train
+    with (the initial weights, by their SHA-256, the learning rate, the loss and the augmentation): a
+    checkpoint resumes only with the same (``_check_resume``; was: the recipe unchecked, so that a
+    resume without ``--init`` recorded ``init: null`` for a fine-tuned model)."""
+    init = file_sha256(resolve_model_dir(config.init) / WEIGHTS_FILE) if config.init else None
     return plain_json({
         "data": [s.sha256 for s in frames.sources],
         "val_data": [s.sha256 for s in val_frames.sources] if config.val_data else [],
@@ -211,21 +215,30 @@ def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, spl
         "seed": config.seed,
         "batch_size": config.batch_size,
         "world_size": world_size,
+        "init": init,
+        "lr": config.lr,
+        "inverse_depth_loss": config.inverse_depth_loss,
+        "contact_weight": config.contact_weight,
+        "augment": config.augment,
+        "ir_noise_std": config.ir_noise_std,
     })
 
 
 def _check_resume(out_dir: Path, saved: dict | None, current: dict) -> None:
-    """Refuse to resume the checkpoint in ``out_dir`` with other data, split, seed or batches (was:
+    """Refuse to resume the checkpoint in ``out_dir`` with other data, split, seed, batches or recipe (was:
     resumed, then validated on frames the first part had trained on, with held-out metrics to match)."""
-    if saved == current:
-        return
     if saved is None:
         raise InputError(f"the checkpoint in {out_dir} does not record which frames it trained on (an older "
                          "bubble); train anew, without --resume")
     names = {"data": "--data", "val_data": "--val-data", "split": "split (--split, --holdout-object, --val-data)",
              "objects": "--objects", "frame_stride": "--frame-stride", "seed": "--seed", "batch_size": "--batch-size",
-             "world_size": "number of processes"}
-    changed = [names.get(k, k) for k in current if saved.get(k) != current[k]]
+             "world_size": "number of processes", "init": "--init", "lr": "--lr",
+             "inverse_depth_loss": "--inverse-depth-loss", "contact_weight": "--contact-weight",
+             "augment": "--no-augment", "ir_noise_std": "pixel noise"}
+    # a key the checkpoint lacks (one of an earlier bubble's, which recorded the frames alone) is not checked
+    changed = [names.get(k, k) for k in current if k in saved and saved[k] != current[k]]
+    if not changed:
+        return
     raise InputError(f"the checkpoint in {out_dir} was trained with other settings ({', '.join(changed)}): resume "
                      "with the same ones, or train anew without --resume (its validation frames could be frames "
                      "the checkpoint trained on)")
