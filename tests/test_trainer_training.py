@@ -13,6 +13,8 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
 
 import calibrate.cli
 from collect.errors import InputError
@@ -128,6 +130,15 @@ def test_a_checkpoint_of_two_saves_or_of_other_content_is_refused(session, tmp_p
         state_path.write_text(json.dumps(content))
         with pytest.raises(InputError, match=message):
             train_model(_config([session], out, epochs=2, export_onnx=False, resume=True))
+    state_path.write_text(json.dumps(state))  # an edited tensor name (was: a ValueError traceback)
+    weights_path = out / "checkpoint.safetensors"
+    with safe_open(str(weights_path), "pt") as f:
+        metadata = f.metadata()
+    tensors = load_file(str(weights_path))
+    tensors["optim.x.exp_avg"] = next(t for k, t in tensors.items() if k.startswith("optim.")).clone()
+    save_file(tensors, str(weights_path), metadata)
+    with pytest.raises(InputError, match="its optimizer state does not match the network"):
+        train_model(_config([session], out, epochs=2, export_onnx=False, resume=True))
 
 
 def test_a_stop_during_a_validation_ends_the_training_at_that_step(session, tmp_path):

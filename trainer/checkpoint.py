@@ -86,11 +86,11 @@ def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     except RuntimeError as err:
         raise InputError(f"checkpoint in {model_dir} does not match the network: {str(err).splitlines()[0]}") from None
     opt_state: dict = {}
-    for key, value in tensors.items():
-        if key.startswith("optim."):
-            _, index, name = key.split(".", 2)
-            opt_state.setdefault(int(index), {})[name] = value
-    try:
+    try:  # a tensor name that is not optim.<index>.<name> (an edited file) is a ValueError too (was: a traceback)
+        for key, value in tensors.items():
+            if key.startswith("optim."):
+                _, index, name = key.split(".", 2)
+                opt_state.setdefault(int(index), {})[name] = value
         optimizer.load_state_dict({"state": opt_state, "param_groups": state["param_groups"]})
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"cannot read the checkpoint in {model_dir}: its optimizer state does not match the "
