@@ -207,7 +207,7 @@ def run_sensors(args) -> int:
         data = profile.data
         print(f"{profile.serial}: {profile.status} ({'simulated' if data.get('simulated') else 'hardware'})")
         print(f"  directory  {profile.path}")
-        accepted = f" (accepted {data['accepted_at']})" if profile.model_dir else ""
+        accepted = f" (accepted {data['accepted_at']})" if profile.model_dir and "accepted_at" in data else ""
         print(f"  model      {profile.model_dir or '-'}{accepted}")
         for name in profile.missing():
             print(f"  MISSING    {name}: profile.json names it, but {profile.path} no longer holds it (deleted?); "

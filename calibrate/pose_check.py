@@ -378,7 +378,8 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
         ax.hist([getattr(f, key) for f in result.frames], bins=20, color="tab:blue")
         ax.set_xlabel(label)
         ax.set_ylabel("frames")
-    fig.suptitle(f"{result.object_name}: pose from predicted vs measured depth ({result.n_used} frames)")
+    fig.suptitle(f"{result.object_name}: pose from predicted vs measured depth ({result.n_used} frames)",
+                 parse_math=False)  # the object's name is text (a mesh cup$^$.stl read as math failed the plot)
     fig.tight_layout()
     written.append(errors_png)
     _save_figure(fig, written[-1])
@@ -391,7 +392,7 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
             ax.set_xlabel(label)
             ax.set_ylabel("frames")
             ax.legend()
-        fig.suptitle(f"{result.object_name}: each depth source vs the true pose")
+        fig.suptitle(f"{result.object_name}: each depth source vs the true pose", parse_math=False)
         fig.tight_layout()
         written.append(vs_true_png)
         _save_figure(fig, written[-1])

@@ -196,7 +196,9 @@ def _examples_plot(ir, depth, pred, labels, true=None) -> str:
         for j, (title, image, cmap, vmin, vmax) in enumerate(panels):
             ax = axes[i, j]
             im = ax.imshow(image, cmap=cmap, vmin=vmin, vmax=vmax)
-            ax.set_title(f"{title}" + (f"\n{labels[i]}" if j == 0 and i < len(labels) else ""), fontsize=8)
+            # an object's name is text: a mesh cup$^$.stl was read as math, and the report failed before registration
+            ax.set_title(f"{title}" + (f"\n{labels[i]}" if j == 0 and i < len(labels) else ""), fontsize=8,
+                         parse_math=False)
             ax.axis("off")
             if j > 0:
                 fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)

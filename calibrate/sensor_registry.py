@@ -69,7 +69,10 @@ class SensorProfile:
 
     @property
     def model_dir(self) -> Path | None:
-        return self.path / "model" if (self.path / "model").is_dir() else None
+        """The accepted model's folder: the one ``profile.json`` names, when present. A ``model/`` it does
+        not name (a registration killed between storing the model and writing the profile) is none."""
+        folder = self.path / "model"
+        return folder if self.data.get("model") and folder.is_dir() else None
 
     @property
     def model_state(self) -> str:

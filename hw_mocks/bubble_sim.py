@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from collect.errors import InputError
 from hw_mocks.dome import Dome, RayGrid
 from hw_mocks.dot_pattern import albedo_texture
 from hw_mocks.ir_render import IrRenderer, surface_incidence
@@ -28,6 +29,10 @@ from collect.transforms import invert, pose_to_matrix
 
 #: Physics grid spacing in image pixels.
 PHYSICS_STEP = 2
+#: Most cells the physics grid may have: the drawn sensors' hold 6-12 thousand; a spec whose focal length
+#: and image size pass their own checks may still spread the rim over millions of pixels, which the
+#: solver would take minutes per frame for.
+MAX_PHYSICS_CELLS = 250_000
 
 
 @dataclass
@@ -80,6 +85,16 @@ class BubbleSim:
         self._rng = np.random.default_rng(seed)
         h, w = spec.height, spec.width
 
+        # Physics grid covering the whole rim (it may extend beyond the image): its size, checked first.
+        u_min, u_max, v_min, v_max = self.dome.rim_pixel_bounds()
+        s = PHYSICS_STEP
+        u0, v0 = math.floor(u_min) - 2 * s, math.floor(v_min) - 2 * s
+        shape = (int(math.ceil((v_max - v0) / s)) + 3, int(math.ceil((u_max - u0) / s)) + 3)
+        if shape[0] * shape[1] > MAX_PHYSICS_CELLS:
+            raise InputError(f"sensor {spec.serial}: its camera (fx {spec.fx:g}, fy {spec.fy:g} px) sees the bubble's "
+                             f"rim over {u_max - u_min:.0f} x {v_max - v_min:.0f} px, a physics grid of "
+                             f"{shape[0] * shape[1]} cells (at most {MAX_PHYSICS_CELLS}); check fx and fy")
+
         # Full image grid.
         self.grid = RayGrid.build(spec, 0.0, 0.0, 1, (h, w))
         depth, mask = self.dome.rest_depth(self.grid)
@@ -88,11 +103,7 @@ class BubbleSim:
         self._rest_depth64 = depth
         self.housing_depth = self.dome.rim_plane_depth(self.grid).astype(np.float32)
 
-        # Physics grid covering the whole rim (it may extend beyond the image).
-        u_min, u_max, v_min, v_max = self.dome.rim_pixel_bounds()
-        s = PHYSICS_STEP
-        u0, v0 = math.floor(u_min) - 2 * s, math.floor(v_min) - 2 * s
-        shape = (int(math.ceil((v_max - v0) / s)) + 3, int(math.ceil((u_max - u0) / s)) + 3)
+        # The physics grid itself.
         self.physics = RayGrid.build(spec, u0, v0, s, shape)
         d_phys, m_phys = self.dome.rest_depth(self.physics)
         self._d_phys = np.where(m_phys, d_phys, 0.0)

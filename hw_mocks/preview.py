@@ -85,6 +85,7 @@ def render_preview(spec: SensorSpec, object_name: str, press_m: float, out: Path
         f"(+{state.pressure_hpa - rest_hpa:.2f})  |  force {force:.2f} N  |  dent {state.dent_volume_m3 * 1e6:.2f} cm3"
         f"  |  valid depth {np.mean(frame.depth[mask] > 0) * 100:.0f}% of membrane",
         fontsize=11,
+        parse_math=False,  # the object's name is text: a mesh cup$^$.stl was read as math (a traceback)
     )
     try:
         out.parent.mkdir(parents=True, exist_ok=True)

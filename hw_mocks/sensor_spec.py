@@ -34,6 +34,11 @@ MAX_SEED = 2**32 - 1
 #: How far the camera may sit off the bubble's axis (m) and turn away from it (rad) in a spec.
 CAMERA_OFFSET_MAX_M = 0.02
 CAMERA_TURN_MAX_RAD = math.radians(20.0)
+#: Field of view (degrees, across the image's width and height from ``fx``, ``fy``) a spec may give its
+#: camera: the drawn sensors see 82-91 x 67-76 degrees. A focal length off by a factor of ten (a slipped
+#: decimal point: 10 degrees) is refused here; it made a physics grid 100 times as large, and a
+#: preview or a run that never came back.
+FOV_RANGE_DEG = (30.0, 150.0)
 
 ATMOSPHERE_PA = 101325.0
 
@@ -177,7 +182,7 @@ class SensorSpec:
         except yaml.YAMLError as err:
             mark = getattr(err, "problem_mark", None)
             where = f" at line {mark.line + 1}" if mark is not None else ""
-            raise InputError(f"sensor spec {path}: bad YAML{where}") from None
+            raise InputError(f"sensor spec {path}: bad YAML{where}: {str(err).splitlines()[0]}") from None
         return cls.from_dict(data, source=f"sensor spec {path}")
 
     def to_yaml(self, path: str | Path) -> None:
@@ -209,6 +214,11 @@ class SensorSpec:
         if (turn := math.hypot(*rotation)) > CAMERA_TURN_MAX_RAD:
             raise InputError(f"{source}: field 'camera_in_tcp' rotation of {turn:.3g} rad turns the "
                              f"camera more than {CAMERA_TURN_MAX_RAD:.3g} rad away from the dome")
+        for axis, pixels, focal in (("fx", self.width, self.fx), ("fy", self.height, self.fy)):
+            fov = math.degrees(2.0 * math.atan(pixels / (2.0 * focal)))
+            if not FOV_RANGE_DEG[0] <= fov <= FOV_RANGE_DEG[1]:
+                raise InputError(f"{source}: field '{axis}' = {focal} px gives a field of view of {fov:.1f} degrees "
+                                 f"over {pixels} px; a bubble's camera sees {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g}")
         if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
             raise InputError(f"{source}: field 'cx'/'cy' principal point lies outside the image")
         for rc in self.dead_pixels:
@@ -263,15 +273,17 @@ _STR_FIELDS = {"serial"}
 def _coerce(name: str, value, source: str):
     """Convert one YAML value to the field's type, or raise ``InputError``."""
     try:
-        if name in _STR_FIELDS:
-            if not isinstance(value, (str, int)):
-                raise TypeError
-            return str(value)
+        if name in _STR_FIELDS:  # text only: YAML reads serial: 0042 as the octal 34, 1:30 as 90
+            if not isinstance(value, str):
+                raise InputError(f"{source}: field '{name}' must be text; quote it ({name}: '{value}')")
+            return value
         if name == "defect":
             return None if value is None else str(value)
         if name == "camera_in_tcp":
             return [float(v) for v in value]
-        if name == "dead_pixels":
+        if name == "dead_pixels":  # whole pixel indices (was: 1.7 taken as 1)
+            if any(isinstance(v, bool) or int(v) != v for rc in value for v in rc):
+                raise ValueError
             return [[int(r), int(c)] for r, c in value]
         if isinstance(value, bool):
             raise TypeError

@@ -3,6 +3,7 @@
 import errno
 import fcntl
 import json
+import shutil
 import threading
 from contextlib import nullcontext
 from pathlib import Path
@@ -194,7 +195,6 @@ def test_sensors_lists_a_deleted_model_and_run_folder_and_a_file_named_as_a_sens
                  reference={"depth_m": np.zeros((2, 2), np.float32)})
     reg.register("SB-B", accepted=False, run_dir=run, intrinsics=INTR, camera_in_tcp=None, simulated=True,
                  acceptance={"accepted": False, "a1": 0.5, "abs_rel": 0.2})
-    import shutil
     shutil.rmtree(tmp_path / "reg" / "SB-A" / "model")
     run.rmdir()
     assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 0
@@ -208,6 +208,23 @@ def test_sensors_lists_a_deleted_model_and_run_folder_and_a_file_named_as_a_sens
     assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 2
     out, err = capsys.readouterr()
     assert "SB-A" in out and err == f"bubble: error: sensor registry entry {tmp_path / 'reg' / 'SB-C'} is not a directory\n"
+
+
+def test_a_model_folder_the_profile_does_not_name_is_no_model(tmp_path, capsys):
+    """A registration killed between storing the accepted model and writing the profile leaves a rejected
+    sensor's folder with a ``model/`` (was: listed as a kept model, and ``bubble sensors SERIAL`` a
+    KeyError traceback: no ``accepted_at``)."""
+    from calibrate.cli import main
+
+    reg = SensorRegistry(tmp_path / "reg")
+    reg.register("SB-C", accepted=False, run_dir=tmp_path, intrinsics=INTR, camera_in_tcp=None, simulated=True,
+                 acceptance={"accepted": False, "a1": 0.5, "abs_rel": 0.2})
+    shutil.copytree(_model_dir(tmp_path, "a"), tmp_path / "reg" / "SB-C" / "model")
+    assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 0
+    assert capsys.readouterr().out.splitlines()[2].split()[-3:] == ["no", "-", "-"]
+    assert main(["sensors", "--registry", str(tmp_path / "reg"), "SB-C"]) == 0
+    out = capsys.readouterr().out
+    assert "  model      -\n" in out and "MISSING" not in out
 
 
 def test_location_from_environment(tmp_path, monkeypatch):

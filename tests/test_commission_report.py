@@ -78,3 +78,11 @@ def test_report_is_self_contained_and_renders_in_headless_chromium(tmp_path, acc
     banner = np.all(np.abs(image.astype(int) - banner_bgr) <= 3, axis=2)
     assert banner[:300].sum() > 5000, "the verdict banner is not at the top of the rendered page"
     assert (image.std(axis=(0, 1)) > 10).all(), "the rendered page is blank"
+
+
+def test_an_object_name_with_dollar_signs_is_text_in_the_figures(tmp_path):
+    """A mesh ``cup$^$.stl``'s name went to matplotlib as math, and the report (written before the
+    registration) failed with a ValueError traceback."""
+    data = _full_report_data(True)
+    data.example_labels = ["cup$^$ pose 2", "box pose 1"]
+    assert write_report(data, tmp_path / "report.html").read_text().count("data:image/png;base64,") == 6

@@ -228,3 +228,12 @@ def test_the_depth_metrics_leave_out_frames_whose_prediction_is_not_finite(tmp_p
     result = run_pose_check(SomeNonFinite(), path, "mug")
     assert result.skipped[SKIP_NON_FINITE] == 2 and result.depth_metrics["n_images"] == 2
     assert result.depth_metrics["abs_rel"] < 0.01
+
+
+def test_the_histograms_take_an_object_name_as_text(tmp_path):
+    """A mesh ``cup$^$.stl``: its name in the figure titles was read as math (a ValueError traceback)."""
+    from calibrate.pose_check import write_histograms
+
+    result = run_pose_check(DecodingEstimator(), write_cylinder_session(tmp_path / "c.h5"), "mug")
+    written = write_histograms(dataclasses.replace(result, object_name="cup$^$"), tmp_path / "plots")
+    assert [p.name for p in written] == ["pose_errors.png", "pose_vs_true.png"] and all(p.stat().st_size for p in written)

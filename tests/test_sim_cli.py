@@ -19,6 +19,10 @@ def test_new_sensor_and_preview(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     out = capsys.readouterr().out
     assert "pressure" in out and "force" in out
+    sphere = tmp_path / "cup$^$.stl"  # its name is text in the figure (was: read as math, a ValueError traceback)
+    trimesh.creation.icosphere(radius=0.02).apply_translation([0, 0, 0.02]).export(sphere)
+    assert main(["sim", "preview", "--sensor", str(spec_path), "--object", str(sphere), "--press-mm", "3", "--out",
+                 str(png)]) == 0
 
 
 def _fails_with_one_line(capsys, argv, needle):
@@ -45,6 +49,12 @@ def test_bad_input_exits_2(tmp_path, capsys):
     _fails_with_one_line(
         capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "mug", "--press-mm", "80", "--out", png], "press-mm"
     )
+    shallow = tmp_path / "shallow.yaml"  # a 5 mm dome: a 20 mm press went through it (was: 8.7 kN, exit 0)
+    shallow.write_text(spec_path.read_text().replace(f"dome_height_m: {SensorSpec.from_yaml(spec_path).dome_height_m}",
+                                                     "dome_height_m: 0.005"))
+    assert SensorSpec.from_yaml(shallow).dome_height_m == 0.005
+    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(shallow), "--object", "mug", "--press-mm", "20",
+                                  "--out", png], "--press-mm 20 is deeper than the sensor's dome is high (5.0 mm, its travel)")
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "-3", "--out", str(tmp_path / "n.yaml")], "seed")
     spec_text = spec_path.read_text()
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "2", "--out", str(spec_path)], "already exists")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
@@ -10,6 +11,7 @@ import trimesh
 import yaml
 
 from collect.errors import InputError
+from hw_mocks.bubble_sim import BubbleSim
 from hw_mocks.objects import BUILTIN_OBJECTS, PLATE_GAP, fixture_plate, load_object
 from hw_mocks.sensor_spec import SensorSpec, draw_sensor
 
@@ -72,6 +74,12 @@ def test_draw_sensor_is_deterministic_and_varied():
         (lambda d: d.update(serial="S" * 65), "serial"),
         (lambda d: d.update(dead_pixels=[[500, 3]]), "dead_pixels"),
         (lambda d: d.update(colour="red"), "colour"),
+        # was: 1.7 taken as pixel 1; a serial written as a number taken as its text, 0042 as "34"
+        (lambda d: d.update(dead_pixels=[[1.7, 2.9]]), "field 'dead_pixels' has a bad value"),
+        (lambda d: d.update(serial=34), r"field 'serial' must be text; quote it \(serial: '34'\)"),
+        # a slipped decimal point: a 10-degree view (was: a physics grid 100 times as large, no end to a preview)
+        (lambda d: d.update(fx=10 * d["fx"]), "field 'fx' = .* gives a field of view of 10.. degrees over 224 px"),
+        (lambda d: d.update(fy=20.0), "field 'fy' = 20.0 px gives a field of view of 153.8 degrees over 172 px"),
     ],
 )
 def test_bad_spec_fields_name_the_field(tmp_path, edit, field):
@@ -88,11 +96,24 @@ def test_bad_yaml_and_missing_file(tmp_path):
     path.write_text("serial: [unclosed\nfx: 1")
     with pytest.raises(InputError, match="bad YAML"):
         SensorSpec.from_yaml(path)
+    path.write_text(yaml.safe_dump(draw_sensor(1).to_dict()) + "fps: 30\n")
+    with pytest.raises(InputError, match="bad YAML at line .*: duplicate key 'fps'"):  # was: "bad YAML at line 40" alone
+        SensorSpec.from_yaml(path)
     path.write_text("- just\n- a list\n")
     with pytest.raises(InputError, match="mapping"):
         SensorSpec.from_yaml(path)
     with pytest.raises(InputError, match="cannot read"):
         SensorSpec.from_yaml(tmp_path / "nope.yaml")
+
+
+def test_a_camera_that_spreads_the_rim_over_millions_of_pixels_is_refused():
+    """A large image at a long focal length passes the field-of-view check (107 degrees) but would make a
+    physics grid of 1.4 million cells, minutes per simulated frame."""
+    spec = dataclasses.replace(draw_sensor(1), width=4096, height=4096, fx=1500.0, fy=1500.0, cx=2048.0, cy=2048.0)
+    spec.validate()
+    with pytest.raises(InputError, match=r"its camera \(fx 1500, fy 1500 px\) sees the bubble's rim over .* a physics "
+                                         r"grid of \d+ cells \(at most 250000\); check fx and fy"):
+        BubbleSim(spec, [])
 
 
 def test_builtin_objects_are_watertight_with_primitives():
