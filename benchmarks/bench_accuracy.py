@@ -172,11 +172,12 @@ def base_model_serials(base_model: str) -> set[str]:
 
 
 def paper_cells(m: dict) -> str:
-    return " | ".join(f"{m[key]:.5f}" if key == "rmse" else f"{m[key]:.4f}" for key, _ in PAPER_COLUMNS)
+    """The paper's columns as ``bubble evaluate`` prints them (``trainer.cli.PAPER_COLUMNS``: RMSE in mm)."""
+    return " | ".join(f"{m[key] * scale:.{decimals}f}" for key, _, scale, decimals in PAPER_COLUMNS)
 
 
 def paper_header(first: list[str], last: list[str]) -> list[str]:
-    heads = first + [h for _, h in PAPER_COLUMNS] + last
+    heads = first + [h for _, h, _, _ in PAPER_COLUMNS] + last
     return ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
 
 

@@ -99,3 +99,16 @@ def test_a_page_its_last_run_did_not_rewrite_is_stale(tmp_path, monkeypatch):
                      ({"exit": 0, "page_rewritten": False}, "did not rewrite the page")):
         row = run_all.target_rows({"simulator": {**run, "machine": machine}})[2]
         assert "**stale**" in row and why in row and "150" not in row
+
+
+def test_the_accuracy_page_renders_from_its_committed_results():
+    """bench_accuracy.py writes its JSON, then the page from it with ``bubble evaluate``'s columns: a change of
+    those columns broke the page after a 28-minute run (the JSON written, the page not)."""
+    import json
+
+    from benchmarks import bench_accuracy
+    from trainer.cli import PAPER_COLUMNS
+
+    page = bench_accuracy.markdown(json.loads((ROOT / "docs" / "bench_accuracy.json").read_text()))
+    header = " | ".join(h for _, h, _, _ in PAPER_COLUMNS)
+    assert page.count(header) >= 3 and "RMSE [mm]" in header
