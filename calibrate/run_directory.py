@@ -54,8 +54,7 @@ def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Threshold
     """The settings of a run as ``state.json`` records them (``sensor_id``: the simulated sensor's
     serial, or ``"hardware"``; ``thresholds``: the acceptance thresholds in force). The base model's
     weights must be readable (``validate_config`` checks them first)."""
-    from trainer.dataset import file_sha256  # here: torch, which these two import, is slow to load
-    from trainer.model_dir import WEIGHTS_FILE, resolve_model_dir
+    from trainer.model_dir import weights_sha256  # here: torch, which it imports, is slow to load
 
     return {
         "simulated": bool(config.simulated),
@@ -67,7 +66,7 @@ def run_settings(config: CommissionConfig, sensor_id: str, thresholds: Threshold
         "leak_hold_s": float(config.leak_hold_s),
         "total_minutes": float(config.total_minutes) if config.total_minutes not in (None, math.inf) else None,
         "base_model": str(config.base_model) if config.base_model else "base",
-        "base_model_sha256": file_sha256(resolve_model_dir(config.base_model or "base") / WEIGHTS_FILE),
+        "base_model_sha256": weights_sha256(config.base_model or "base"),
         "thresholds": str(config.thresholds) if config.thresholds else "packaged",
         "limits_sha256": thresholds.limits_sha256(),
         "sim_faults": list(config.sim_faults),

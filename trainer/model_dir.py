@@ -222,6 +222,12 @@ def export_hashes(model_dir: str | Path) -> dict[str, str]:
     return hashes
 
 
+def weights_sha256(model_dir: str | Path) -> str:
+    """SHA-256 (hex) of the weights of ``model_dir`` (``"base"``: the packaged base model): what a run
+    that starts from a model records of it, whatever path named it."""
+    return file_sha256(resolve_model_dir(model_dir) / WEIGHTS_FILE)
+
+
 def _unreadable(path: Path, err: OSError) -> InputError:
     """The one-line refusal of a model file ``path`` that the system would not read (``err``, e.g. a
     ``PermissionError``): names the file or folder that failed and the system's reason."""

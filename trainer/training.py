@@ -39,14 +39,13 @@ from trainer.dataset import (
     NetworkTensors,
     check_each_recording_once,
     check_each_session_once,
-    file_sha256,
     load_frames,
     to_network_tensors,
 )
 from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
 from trainer.metrics import depth_metrics
-from trainer.model_dir import WEIGHTS_FILE, ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model
+from trainer.model_dir import ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model, weights_sha256
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, check_width, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
 from trainer.splits import TRAIN_FRACTION, split_holdout_object, split_in_class
@@ -205,7 +204,7 @@ def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, spl
     with (the initial weights, by their SHA-256, the learning rate, the loss and the augmentation): a
     checkpoint resumes only with the same (``_check_resume``; was: the recipe unchecked, so that a
     resume without ``--init`` recorded ``init: null`` for a fine-tuned model)."""
-    init = file_sha256(resolve_model_dir(config.init) / WEIGHTS_FILE) if config.init else None
+    init = weights_sha256(config.init) if config.init else None
     return plain_json({
         "data": [s.sha256 for s in frames.sources],
         "val_data": [s.sha256 for s in val_frames.sources] if config.val_data else [],
