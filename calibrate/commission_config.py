@@ -122,12 +122,13 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     if not LEAK_HOLD_RANGE_S[0] <= config.leak_hold_s <= LEAK_HOLD_RANGE_S[1]:  # also NaN
         raise InputError(f"leak-test hold must be {LEAK_HOLD_RANGE_S[0]:g}..{LEAK_HOLD_RANGE_S[1]:g} s, got "
                          f"{config.leak_hold_s:g} s")
-    if config.base_model is None and not BASE_MODEL_DIR.is_dir():
-        raise InputError(f"the packaged base model {BASE_MODEL_DIR} is missing; give --base-model MODEL_DIR")
+    base_model = config.base_model or BASE_MODEL_DIR
     if config.base_model is not None:
         check_model_arg(str(config.base_model), "--base-model")
-    load_metadata(config.base_model or BASE_MODEL_DIR)
-    load_weights(config.base_model or BASE_MODEL_DIR)  # InputError for missing, corrupt or pickled weights
+    elif not BASE_MODEL_DIR.is_dir():
+        raise InputError(f"the packaged base model {BASE_MODEL_DIR} is missing; give --base-model MODEL_DIR")
+    load_metadata(base_model)
+    load_weights(base_model)  # InputError for missing, corrupt or pickled weights
     # the registry of --registry, else of $BUBBLE_REGISTRY or the default (was: checked for --registry alone, and
     # an unwritable $BUBBLE_REGISTRY failed the run at its end with a traceback): InputError for one not a directory;
     # the run registers the sensor at its end, in a folder named as its serial (not known yet on the real bench):

@@ -55,6 +55,7 @@ import time
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -835,16 +836,17 @@ def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simu
     stored = {o.name: o for o in session.objects}
     for obj in objects:
         name, sha = str(obj["name"]), obj["mesh_sha256"]
-        if name in stored and stored[name].mesh_sha256 != sha:
-            raise InputError(f"object {name!r} in {path} has another mesh (sha256 {stored[name].mesh_sha256[:12]}...) "
+        if name not in stored:
+            continue
+        there, placed = stored[name], np.asarray(obj["fixture_pose"], dtype=float)
+        if there.mesh_sha256 != sha:
+            raise InputError(f"object {name!r} in {path} has another mesh (sha256 {there.mesh_sha256[:12]}...) "
                              f"than the one given ({sha[:12]}...)")
-        if name in stored and not np.allclose(stored[name].fixture_pose, np.asarray(obj["fixture_pose"], dtype=float),
-                                              rtol=0.0, atol=1e-6):
+        if not np.allclose(there.fixture_pose, placed, rtol=0.0, atol=1e-6):
             # its frames' object poses (the pose check's prior, the true pose) would mix two placements
             raise InputError(f"object {name!r} in {path} stood elsewhere on the bench (fixture pose "
-                             f"{np.round(stored[name].fixture_pose, 4).tolist()} there, "
-                             f"{np.round(np.asarray(obj['fixture_pose'], dtype=float), 4).tolist()} now: a plate_pose "
-                             f"changed?); record into a new file")
+                             f"{np.round(there.fixture_pose, 4).tolist()} there, {np.round(placed, 4).tolist()} now: "
+                             f"a plate_pose changed?); record into a new file")
 
 
 def _differences(old, new, key: str = "") -> list[tuple[str, object, object]]:
@@ -945,20 +947,17 @@ def _reserve_space(path: str) -> str | None:
     try:
         os.posix_fallocate(fd, 0, RESERVE_BYTES)  # written as zeros where the file system has no fallocate
     except OSError:
-        os.close(fd)
         _give_back(name)
         return None
-    os.close(fd)
+    finally:
+        os.close(fd)
     return name
 
 
 def _give_back(reserve: str | None) -> None:
     """Delete the reserve file ``reserve`` (None: there is none)."""
     if reserve is not None:
-        try:
-            os.remove(reserve)
-        except FileNotFoundError:
-            pass
+        Path(reserve).unlink(missing_ok=True)
 
 
 def _keep_owner_and_mode(original: str, copy: str) -> None:

@@ -107,6 +107,10 @@ class BubbleSim:
         self.physics = RayGrid.build(spec, u0, v0, s, shape)
         d_phys, m_phys = self.dome.rest_depth(self.physics)
         self._d_phys = np.where(m_phys, d_phys, 0.0)
+        #: the object depth (m) of a physics cell no object is in front of: beyond the membrane, and 1 m off it
+        #: (was: 40 mm there too, where the rest depth is 0: interpolated across the rim, a false contact and
+        #: a 10 mm dip at rest)
+        self._no_object_depth = np.where(self._d_phys > 0, self._d_phys + 10 * REACH_OUT_M, 1.0)
         self.solver = MembraneSolver(
             self._d_phys,
             m_phys,
@@ -191,10 +195,7 @@ class BubbleSim:
         # Full image: interpolate the displacement, clamp against the interpolated object.
         u_full = cv2.remap(sol.u.astype(np.float32), self._map_x, self._map_y, cv2.INTER_LINEAR)
         membrane = self._rest_depth64 + u_full
-        # where no object is: a depth beyond the membrane, and 1 m off it (was: 40 mm there too, where
-        # the rest depth is 0: interpolated across the rim, a false contact and a 10 mm dip at rest)
-        none = np.where(self._d_phys > 0, self._d_phys + 10 * REACH_OUT_M, 1.0)
-        far = np.where(np.isfinite(depth_obj), depth_obj, none).astype(np.float32)
+        far = np.where(np.isfinite(depth_obj), depth_obj, self._no_object_depth).astype(np.float32)
         obj_full = cv2.remap(far, self._map_x, self._map_y, cv2.INTER_LINEAR, borderValue=1.0)
         contact = self.membrane_mask & (membrane >= obj_full - 1e-5)
         true_depth = np.where(self.membrane_mask, np.minimum(membrane, obj_full), 0.0).astype(np.float32)

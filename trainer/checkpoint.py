@@ -46,6 +46,17 @@ def check_resumable(model_dir: str | Path, instead: str) -> None:
     raise InputError(f"cannot resume {model_dir}: {left}; {instead}")
 
 
+def check_checkpoint_use(model_dir: str | Path, resume: bool, resume_instead: str, fresh_instead: str) -> None:
+    """``InputError`` unless the training into ``model_dir`` uses its checkpoint as asked: ``resume``
+    needs one (``check_resumable``, ``resume_instead`` ending the message), a fresh training refuses one
+    (was: trained anew, and its first checkpoint wrote over the interrupted one; ``fresh_instead``)."""
+    if resume:
+        check_resumable(model_dir, resume_instead)
+    elif has_checkpoint(model_dir):
+        raise InputError(f"{model_dir} holds the checkpoint of an interrupted training; add --resume to continue "
+                         f"it, or {fresh_instead}")
+
+
 def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer, progress: dict) -> None:
     """Write network + optimizer state and the JSON-serializable ``progress`` (atomically, per file)."""
     model_dir = Path(model_dir)

@@ -165,7 +165,7 @@ def run_train(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from collect.errors import InputError
-    from trainer.checkpoint import check_resumable, has_checkpoint
+    from trainer.checkpoint import check_checkpoint_use
     from trainer.model_dir import WEIGHTS_FILE
     from trainer.stop_on_signal import TrainingStop
     from trainer.training import TrainConfig, train_model
@@ -233,11 +233,7 @@ def run_train(args: argparse.Namespace) -> int:
             if not args.resume and (out / WEIGHTS_FILE).exists():
                 raise InputError(f"{out} already holds a model; choose another --out (with --init {out} to train "
                                  "it further)")
-            if args.resume:
-                check_resumable(out, "choose another --out, or drop --resume")
-            elif has_checkpoint(out):  # was: trained anew, and its first checkpoint wrote over the interrupted one
-                raise InputError(f"{out} holds the checkpoint of an interrupted training; add --resume to continue "
-                                 "it, or choose another --out")
+            check_checkpoint_use(out, args.resume, "choose another --out, or drop --resume", "choose another --out")
             with stop.handled():
                 result = train_model(config, on_progress, stop.event)
     finally:

@@ -181,7 +181,7 @@ def run_train(args: argparse.Namespace) -> int:
     """Train on the sessions of ``--work`` and package the base model. A stop (Ctrl-C, SIGTERM, SIGHUP)
     ends it as it ends ``bubble train`` (``trainer.stop_on_signal``): at once while the data loads,
     else after the step in progress, checkpointed in ``--work``/model for ``--resume``."""
-    from trainer.checkpoint import check_resumable, has_checkpoint
+    from trainer.checkpoint import check_checkpoint_use
     from trainer.stop_on_signal import TrainingStop
 
     work = Path(args.work)
@@ -206,11 +206,7 @@ def run_train(args: argparse.Namespace) -> int:
     if out.resolve() == (work / TRAIN_DIR).resolve():
         raise InputError(f"--out {args.out} is where training keeps its checkpoint; package the base model elsewhere")
     options = training_options(args)
-    if args.resume:  # was: a fresh training when there was nothing to resume
-        check_resumable(work / TRAIN_DIR, "drop --resume to train anew")
-    elif has_checkpoint(work / TRAIN_DIR):  # was: trained anew over it, its progress lost at the first checkpoint
-        raise InputError(f"{work / TRAIN_DIR} holds the checkpoint of an interrupted training; add --resume to "
-                         "continue it, or remove it to train anew")
+    check_checkpoint_use(work / TRAIN_DIR, args.resume, "drop --resume to train anew", "remove it to train anew")
 
     stop = TrainingStop()
 
