@@ -239,6 +239,7 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
     Raises ``InputError`` for a bad session, an unknown object, a missing no-contact reference,
     or when no frame is usable.
     """
+    from collect.session_format import ATTR_CAMERA_IN_TCP
     from collect.session_reader import Session
     from trainer.evaluation import predict_frames
 
@@ -247,6 +248,9 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
     estimator = _load_estimator(model)
     with Session.open(session_path) as session:
         obj = session.objects[session.object_id(object_name)]
+        if session.camera_in_tcp is None:
+            raise InputError(f"{session.path}: root attr '{ATTR_CAMERA_IN_TCP}' is missing (the camera's pose in the "
+                             "TCP frame, which places the contact patch in the base frame)")
         shape = shape_from_object(obj.primitive, obj.vertices, obj.faces)
         fitter = ProximityPoseEstimator(shape)
         ref_idx = session.reference_frames(object_name)

@@ -16,17 +16,21 @@ def session_summary(path) -> dict:
     """Facts about the session at ``path`` (JSON-ready). Raises InputError for bad files.
 
     Keys: path, sensor_serial, simulated, created, software_version, closed_cleanly, frames,
-    width, height, duration_s (device clock, first to last frame of each recorded segment, summed:
-    the pauses between a stop and its ``--resume`` are not recording time), fps, dropped (missing
-    sequence numbers), non_increasing_t (frames whose device time did not increase), objects
+    width, height, duration_s (device clock: the frame-to-frame steps that went forward, summed; the
+    pauses between a stop and its ``--resume`` are not recording time, nor is a clock that jumped
+    back), fps, dropped (missing sequence numbers), seq_restarts (frames whose sequence number did not
+    increase: a camera that restarted its numbering, the frames it lost uncounted),
+    non_increasing_t and non_increasing_t_host (frames whose device / host time did not increase), objects
     ({name: {phase: frames, "poses": contact poses pressed, held and let go, "reference": n}}),
     unassigned_frames, arm_samples, pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
     """
     with Session.open(path) as s:
         n = s.n_frames
         starts = [0] + [i for i in s.resumed_at_frames if i < n]
-        ends = starts[1:] + [n]
-        duration = sum(float(s.t_device[e - 1] - s.t_device[b]) for b, e in zip(starts, ends) if e > b)
+        steps = np.diff(s.t_device)
+        steps[[i - 1 for i in starts[1:]]] = 0.0  # from a segment's last frame to the next one's first: a pause
+        forward = steps[steps > 0]
+        duration = float(forward.sum())
         complete = sf.completed_pose_ids(s.phase, s.pose_id)
         objects = {}
         for obj in s.objects:
@@ -46,9 +50,11 @@ def session_summary(path) -> dict:
             "width": s.width,
             "height": s.height,
             "duration_s": duration,
-            "fps": (n - len(starts)) / duration if duration > 0 else 0.0,
+            "fps": len(forward) / duration if duration > 0 else 0.0,
             "dropped": s.dropped_frames(),
+            "seq_restarts": int(np.count_nonzero(np.diff(s.seq) <= 0)),
             "non_increasing_t": int(np.count_nonzero(np.diff(s.t_device) <= 0)),
+            "non_increasing_t_host": int(np.count_nonzero(np.diff(s.t_host) <= 0)),
             "objects": objects,
             "unassigned_frames": int(np.count_nonzero(s.object_index < 0)),
             "arm_samples": len(s.arm().t),
@@ -70,7 +76,8 @@ def describe_session(path) -> str:
         f" software {info['software_version']}",
         f"  status: {'closed cleanly' if info['closed_cleanly'] else 'NOT closed cleanly (crashed or still recording)'}",
         f"  frames: {info['frames']} of {info['width']}x{info['height']} over {info['duration_s']:.1f} s"
-        f" ({info['fps']:.1f} fps); dropped {info['dropped']}, non-increasing timestamps {info['non_increasing_t']}",
+        f" ({info['fps']:.1f} fps); dropped {info['dropped']}, sequence restarts {info['seq_restarts']},"
+        f" non-increasing timestamps {info['non_increasing_t']} camera / {info['non_increasing_t_host']} host",
         f"  streams: {info['arm_samples']} arm samples, {info['pressure_samples']} pressure readings",
         f"  size: {mb:.1f} MB ({per_min})",
         "  " + f"{'object':<16}{'poses':>6}{'ref':>6}" + "".join(f"{p:>9}" for p in _PHASE_ORDER),

@@ -179,17 +179,19 @@ class Session:
         self.intrinsics = _root_json(f, sf.ATTR_INTRINSICS, "a JSON object with fx, fy, cx, cy, width, height",
                                      lambda v: _is_object(v) and set(_INTRINSICS_FIELDS) <= set(v))
         _check_intrinsics(self.path, self.intrinsics)
-        #: (6,) float64 camera frame in the TCP frame [x,y,z m, rotation vector rad]
+        #: (6,) float64 camera frame in the TCP frame [x,y,z m, rotation vector rad]; None when the file
+        #: does not say (the format's contract does not require it; the pose check needs it)
         self.camera_in_tcp = np.asarray(_root_json(
             f, sf.ATTR_CAMERA_IN_TCP, "a JSON list of 6 finite numbers (x, y, z in m, rotation vector in rad)",
-            lambda v: real_numbers(v, 6)), dtype=np.float64)
+            lambda v: real_numbers(v, 6)), dtype=np.float64) if sf.ATTR_CAMERA_IN_TCP in attrs else None
         plan = _text(attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
         self._collection_plan = _root_json(f, sf.ATTR_COLLECTION_PLAN, "a JSON object", _is_object) if plan else None
         resumed = sf.ATTR_RESUMED_AT_FRAMES in attrs
         #: frame indices where the recording's resumed segments start (``bubble collect --resume``)
         self.resumed_at_frames = [int(i) for i in _root_json(
-            f, sf.ATTR_RESUMED_AT_FRAMES, "a JSON list of frame indices",
-            lambda v: isinstance(v, list) and all(isinstance(i, int) and i > 0 for i in v))] if resumed else []
+            f, sf.ATTR_RESUMED_AT_FRAMES, "a JSON list of increasing frame indices",
+            lambda v: isinstance(v, list) and all(isinstance(i, int) and i > 0 for i in v)
+            and all(a < b for a, b in zip(v, v[1:])))] if resumed else []  # was: unsorted or repeated ones taken
         try:
             serial, simulated = attrs[sf.ATTR_SENSOR_SERIAL], attrs[sf.ATTR_SIMULATED]
             if not isinstance(serial, (str, bytes)):
@@ -228,21 +230,31 @@ class Session:
         #: frames held by every per-frame dataset (a crash mid-flush can leave one batch uneven)
         self.n_frames = int(min(f[name].shape[0] for name in frame_sets))
         n = self.n_frames
-        unit_m = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_UNIT_M, sf.DEPTH_UNIT_M)
-        if not (_positive_number(unit_m) and unit_m <= MAX_DEPTH_UNIT_M):
-            raise _bad(self.path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_UNIT_M}'",
-                       f"a number of metres in (0, {MAX_DEPTH_UNIT_M:g}]", unit_m)
         #: metres per count of frames/depth
-        self.depth_unit_m = float(unit_m)
+        self.depth_unit_m = _depth_unit_m(self.path, f[sf.FRAMES_DEPTH])
+        _check_depth_marks(self.path, f)
         #: (N,) per-frame metadata, loaded eagerly (small)
         self.t_device = f[sf.FRAMES_T_DEVICE][:n]
         self.t_host = f[sf.FRAMES_T_HOST][:n]
-        self.seq = f[sf.FRAMES_SEQ][:n]
-        self.object_index = f[sf.FRAMES_OBJECT][:n].astype(np.int16)
-        self.pose_id = f[sf.FRAMES_POSE_ID][:n].astype(np.int32)
-        self.phase = f[sf.FRAMES_PHASE][:n].astype(np.uint8)
         self._tcp_pose = f[sf.FRAMES_TCP_POSE][:n] if sf.FRAMES_TCP_POSE in f else None
         self.objects = _read_objects(f)
+        # the integer columns are checked as stored, then narrowed (was: narrowed first, so that a
+        # phase 256 read as free and an object 65535 as none)
+        seq, object_index, pose_id, phase = (_int_column(self.path, f[name], n) for name in (
+            sf.FRAMES_SEQ, sf.FRAMES_OBJECT, sf.FRAMES_POSE_ID, sf.FRAMES_PHASE))
+        bad_phase = ~np.isin(phase, list(_PHASE_NAMES))
+        if bad_phase.any():
+            raise InputError(f"{self.path}: corrupt session, unknown phase value at frame {int(np.argmax(bad_phase))}")
+        if ((object_index < -1) | (object_index >= len(self.objects))).any():
+            raise InputError(f"{self.path}: corrupt session, frames/object out of range")
+        if (pose_id < -1).any():  # -1: no pose
+            raise InputError(f"{self.path}: corrupt session, frames/pose_id below -1")
+        if (pose_id > np.iinfo(np.int32).max).any():
+            raise InputError(f"{self.path}: corrupt session, frames/pose_id above 2^31-1")
+        self.seq = seq
+        self.object_index = object_index.astype(np.int16)
+        self.pose_id = pose_id.astype(np.int32)
+        self.phase = phase.astype(np.uint8)
         self.object_names = [o.name for o in self.objects]
         for name, values in (
             (sf.FRAMES_T_DEVICE, self.t_device),
@@ -250,13 +262,6 @@ class Session:
             (sf.FRAMES_TCP_POSE, self._tcp_pose),
         ):
             _check_finite(self.path, name, values)
-        bad_phase = ~np.isin(self.phase, list(_PHASE_NAMES))
-        if bad_phase.any():
-            raise InputError(f"{self.path}: corrupt session, unknown phase value at frame {int(np.argmax(bad_phase))}")
-        if ((self.object_index < -1) | (self.object_index >= len(self.objects))).any():
-            raise InputError(f"{self.path}: corrupt session, frames/object out of range")
-        if (self.pose_id < -1).any():  # -1: no pose
-            raise InputError(f"{self.path}: corrupt session, frames/pose_id below -1")
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -382,7 +387,7 @@ class Session:
         """The arm state stream (TCP pose and wrench samples on the host clock)."""
         f = self._f
         n = min(f[name].shape[0] for name in sf.ARM_DATASETS)
-        stream = ArmStream(f[sf.ARM_T][:n], f[sf.ARM_TCP_POSE][:n], f[sf.ARM_TCP_WRENCH][:n])
+        stream = ArmStream(*(self._load(name, slice(0, n), stream=True) for name in sf.ARM_DATASETS))
         for name, values in ((sf.ARM_T, stream.t), (sf.ARM_TCP_POSE, stream.tcp_pose), (sf.ARM_TCP_WRENCH, stream.wrench)):
             _check_finite(self.path, name, values)
         return stream
@@ -391,7 +396,7 @@ class Session:
         """The bubble pressure stream (hPa absolute on the host clock)."""
         f = self._f
         n = min(f[name].shape[0] for name in sf.PRESSURE_DATASETS)
-        stream = PressureStream(f[sf.PRESSURE_T][:n], f[sf.PRESSURE_HPA][:n])
+        stream = PressureStream(*(self._load(name, slice(0, n), stream=True) for name in sf.PRESSURE_DATASETS))
         _check_finite(self.path, sf.PRESSURE_T, stream.t)
         _check_finite(self.path, sf.PRESSURE_HPA, stream.hpa)
         return stream
@@ -414,9 +419,12 @@ class Session:
         """The pose-plan settings stored by ``bubble collect`` (None if the file has none)."""
         return self._collection_plan
 
-    def _load(self, name: str, idx) -> np.ndarray:
+    def _load(self, name: str, idx, stream: bool = False) -> np.ndarray:
+        """Frames ``idx`` of dataset ``name`` (``stream``: rows ``idx``, a slice, of an arm or pressure
+        dataset instead); InputError naming the dataset when HDF5 cannot read them (was: a traceback
+        for the arm and pressure streams)."""
         try:
-            return self._read(self._f[name], idx)
+            return self._f[name][idx] if stream else self._read(self._f[name], idx)
         except (OSError, RuntimeError) as err:
             raise InputError(f"{self.path}: corrupt or truncated session, cannot read {name} ({h5_error_text(err)})") from None
 
@@ -528,6 +536,62 @@ def _check_layout(path: str, name: str, dataset, layout: tuple) -> None:
     shape, dtype = dataset.shape, dataset.dtype
     if shape is None or len(shape) != ndim or dtype.kind not in kinds or (row and shape[1] != row):
         raise InputError(f"{path}: corrupt session, {name} must hold {what}, got shape {shape} of {dtype}")
+
+
+def _int_column(path: str, dataset: h5py.Dataset, n: int) -> np.ndarray:
+    """The first ``n`` values of the integer dataset ``dataset`` as ``(n,) int64``; InputError for a
+    value above 2^63-1 (a uint64 column)."""
+    values = dataset[:n]
+    if values.dtype == np.uint64 and len(values) and values.max() > np.iinfo(np.int64).max:
+        raise InputError(f"{path}: corrupt session, {dataset.name.lstrip('/')} holds values above 2^63-1")
+    return values.astype(np.int64)
+
+
+#: Units of length a ``unit`` attribute may name, in metres.
+_LENGTH_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
+
+
+def _depth_unit_m(path: str, depth: h5py.Dataset) -> float:
+    """Metres per count of ``frames/depth``: its ``unit_m`` attribute, else its ``unit`` text (such as
+    ``"1e-05 m"``, the format's contract). InputError when neither says (was: the recorder's own unit
+    taken, a file in 1e-4 m read ten times too shallow), when they disagree, or for a unit outside
+    (0, MAX_DEPTH_UNIT_M] m."""
+    unit_m, text = depth.attrs.get(sf.ATTR_UNIT_M), depth.attrs.get(sf.ATTR_UNIT)
+    match = re.fullmatch(r"\s*([-+0-9.eE]+)\s*(m|mm|um)\s*", _text(text)) if isinstance(text, (str, bytes)) else None
+    try:
+        stated = float(match.group(1)) * _LENGTH_UNITS_M[match.group(2)] if match else None
+    except ValueError:  # not a number, e.g. "1.2.3 m"
+        stated = None
+    where = f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_UNIT_M}'"
+    if unit_m is None:
+        if stated is None:
+            raise InputError(f"{path}: {sf.FRAMES_DEPTH} does not say its unit (attr '{sf.ATTR_UNIT_M}', metres per "
+                             f"count, or '{sf.ATTR_UNIT}', a length such as '1e-05 m'; found {text!r})")
+        unit_m, where = stated, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_UNIT}'"
+    if not (_positive_number(unit_m) and unit_m <= MAX_DEPTH_UNIT_M):
+        raise _bad(path, where, f"a number of metres in (0, {MAX_DEPTH_UNIT_M:g}]", unit_m)
+    if stated is not None and not np.isclose(stated, unit_m, rtol=1e-6, atol=0.0):
+        raise InputError(f"{path}: corrupt session, {sf.FRAMES_DEPTH} attrs '{sf.ATTR_UNIT_M}' ({float(unit_m):g} m) "
+                         f"and '{sf.ATTR_UNIT}' ({_text(text)!r}) disagree")
+    return float(unit_m)
+
+
+def _check_depth_marks(path: str, f: h5py.File) -> None:
+    """InputError when the file marks its data otherwise than this code reads it: ``frames/depth``'s
+    ``invalid`` value other than 0, or ``frames/phase``'s ``enum`` other than ``PHASES`` (was: ignored,
+    a file with press and hold swapped read swapped). Either attribute may be absent."""
+    invalid = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_INVALID)
+    if invalid is not None and not (np.ndim(invalid) == 0 and real_number(invalid) and invalid == 0):
+        raise _bad(path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_INVALID}'", "0 (this software reads 0 as no depth)", invalid)
+    enum = f[sf.FRAMES_PHASE].attrs.get(sf.ATTR_PHASE_ENUM)
+    if enum is None:
+        return
+    try:
+        value = json.loads(_text(enum))
+    except JSON_READ_ERRORS:
+        value = enum
+    if value != sf.PHASES:
+        raise _bad(path, f"{sf.FRAMES_PHASE} attr '{sf.ATTR_PHASE_ENUM}'", f"the format's phases {json.dumps(sf.PHASES)}", value)
 
 
 def _check_finite(path: str, name: str, values, rows=None) -> None:

@@ -822,6 +822,9 @@ def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simu
         if not np.isclose(there, now, rtol=1e-9, atol=0.0):
             raise InputError(f"cannot resume {path}: it was recorded with other camera intrinsics ({name} {there:g} "
                              f"there, {now:g} now); record into a new file")
+    if session.camera_in_tcp is None:
+        raise InputError(f"cannot resume {path}: it does not record the camera's pose in the tool (camera_in_tcp); "
+                         "record into a new file")
     if not np.allclose(session.camera_in_tcp, np.asarray(camera_in_tcp, dtype=float).reshape(6), rtol=0.0, atol=1e-9):
         raise InputError(f"cannot resume {path}: it was recorded with the camera at another pose in the tool "
                          f"(camera_in_tcp); record into a new file")

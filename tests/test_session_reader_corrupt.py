@@ -136,6 +136,33 @@ CASES = {
     # was: read as a good session, and a traceback from bubble pose's per-pose random seed
     "pose-id-below-minus-one": (lambda f: f[sf.FRAMES_POSE_ID].__setitem__(0, -5),
                                 "corrupt session, frames/pose_id below -1"),
+    # the integer columns checked as stored (was: narrowed first: phase 256 read as free, object 65535
+    # as none, pose_id 2^32 as 0, a seq near 2^64 negative)
+    "phase-256": (_replace(sf.FRAMES_PHASE, lambda old: np.where(np.arange(len(old)) == 4, 256, old.astype(np.uint16))),
+                  "corrupt session, unknown phase value at frame 4"),
+    "object-65535": (_replace(sf.FRAMES_OBJECT, lambda old: np.full(len(old), 65535, np.uint16)),
+                     "corrupt session, frames/object out of range"),
+    "pose-id-2^32": (_replace(sf.FRAMES_POSE_ID, lambda old: np.where(old >= 0, 2**32, old.astype(np.int64))),
+                     "corrupt session, frames/pose_id above 2^31-1"),
+    "seq-near-2^64": (_replace(sf.FRAMES_SEQ, lambda old: np.arange(len(old), dtype=np.uint64) + np.uint64(2**64 - 5)),
+                      "corrupt session, frames/seq holds values above 2^63-1"),
+    # the depth unit: was the recorder's own taken when the file did not say, or ignored when it disagreed
+    "depth-unit-unsaid": (lambda f: (f[sf.FRAMES_DEPTH].attrs.__delitem__(sf.ATTR_UNIT_M),
+                                     f[sf.FRAMES_DEPTH].attrs.__delitem__(sf.ATTR_UNIT)),
+                          "frames/depth does not say its unit (attr 'unit_m', metres per count, or 'unit', a length "
+                          "such as '1e-05 m'; found None)"),
+    "depth-unit-text-disagrees": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT, "1e-04 m"),
+                                  "corrupt session, frames/depth attrs 'unit_m' (1e-05 m) and 'unit' ('1e-04 m') disagree"),
+    # the file's own marks (was: ignored, press and hold read swapped)
+    "phase-enum-swapped": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
+                               {**sf.PHASES, "press": sf.PHASES["hold"], "hold": sf.PHASES["press"]})),
+                           "frames/phase attr 'enum' must be the format's phases"),
+    # was: taken, and bubble info counted segments twice (6.4 s at 29 fps for 4.2 s at 45)
+    "resumed-at-frames-unsorted": (_set_attr(sf.ATTR_RESUMED_AT_FRAMES, "[20, 10]"),
+                                   "root attr 'resumed_at_frames' must be a JSON list of increasing frame indices, "
+                                   "got [20, 10]"),
+    "depth-invalid-65535": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_INVALID, 65535),
+                            "frames/depth attr 'invalid' must be 0 (this software reads 0 as no depth), got 65535"),
 }
 
 
@@ -162,3 +189,59 @@ def test_nan_in_true_depth_names_its_frame_row(tmp_path, small_session, idx):
         f[sf.SIM_TRUE_DEPTH][17, 4, 6] = np.nan
     with Session.open(path) as session, pytest.raises(InputError, match=r"NaN/inf in sim/true_depth \(row 17\)$"):
         session.true_depth(idx)
+
+
+def test_a_depth_unit_given_only_as_text_is_read(tmp_path, small_session):
+    """The format's contract names the unit in attrs ("e.g. 1e-4 m"): a file that gives only that text
+    is read in its unit (was: read in the recorder's 1e-5 m, ten times too shallow)."""
+    path = tmp_path / "text_unit.h5"
+    shutil.copyfile(small_session, path)
+    with Session.open(path) as s:
+        raw, metres = s.depth_raw(3), s.depth_m(3)
+    with h5py.File(path, "a") as f:
+        del f[sf.FRAMES_DEPTH].attrs[sf.ATTR_UNIT_M]
+        f[sf.FRAMES_DEPTH].attrs[sf.ATTR_UNIT] = "0.01 mm"
+    with Session.open(path) as s:
+        assert s.depth_unit_m == pytest.approx(1e-5) and np.array_equal(s.depth_m(3), metres)
+    with h5py.File(path, "a") as f:
+        f[sf.FRAMES_DEPTH].attrs[sf.ATTR_UNIT] = "1e-4 m"
+    with Session.open(path) as s:
+        assert s.depth_unit_m == pytest.approx(1e-4)
+        assert np.allclose(s.depth_m(3), raw.astype(np.float32) * np.float32(1e-4))
+
+
+def test_a_session_without_camera_in_tcp_is_read_and_refused_only_by_what_needs_it(tmp_path, small_session, capsys):
+    """camera_in_tcp is not in the format's contract: info reads such a file (was: refused), the pose
+    check, which needs it, says so in one line."""
+    path = tmp_path / "no_camera_pose.h5"
+    shutil.copyfile(small_session, path)
+    with h5py.File(path, "a") as f:
+        del f.attrs[sf.ATTR_CAMERA_IN_TCP]
+    assert main(["info", str(path)]) == 0
+    with Session.open(path) as s:
+        assert s.camera_in_tcp is None
+    capsys.readouterr()
+    assert main(["pose", "--model", "base", "--data", str(path), "--object", "mug"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"bubble: error: {path}: root attr 'camera_in_tcp' is missing (the camera's pose in the TCP frame, " \
+                  "which places the contact patch in the base frame)\n"
+
+
+@pytest.mark.parametrize("name", [sf.ARM_T, sf.PRESSURE_HPA])
+def test_an_unreadable_arm_or_pressure_stream_is_one_line(tmp_path, small_session, capsys, name):
+    """A damaged chunk of a compressed stream (was: bubble info's traceback, exit 1)."""
+    path = tmp_path / "damaged_stream.h5"
+    shutil.copyfile(small_session, path)
+    with h5py.File(path, "a") as f:
+        values = f[name][()]
+        del f[name]
+        f.create_dataset(name, data=values, chunks=True, compression="gzip")
+    with h5py.File(path, "r") as f:
+        offset = f[name].id.get_chunk_info(0).byte_offset
+    with open(path, "r+b") as fh:
+        fh.seek(offset + 4)
+        fh.write(b"\x00garbage\xff" * 4)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bubble: error: {path}: corrupt or truncated session, cannot read {name} (") \
+        and err.count("\n") == 1, err

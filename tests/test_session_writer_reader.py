@@ -627,6 +627,22 @@ def test_info_counts_pressed_poses_and_recording_time_without_the_pause_of_a_res
     assert info["fps"] == pytest.approx(45.0) and info["duration_s"] == pytest.approx(44 / 45 + 59 / 45)
 
 
+def test_info_reports_a_camera_that_restarted_its_clock_and_numbering(tmp_path):
+    """A camera that rebooted mid-recording: its clock and sequence numbers start again (was: a negative
+    duration at 0.0 fps, and no word of the restart; the host clock's steps back went unreported)."""
+    from collect.session_info import describe_session, session_summary
+
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        for k in range(90):  # the camera restarts at frame 45; this computer's clock steps back at 60
+            i = k % 45
+            w.append_frame(*_frame(i), i / 45, 10 + k / 45 - (1.0 if k >= 60 else 0.0), i, 0, 0, sf.PHASE_FREE, np.zeros(6))
+    info = session_summary(path)
+    assert info["duration_s"] == pytest.approx(2 * 44 / 45) and info["fps"] == pytest.approx(45.0)
+    assert (info["seq_restarts"], info["non_increasing_t"], info["non_increasing_t_host"], info["dropped"]) == (1, 1, 1, 0)
+    assert "dropped 0, sequence restarts 1, non-increasing timestamps 1 camera / 1 host" in describe_session(path)
+
+
 def test_a_resume_with_an_object_moved_on_the_bench_is_refused(tmp_path):
     """Was: only the mesh was compared; a plate_pose edited between two runs mixed two placements of
     the object in one file (the pose check's prior and true pose come from it)."""
