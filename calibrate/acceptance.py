@@ -23,7 +23,7 @@ import yaml
 
 from collect.errors import InputError
 from collect.numbers import real_number
-from collect.yaml_files import load_yaml
+from collect.yaml_files import load_yaml, yaml_error_text
 
 #: Packaged thresholds, used when no ``--thresholds`` file is given.
 DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("acceptance_thresholds.yaml")
@@ -159,12 +159,14 @@ def _read_yaml(path: Path) -> dict:
     try:
         raw = load_yaml(text)
     except yaml.YAMLError as err:
-        raise InputError(f"thresholds file {path} is not valid YAML: {str(err).splitlines()[0]}") from None
-    if not isinstance(raw, dict) or "version" not in raw or "checks" not in raw:
+        raise InputError(f"thresholds file {path} is not valid YAML: {yaml_error_text(err)}") from None
+    if not isinstance(raw, dict):
         raise InputError(f"thresholds file {path} must hold 'version' and 'checks'")
     unknown = sorted(str(key) for key in raw if key not in ("version", "checks"))
     if unknown:  # a misspelt block (`chekcs:`) would leave its limits unused without a word
         raise InputError(f"thresholds file {path}: unknown key {unknown[0]!r} (known: version, checks)")
+    if "version" not in raw or "checks" not in raw:
+        raise InputError(f"thresholds file {path} must hold 'version' and 'checks'")
     return raw
 
 

@@ -159,7 +159,7 @@ class BenchConfig(ABC):
         """Read a config YAML file (see ``from_dict``); ``InputError`` for a missing or bad file."""
         import yaml
 
-        from collect.yaml_files import load_yaml
+        from collect.yaml_files import load_yaml, yaml_error_text
 
         path = Path(path)
         try:
@@ -167,7 +167,7 @@ class BenchConfig(ABC):
         except (OSError, UnicodeDecodeError) as err:
             raise InputError(f"cannot read bench config {path}: {getattr(err, 'strerror', None) or err}") from None
         except yaml.YAMLError as err:
-            raise InputError(f"bench config {path} is not valid YAML: {str(err).splitlines()[0]}") from None
+            raise InputError(f"bench config {path} is not valid YAML: {yaml_error_text(err)}") from None
         return cls.from_dict(data, source=f"bench config {path}")
 
     @abstractmethod

@@ -46,8 +46,7 @@ class Loader(yaml.SafeLoader):
                 if isinstance(key, (str, int, float, bool)) or key is None:
                     if key in seen:
                         raise yaml.constructor.ConstructorError(
-                            None, None, f"duplicate key {key!r} (line {key_node.start_mark.line + 1}): give each key once",
-                            key_node.start_mark)
+                            None, None, f"duplicate key {key!r}: give each key once", key_node.start_mark)
                     seen.add(key)
         return super().construct_mapping(node, deep)
 
@@ -58,6 +57,17 @@ class Dumper(yaml.SafeDumper):
 
 Loader.yaml_implicit_resolvers = _with_yaml12_floats(yaml.SafeLoader.yaml_implicit_resolvers)
 Dumper.yaml_implicit_resolvers = _with_yaml12_floats(yaml.SafeDumper.yaml_implicit_resolvers)
+
+
+def yaml_error_text(err: yaml.YAMLError) -> str:
+    """One line saying where and why PyYAML refused a file: ``line L, column C: problem (context)``
+    (was, for bench configs and thresholds: PyYAML's first line alone, such as "while parsing a flow
+    sequence", naming neither the line nor the problem)."""
+    mark = getattr(err, "problem_mark", None)
+    problem, context = getattr(err, "problem", None), getattr(err, "context", None)
+    what = (f"{problem} ({context})" if problem and context else problem or context) or str(err).splitlines()[0]
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return where + " ".join(str(what).split())
 
 
 def load_yaml(text: str):

@@ -170,7 +170,7 @@ class SensorSpec:
         """Read a spec; unreadable files, bad YAML, missing or out-of-range fields raise ``InputError``."""
         import yaml
 
-        from collect.yaml_files import load_yaml
+        from collect.yaml_files import load_yaml, yaml_error_text
 
         path = Path(path)
         try:
@@ -180,9 +180,7 @@ class SensorSpec:
         try:
             data = load_yaml(text)
         except yaml.YAMLError as err:
-            mark = getattr(err, "problem_mark", None)
-            where = f" at line {mark.line + 1}" if mark is not None else ""
-            raise InputError(f"sensor spec {path}: bad YAML{where}: {str(err).splitlines()[0]}") from None
+            raise InputError(f"sensor spec {path} is not valid YAML: {yaml_error_text(err)}") from None
         return cls.from_dict(data, source=f"sensor spec {path}")
 
     def to_yaml(self, path: str | Path) -> None:

@@ -210,7 +210,14 @@ class SimBench:
         self._loop.start()
 
     def stop(self) -> None:
-        """Stop the physics thread."""
+        """Stop the physics thread; log each scheduled fault the run ended before (was: nothing said, and a
+        ``--sim-fault camera-stall@100`` on a 4-second run looked like a fault that did not trip)."""
+        if self._loop.running:
+            now = self.now()
+            for fault in self.faults:
+                if fault.at_s > now:
+                    log.warning("simulated bench: --sim-fault %s did not happen: the bench closed at %.1f s of "
+                                "simulated time (the seconds count from the bench's opening)", fault, now)
         self._loop.stop()
 
     def _solve_now(self) -> None:

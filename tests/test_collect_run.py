@@ -131,6 +131,15 @@ def test_camera_stall_keeps_frames_and_exits_3(tmp_path, capsys):
         assert s.arm().tcp_pose[-1, 2] > 0.04
 
 
+def test_a_fault_scheduled_after_the_run_says_it_did_not_happen(tmp_path, caplog):
+    """Was: nothing said, and the run looked like a fault that did not trip the recorder."""
+    rc, _ = _collect(tmp_path, "--sim-fault", "camera-stall@1000", "--sim-speed", "4")
+    assert rc == 0
+    said = [r.getMessage() for r in caplog.records if "did not happen" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("simulated bench: --sim-fault camera-stall@1000 did not happen: the "
+                                                 "bench closed at ")
+
+
 def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes_it(tmp_path, capsys, monkeypatch):
     """The recorder stops while it can still close the file cleanly (``MIN_FREE_BYTES`` set 12 MB
     under the disk's free space, ~1 s of recording): one fault line, every flushed frame kept; once

@@ -35,7 +35,8 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
         ("version: 2\nchecks:\n  heldout_a1: {min: 0.9}\n", "version"),
         ("version: 1\nchecks:\n  heldout_a1: {min: high}\n", "finite number"),
         ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: 1100, max: 1000}\n", "above max"),
-        ("version: 1\nchecks: [1, 2\n", "not valid YAML"),
+        ("version: 1\nchecks: [1, 2\n", "not valid YAML: line 3, column 1: expected ',' or ']', but got '<stream end>' "
+                                    r"\(while parsing a flow sequence\)"),
         ("just text\n", "must hold"),
         # was: silently ignored, the packaged limit left in force
         ("version: 1\nchecks:\n  heldout_a1: {mn: 0.99}\n", "check 'heldout_a1': unknown key 'mn' "
@@ -61,8 +62,10 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
         # was: a misspelt block ignored, its limit unused; a check given twice was its last
         ("version: 1\nchecks:\n  heldout_a1: {min: 0.9}\nchekcs:\n  heldout_rmse_mm: {max: 0.5}\n",
          r"unknown key 'chekcs' \(known: version, checks\)"),
+        # was: "must hold 'version' and 'checks'", not naming the misspelt block
+        ("version: 1\nchekcs:\n  heldout_rmse_mm: {max: 0.5}\n", r"unknown key 'chekcs' \(known: version, checks\)"),
         ("version: 1\nchecks:\n  heldout_a1: {min: 0.97}\n  heldout_a1: {min: 0.5}\n",
-         r"not valid YAML: duplicate key 'heldout_a1' \(line 4\): give each key once"),
+         r"not valid YAML: line 4, column 3: duplicate key 'heldout_a1': give each key once"),
         # was: a one-sided check turned into a range that rejected healthy sensors
         ("version: 1\nchecks:\n  leak_rate_hpa_per_min: {min: 0.3}\n",
          "check 'leak_rate_hpa_per_min' is a maximum check; a min alone would add a second limit"),

@@ -229,6 +229,10 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
             path.write_text(text)
         with pytest.raises(InputError):
             BenchConfig.from_yaml(path)
+    # the line and the problem named (was: "while parsing a flow sequence" alone)
+    with pytest.raises(InputError, match=r"bench config .*syntax.yaml is not valid YAML: line 3, column 1: expected ',' "
+                                         r"or '\]', but got '<stream end>' \(while parsing a flow sequence\)$"):
+        BenchConfig.from_yaml(tmp_path / "syntax.yaml")
     one = tmp_path / "one.yaml"
     one.write_text("type: ur\nobjects: teapot\n")  # one name, not the letters t, e, a, ...
     assert BenchConfig.from_yaml(one).objects == ("teapot",)

@@ -38,7 +38,7 @@ def test_bad_input_exits_2(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("fx: [1, 2\n")
     png = str(tmp_path / "x.png")
-    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(bad), "--object", "mug", "--out", png], "bad YAML")
+    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(bad), "--object", "mug", "--out", png], "is not valid YAML: line")
     _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "teapot", "--out", png], "unknown object")
     holey = trimesh.creation.icosphere(radius=0.02)
     holey.update_faces(np.arange(len(holey.faces)) > 3)

@@ -94,10 +94,10 @@ def test_bad_spec_fields_name_the_field(tmp_path, edit, field):
 def test_bad_yaml_and_missing_file(tmp_path):
     path = tmp_path / "broken.yaml"
     path.write_text("serial: [unclosed\nfx: 1")
-    with pytest.raises(InputError, match="bad YAML"):
+    with pytest.raises(InputError, match="not valid YAML: line"):
         SensorSpec.from_yaml(path)
     path.write_text(yaml.safe_dump(draw_sensor(1).to_dict()) + "fps: 30\n")
-    with pytest.raises(InputError, match="bad YAML at line .*: duplicate key 'fps'"):  # was: "bad YAML at line 40" alone
+    with pytest.raises(InputError, match="not valid YAML: line .*, column 1: duplicate key 'fps'"):  # was: "bad YAML at line 40" alone
         SensorSpec.from_yaml(path)
     path.write_text("- just\n- a list\n")
     with pytest.raises(InputError, match="mapping"):

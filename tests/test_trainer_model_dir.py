@@ -125,6 +125,12 @@ def test_missing_mismatched_or_garbage_weights(model_dir, tmp_path):
     (model_dir / METADATA_FILE).mkdir()  # was: "has no metadata.json"
     with pytest.raises(InputError, match=f"{model_dir / METADATA_FILE} is not a regular file"):
         load_network(model_dir)
+    run_dir = tmp_path / "run"  # a commissioning run folder given for its model/ folder: named
+    (run_dir / "model").mkdir(parents=True)
+    (run_dir / "model" / METADATA_FILE).write_text("{}")
+    with pytest.raises(InputError, match=rf"model directory {run_dir} has no {METADATA_FILE} \(a commissioning run\? "
+                                         rf"its model is {run_dir / 'model'}\)$"):
+        load_metadata(run_dir)
 
 
 #: (field of metadata.json, bad value; ``None``: the field removed) as a fuzzer wrote them.

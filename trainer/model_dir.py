@@ -196,7 +196,9 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
         if path.exists() and not path.is_file():  # a folder or a pipe of that name
             raise InputError(f"{path} is not a regular file")
         if not path.is_file():
-            raise InputError(f"model directory {model_dir} has no {METADATA_FILE}")
+            inner = model_dir / "model"  # a commissioning run folder holds its model there
+            hint = (f" (a commissioning run? its model is {inner})" if (inner / METADATA_FILE).is_file() else "")
+            raise InputError(f"model directory {model_dir} has no {METADATA_FILE}{hint}")
         raw = path.read_bytes()
     except OSError as err:  # a folder on the way that cannot be entered, a file that cannot be read
         raise _unreadable(path, err) from None
