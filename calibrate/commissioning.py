@@ -398,14 +398,12 @@ class _Flow:
         self.emit(StepStarted(Step.FINETUNE, deadline_s))
 
         def on_progress(p) -> None:
-            a1 = p.val.get("a1") if (p.event == "eval" and p.val) else None
-            if p.event == "step" and p.step % 5 != 0 and a1 is None:
+            point = curve_point(p, time.monotonic() - started)
+            if point is None:
                 return
-            loss = p.loss if math.isfinite(p.loss) else None
-            point = {"step": p.step, "elapsed_s": time.monotonic() - started, "loss": loss, "a1": a1}
             curve.append(point)
-            if loss is not None:  # the validation before the first step has no training loss yet
-                self.emit(TrainingProgress(p.step, point["elapsed_s"], p.loss, a1, p.eta_s))
+            if point["loss"] is not None:  # the validation before the first step has no training loss yet
+                self.emit(TrainingProgress(p.step, point["elapsed_s"], p.loss, point["a1"], p.eta_s))
                 self.progress(Step.FINETUNE, p.fraction, f"step {p.step}, loss {p.loss * 1000:.3f} mm")
 
         config = TrainConfig(
@@ -723,6 +721,23 @@ def pose_vs_true_key(source: str) -> str:
     """The ``pose_check`` entry of the pose fitted to ``source`` depth ("predicted", "measured", "true")
     against the simulator's true pose: [median e_x (mm), median e_theta]."""
     return f"pose from {source} depth vs the true pose: e_x (mm) / e_theta, medians"
+
+
+#: The fine-tune's curve keeps every this many training steps (besides each validation and the end).
+CURVE_EVERY_STEPS = 5
+
+
+def curve_point(progress, elapsed_s: float) -> dict | None:
+    """The fine-tune curve's point for a ``trainer.training.TrainProgress`` (``elapsed_s``: s since the
+    step began): ``{step, elapsed_s, loss (m, None before a first step), a1 (validation, or None)}``, or
+    None for a step the curve leaves out. Every ``CURVE_EVERY_STEPS``-th step, each validation and the
+    end are kept; the end carries the final validation's a1 (was: none, the TUI's a1 chart stopped at
+    the last periodic validation)."""
+    if progress.event == "step" and progress.step % CURVE_EVERY_STEPS != 0:
+        return None
+    a1 = progress.val.get("a1") if (progress.event in ("eval", "done") and progress.val) else None
+    loss = progress.loss if math.isfinite(progress.loss) else None
+    return {"step": progress.step, "elapsed_s": elapsed_s, "loss": loss, "a1": a1}
 
 
 def _arm_z_and_force(bench) -> tuple[float, float]:

@@ -154,8 +154,14 @@ def test_live_events_reach_the_consumer(faulted_then_resumed):
     collection = [e for e in events if isinstance(e, CollectionProgress)]
     assert {"press", "hold"} <= {e.phase for e in collection}
     assert any(e.force_n > 0.5 for e in collection if e.phase == "hold")
+    # the fine-tune's curve reaches the consumer and ends at its last step with the final a1. Its 8 s
+    # floor can pass before a first step on a loaded machine: then there is no curve (was: a failure)
     training = [e for e in events if isinstance(e, TrainingProgress)]
-    assert training and all(np.isfinite(e.loss) for e in training)
+    finetune = json.loads((faulted_then_resumed["config"].run_dir / "state.json").read_text())["steps"]["finetune"]
+    assert [e.step for e in training] == [p["step"] for p in finetune["curve"] if p["loss"] is not None]
+    assert all(np.isfinite(e.loss) for e in training)
+    if finetune["steps"] > 0:
+        assert training[-1].step == finetune["steps"] and training[-1].a1 == finetune["curve"][-1]["a1"]
     # the bench's last snapshot shows the arm as the bench leaves it: after the fault's safe stop, and
     # just before collection's end (the TUI's bench panel ends on it; was: on the last one the
     # snapshot loop had sent, the arm still moving)
@@ -165,6 +171,21 @@ def test_live_events_reach_the_consumer(faulted_then_resumed):
     collected = next(k for k, e in enumerate(resumed) if isinstance(e, StepFinished) and e.step == Step.COLLECT)
     assert not resumed[collected].resumed and last_snapshot[1] == collected - 1
     assert np.linalg.norm(resumed[collected - 1].wrench[:3]) < 0.5  # parked: the bubble touches nothing
+
+
+def test_finetune_curve_keeps_every_fifth_step_each_validation_and_the_end():
+    from calibrate.commissioning import curve_point
+    from trainer.training import TrainProgress
+
+    def progress(step, event="step", a1=None, loss=0.001):
+        return TrainProgress(0.1 * step, step, loss, 1e-4, float(step), 0.1 * step, 1.0, None if a1 is None else {"a1": a1}, event)
+
+    events = [progress(0, "eval", 0.5, float("nan"))] + [progress(k) for k in range(1, 8)]
+    events[3:3] = [progress(3, "eval", 0.9)]
+    events.append(progress(7, "done", 0.95))
+    points = [p for p in (curve_point(e, 1.0) for e in events) if p is not None]
+    assert [(p["step"], p["loss"], p["a1"]) for p in points] == [
+        (0, None, 0.5), (3, 0.001, 0.9), (5, 0.001, None), (7, 0.001, 0.95)]
 
 
 def test_run_directory_holds_the_contract_files(faulted_then_resumed):
