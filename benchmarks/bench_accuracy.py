@@ -2,9 +2,11 @@
 
     .venv/bin/python benchmarks/bench_accuracy.py           # full run: ~45 min on 2 cores (~35 with the sessions cached)
     .venv/bin/python benchmarks/bench_accuracy.py --quick   # ~5 min: tiny budgets, validates the script end to end
+                                                            # (its page goes to runs/bench_accuracy_quick/, not docs/)
     .venv/bin/python benchmarks/bench_accuracy.py --reuse-models   # rebuild from the models kept in --work
 
-Writes ``docs/bench_accuracy.md`` and ``docs/bench_accuracy.json`` (``--out``). Everything goes
+Writes ``docs/bench_accuracy.md`` and ``docs/bench_accuracy.json`` (``--out``; with ``--quick``,
+``runs/bench_accuracy_quick/bench_accuracy.md`` and ``.json`` unless ``--out`` is given). Everything goes
 through the product: sessions are drawn and recorded with ``bubble sim new-sensor`` and
 ``bubble collect --sim`` (cached in ``--work``, so a rerun only retrains), networks are trained
 with ``trainer.training.train_model`` (what ``bubble train`` runs) and evaluated with
@@ -37,20 +39,21 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.machine import machine_info, machine_line  # noqa: E402
+from benchmarks.arguments import int_list, model_dir, name_list, run_main  # noqa: E402
+from benchmarks.machine import finish, machine_info, machine_line, provisional_note  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
-from collect.errors import EXIT_FAULT, InputError  # noqa: E402
-from collect.session_reader import Session  # noqa: E402
+from collect.errors import EXIT_FAULT  # noqa: E402
+from collect.session_info import session_summary  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS  # noqa: E402
 from collect.json_files import write_json  # noqa: E402
 from trainer.cli import PAPER_COLUMNS  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
-from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
+from trainer.dataset import file_sha256  # noqa: E402
+from trainer.model_dir import METADATA_FILE, load_metadata, weights_sha256  # noqa: E402
+from trainer.splits import SPLITS  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
 from trainer.training_defaults import ARCH_NAMES  # noqa: E402
 
@@ -62,7 +65,7 @@ EVAL_INTERVAL_S = 60.0
 #: simulated clock speed, down to real time.
 COLLECT_ATTEMPTS = 6
 #: Settings of ``--quick``: every section runs, on tiny sessions and budgets (not results).
-QUICK = {"minutes": 0.15, "holdouts": "mug", "poses_per_object": 2, "cross_seeds": "21", "calib_poses": 2,
+QUICK = {"minutes": 0.15, "holdouts": "mug", "poses_per_object": 2, "cross_seeds": [21], "calib_poses": 2,
          "test_poses": 1, "finetune_minutes": 0.25}
 #: Paper reference numbers (real data, 8 V100s), shown next to the tables.
 PAPER = {
@@ -124,23 +127,36 @@ def record(work: Path, seed: int, objects: str, poses: int, pose_seed: int, sim_
     return out
 
 
-def session_summary(path: Path) -> dict:
-    """Frames and recording time of a session: arm time on the bench clock (s), summed over the
-    arm stream's sample steps (a resumed recording restarts the clock, so not last minus first)."""
-    with Session.open(path) as s:
-        dt = np.diff(s.arm().t)
-        return {"path": str(path), "frames": int(s.n_frames), "record_s": float(dt[(dt > 0) & (dt < 1.0)].sum())}
+def recording(path: Path) -> dict:
+    """Frames and recording time (s) of a session: ``session_summary``'s ``duration_s``, what ``bubble info`` shows
+    (the simulated camera's clock runs with the bench clock; the pauses before a ``--resume`` do not count)."""
+    info = session_summary(path)
+    return {"path": str(path), "frames": info["frames"], "record_s": info["duration_s"]}
 
 
 def reusable(out: Path, config: dict) -> dict | None:
-    """The result of a finished model in ``out`` trained on the same data, init and budget, else None."""
+    """The result of a finished model in ``out`` trained with the same budget from the same init weights on the same
+    recordings, else None. The recordings are compared by their SHA-256, and so is the init model's weights where
+    the model recorded them (``training.init.weights_sha256``); a model trained before that was recorded is
+    compared by the init's recorded validation metrics (was: by the init's name alone, so that a changed base
+    model kept the fine-tunes of the old one)."""
     if not (out / METADATA_FILE).is_file():
         return None
     meta = load_metadata(out)
     t = meta.training
-    same = (t["budget"].get("minutes") == config["minutes"] and (t["init"] or {}).get("model_dir") == config.get("init")
-            and [src["path"] for src in t["sources"]] == config["data"]
-            and [src["path"] for src in t["val_sources"]] == config.get("val_data", []))
+    init, recorded = config.get("init"), t["init"] or {}
+    if init:
+        current = load_metadata(init)
+        same_init = (recorded.get("model_dir") == init and (recorded["weights_sha256"] == weights_sha256(init)
+                                                            if "weights_sha256" in recorded else
+                                                            recorded.get("metrics") == current.metrics))
+    else:
+        same_init = not recorded
+    same = (t["budget"].get("minutes") == config["minutes"] and same_init
+            and [(src["path"], src["sha256"]) for src in t["sources"]]
+            == [(path, file_sha256(path)) for path in config["data"]]
+            and [(src["path"], src["sha256"]) for src in t["val_sources"]]
+            == [(path, file_sha256(path)) for path in config.get("val_data", [])])
     return {"model": str(out), "metrics": meta.metrics, "epochs": t["epochs"], "steps": t["steps"],
             "train_min": t["train_s"] / 60} if same else None
 
@@ -187,7 +203,7 @@ def markdown(res: dict) -> str:
         "# Accuracy on the simulated bench (paper Tables II-IV)",
         "",
         f"Command: `{res['command']}`  ",
-        machine_line(res["machine"]) + f" Wall time {res['wall_min']:.1f} min.",
+        machine_line(res["machine"]) + f" Wall time {res['wall_min']:.1f} min." + provisional_note(res["machine"]),
         "",
     ]
     if s.get("reuse_models"):
@@ -200,8 +216,7 @@ def markdown(res: dict) -> str:
     lines += [
         "Every number comes from the product's own path: `bubble sim new-sensor`, `bubble collect --sim`, "
         "`train_model` (= `bubble train`), `evaluate_model` (= `bubble evaluate --json`). Metrics as in `trainer/metrics.py`, "
-        "against the ToF depth (the sensor's own supervision) unless the table says *true depth*. "
-        "Numbers from a busy machine are provisional.",
+        "against the ToF depth (the sensor's own supervision) unless the table says *true depth*.",
         "",
         "## In-class (Table II)",
         "",
@@ -248,8 +263,9 @@ def markdown(res: dict) -> str:
                      f"{paper_cells(r['finetuned'])} | {calib} |")
     lines += [
         "",
-        "Calibration set time: arm time on the bench clock, summed over the arm stream (a recording resumed after "
-        "a fault on a loaded machine counts every attempt). The product's promise: under a minute.",
+        "Calibration set time: recording time on the simulated bench clock, as `bubble info` reports it (a "
+        "recording resumed after a fault on a loaded machine counts every attempt's frames, not the pauses between "
+        "them). The product's promise: under a minute.",
         "",
         "## ToF vs model against the true depth",
         "",
@@ -280,77 +296,80 @@ def markdown(res: dict) -> str:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny budgets (~5 min) to validate the script; overrides budgets")
-    p.add_argument("--archs", default=",".join(ARCH_NAMES), help="comma-separated architectures")
+    p.add_argument("--archs", type=name_list(ARCH_NAMES), default=",".join(ARCH_NAMES),
+                   help=f"comma-separated architectures among {', '.join(ARCH_NAMES)} (default: all)")
     p.add_argument("--minutes", type=float, default=1.0, help="CPU training minutes per from-scratch run (sections 1-2)")
-    p.add_argument("--splits", default="frames", help="in-class splits: frames (the paper's), poses, or both")
+    p.add_argument("--splits", type=name_list(SPLITS), default="frames",
+                   help="comma-separated in-class splits: frames (the paper's), poses, or frames,poses for both")
     p.add_argument("--holdouts", default=",".join(BUILTIN_OBJECTS), help="objects to leave out, one run each")
     p.add_argument("--objects", default=",".join(BUILTIN_OBJECTS))
     p.add_argument("--sensor-seed", type=int, default=11, help="sensor A of sections 1-2")
     p.add_argument("--poses-per-object", type=int, default=8, help="sensor A's session")
-    p.add_argument("--cross-seeds", default="21,22,23", help="new sensors of sections 3-4")
+    p.add_argument("--cross-seeds", type=int_list, default="21,22,23",
+                   help="comma-separated seeds of the new sensors of sections 3-4")
     p.add_argument("--calib-poses", type=int, default=6, help="calibration poses per object (4 x 6: ~45 s of recording)")
     p.add_argument("--test-poses", type=int, default=3, help="test poses per object")
     p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes)
-    p.add_argument("--base-model", default="base", help="pretrained model (default: the packaged base model)")
+    p.add_argument("--base-model", type=model_dir, default="base", help="pretrained model (default: the packaged base model)")
     p.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed of bubble collect")
     p.add_argument("--work", type=Path, help="sessions and models (default: runs/bench_accuracy[_quick])")
     p.add_argument("--reuse-models", action="store_true",
                    help="keep models in --work trained on the same data, init and budget (rebuild the tables cheaply)")
-    p.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_accuracy.md", help="markdown; JSON next to it")
+    p.add_argument("--out", type=Path, help="markdown, JSON next to it (default: docs/bench_accuracy.md; with --quick, "
+                                            "bench_accuracy.md in --work, so that a check leaves the committed page)")
     args = p.parse_args(argv)
     if args.quick:
         for key, value in QUICK.items():
             setattr(args, key, value)
     args.work = (args.work or ROOT / "runs" / ("bench_accuracy_quick" if args.quick else "bench_accuracy")).resolve()
+    args.out = args.out or (args.work if args.quick else ROOT / "docs") / "bench_accuracy.md"
+    seen = base_model_serials(args.base_model)
+    reused = [seed for seed in args.cross_seeds if f"SB-SIM-{seed:06d}" in seen]
+    if reused:
+        p.error(f"the base model trained on sensor seeds {reused}: pick other --cross-seeds")
     return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    archs = [a for a in args.archs.split(",") if a]
-    cross_seeds = [int(s) for s in args.cross_seeds.split(",") if s]
-    seen = base_model_serials(args.base_model)
-    reused = [seed for seed in cross_seeds if f"SB-SIM-{seed:06d}" in seen]
-    if reused:
-        sys.exit(f"bench_accuracy: the base model trained on sensor seeds {reused}: pick other --cross-seeds")
     info, t0 = machine_info(), time.perf_counter()
     args.work.mkdir(parents=True, exist_ok=True)
 
     session_a = record(args.work, args.sensor_seed, args.objects, args.poses_per_object, args.sensor_seed, args.sim_speed)
-    splits = args.splits.split(",")
     in_class = [{"arch": arch, "init": None, "split": split, **train(
         args.work, f"{arch}_inclass_{split}", args.reuse_models, data=[str(session_a)], arch=arch, minutes=args.minutes,
         split=split)}
-        for arch in archs for split in splits]
+        for arch in args.archs for split in args.splits]
     base_arch = load_metadata(args.base_model).arch  # the product's path, same budget: fine-tune the base model
     in_class += [{"arch": base_arch, "init": "base", "split": split, **train(
         args.work, f"base_inclass_{split}", args.reuse_models, data=[str(session_a)], init=args.base_model,
-        minutes=args.minutes, split=split)} for split in splits]
+        minutes=args.minutes, split=split)} for split in args.splits]
     leave_one_out = [{"arch": arch, "holdout": obj, **train(args.work, f"{arch}_without_{obj}", args.reuse_models,
                                                             data=[str(session_a)], arch=arch, minutes=args.minutes,
                                                             holdout_object=obj)}
-                     for arch in archs for obj in args.holdouts.split(",")]
+                     for arch in args.archs for obj in args.holdouts.split(",")]
     model_a = next((r for r in in_class if r["arch"] == "resnet" and not r["init"]), in_class[0])
 
     cross = []
-    for seed in cross_seeds:
+    for seed in args.cross_seeds:
         calib = record(args.work, seed, args.objects, args.calib_poses, seed, args.sim_speed)
         test = record(args.work, seed, args.objects, args.test_poses, seed + 100_000, args.sim_speed)
         finetune = train(args.work, f"sensor{seed}_finetuned", args.reuse_models, data=[str(calib)], val_data=[str(test)],
                          init=args.base_model, minutes=args.finetune_minutes)
         tuned = evaluate(finetune["model"], test)
-        cross.append({"seed": seed, "calib": session_summary(calib), "test": session_summary(test),
+        cross.append({"seed": seed, "calib": recording(calib), "test": recording(test),
                       "zero_shot_base": evaluate(args.base_model, test),
                       "zero_shot_sensor_a": evaluate(model_a["model"], test),
                       "finetune": finetune, "finetuned": tuned, "vs_true": tuned["vs_true"]})
         print(f"sensor {seed}: zero-shot a1 {cross[-1]['zero_shot_base']['a1']:.3f}, fine-tuned a1 {tuned['a1']:.3f}",
               flush=True)
 
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "out"}
+    settings = {k: str(v) if isinstance(v, Path) else ",".join(map(str, v)) if isinstance(v, list) else v
+                for k, v in vars(args).items() if k != "out"}  # as given on the command line
     result = {
         "command": "python benchmarks/bench_accuracy.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "machine": info, "wall_min": (time.perf_counter() - t0) / 60, "settings": settings,
-        "sensor_a": session_summary(session_a), "sensor_a_model_arch": model_a["arch"],
+        "machine": finish(info), "wall_min": (time.perf_counter() - t0) / 60, "settings": settings,
+        "sensor_a": recording(session_a), "sensor_a_model_arch": model_a["arch"],
         "in_class": in_class, "leave_one_out": leave_one_out, "cross_sensor": cross,
         "json": str(args.out.with_suffix(".json")),
     }
@@ -361,7 +380,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except InputError as err:  # a bad --base-model, session or object name: one line, as the CLI does
-        sys.exit(f"bench_accuracy: {err}")
+    run_main(main, "bench_accuracy")  # a bad session or object name: one line, exit 2, as the CLI does

@@ -23,8 +23,6 @@ every good sensor accepted and every defective one rejected.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -35,6 +33,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.arguments import int_list, model_dir, positive_float, run_main  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
 from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
 from calibrate.commissioning import POSE_BY_POSE_KEY, pose_vs_true_key, run_commissioning  # noqa: E402
@@ -49,6 +49,28 @@ DEFECT_CHECKS = {"leak": ("leak_rate_hpa_per_min",), "dead-pixels": ("dead_pixel
 UNSEEN_POSES = 6
 #: The seed of the defective sensors (one per defect).
 DEFECT_SEED = 909
+#: Recordings of the unseen meshes per sensor: a loaded machine can starve the simulated camera, so one retry.
+UNSEEN_ATTEMPTS = 2
+
+
+def run_name(seed: int, defect: str | None) -> str:
+    """The name of a sensor's files in ``--work``: its seed, and its defect if it has one."""
+    return f"{seed}" if defect is None else f"{seed}_{defect}"
+
+
+def run_outputs(work: Path, name: str) -> list[Path]:
+    """What commissioning sensor ``name`` creates in ``work`` and a rerun would not start afresh: its run folder
+    (``run_commissioning`` resumes one, or returns the verdict it recorded) and its unseen-mesh sessions (the
+    recorder refuses an existing file)."""
+    return [run_folder(work, name)] + [unseen_session(work, name, attempt) for attempt in range(1, UNSEEN_ATTEMPTS + 1)]
+
+
+def run_folder(work: Path, name: str) -> Path:
+    return work / f"run_{name}"
+
+
+def unseen_session(work: Path, name: str, attempt: int) -> Path:
+    return work / f"unseen_{name}_{attempt}.h5"
 
 
 def unseen_meshes(work: Path) -> list[Path]:
@@ -87,7 +109,7 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
     from hw_mocks.sensor_spec import draw_sensor
 
     spec = draw_sensor(seed, defect)
-    name = f"{seed}" if defect is None else f"{seed}_{defect}"
+    name = run_name(seed, defect)
     spec_path = work / f"sensor_{name}.yaml"
     spec.to_yaml(spec_path)
     starts: dict[str, float] = {}
@@ -101,7 +123,7 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
             durations[event.step.value] = now - starts[event.step.value]
 
     config = CommissionConfig(
-        run_dir=work / f"run_{name}",
+        run_dir=run_folder(work, name),
         sensor_spec=spec_path,
         registry_dir=work / "registry",
         finetune_minutes=minutes,
@@ -137,8 +159,8 @@ def commission_one(seed: int, work: Path, minutes: float, base_model: Path | Non
         from trainer.evaluation import evaluate_model
 
         meshes = unseen_meshes(work)
-        for attempt in (1, 2):  # a loaded machine can starve the simulated camera: one retry
-            session = work / f"unseen_{seed}_{attempt}.h5"
+        for attempt in range(1, UNSEEN_ATTEMPTS + 1):
+            session = unseen_session(work, name, attempt)
             try:
                 record_unseen(spec_path, meshes, seed, session)
                 break
@@ -166,16 +188,14 @@ def _spread(values: list[float], fmt: str) -> str:
     return f"{format(min(values), fmt)} / {format(statistics.median(values), fmt)} / {format(max(values), fmt)}"
 
 
-def write_doc(all_rows: list[dict], args, load: tuple[float, float]) -> Path:
+def write_doc(all_rows: list[dict], args, info: dict) -> Path:
     steps = [s.value for s in Step]
     rows = [r for r in all_rows if r["defect"] is None]
     defective = [r for r in all_rows if r["defect"] is not None]
     lines = [
         "# Benchmark: `bubble commission --sim` end to end",
         "",
-        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, load average {load[0]:.1f} -> {load[1]:.1f}"
-        + (" (other processes were running: provisional numbers)." if load[0] > 1.5 else "."),
+        provenance(info),
         "",
         f"Each sensor is new (`draw_sensor(seed)`, seeds unused by pretraining) and commissioned with the product's "
         f"defaults: 4 objects x {CommissionConfig.poses_per_object} poses ({TRAIN_FRACTION:.0%} fine-tune, the rest validate), "
@@ -257,7 +277,8 @@ def write_doc(all_rows: list[dict], args, load: tuple[float, float]) -> Path:
         "ToF dropouts included) and with the ToF (where it is valid); "
         "\"a1 on ToF dropouts\" is the model's a1 against the truth where the ToF gave no depth.",
         "",
-        f"Rerun: `.venv/bin/python benchmarks/bench_commission.py --seeds {args.seeds} --defects {args.defects}`",
+        f"Rerun: `.venv/bin/python benchmarks/bench_commission.py --seeds {','.join(map(str, args.seeds))} "
+        f"--defects {args.defects}`",
         "",
     ]
     path = ROOT / "docs" / "bench_commission.md"
@@ -265,30 +286,38 @@ def write_doc(all_rows: list[dict], args, load: tuple[float, float]) -> Path:
     return path
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", default="101,202,303", help="comma-separated sensor seeds (default 101,202,303)")
-    parser.add_argument("--minutes", type=float, default=CommissionConfig.finetune_minutes, help="fine-tune budget")
-    parser.add_argument("--base-model", type=Path, help="model to fine-tune from (default: the packaged base model)")
+    parser.add_argument("--seeds", type=int_list, default="101,202,303",
+                        help="comma-separated sensor seeds (default 101,202,303)")
+    parser.add_argument("--minutes", type=positive_float, default=CommissionConfig.finetune_minutes,
+                        help="fine-tune budget")
+    parser.add_argument("--base-model", type=model_dir, help="model to fine-tune from (default: the packaged base model)")
     parser.add_argument("--defects", default=",".join(DEFECT_CHECKS),
                         help=f"comma-separated simulated defects, one defective sensor each (seed {DEFECT_SEED}; '' for none)")
-    parser.add_argument("--work", help="keep the runs here (default: a temporary directory)")
+    parser.add_argument("--work", type=Path,
+                        help="keep the runs here, a folder without the runs of an earlier call (default: a temporary "
+                             "directory)")
     parser.add_argument("--no-doc", action="store_true", help="print only, do not write docs/bench_commission.md")
-    args = parser.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    args = parser.parse_args(argv)
     defects = [d.strip() for d in args.defects.split(",") if d.strip()]
-    if not seeds or any(d not in DEFECT_CHECKS for d in defects):
-        parser.error(f"give at least one seed, and defects among {', '.join(DEFECT_CHECKS)}")
-    load_before = os.getloadavg()[0]
+    if any(d not in DEFECT_CHECKS for d in defects) or len(set(defects)) != len(defects):
+        parser.error(f"defects must be among {', '.join(DEFECT_CHECKS)}, each once")
+    sensors = [(seed, None) for seed in args.seeds] + [(DEFECT_SEED, defect) for defect in defects]
+    if args.work is not None:  # a run folder there would be resumed, or its recorded verdict returned
+        taken = [str(p) for seed, defect in sensors for p in run_outputs(args.work, run_name(seed, defect)) if p.exists()]
+        if taken:
+            parser.error(f"--work {args.work} already holds {', '.join(taken)} from an earlier run: give a new --work")
+    base_model = None if args.base_model is None else Path(args.base_model)
+    info = machine_info()
     with tempfile.TemporaryDirectory() as tmp:
-        work = Path(args.work or tmp)
+        work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        rows = [commission_one(seed, work, args.minutes, args.base_model) for seed in seeds]
-        rows += [commission_one(DEFECT_SEED, work, args.minutes, args.base_model, defect) for defect in defects]
+        rows = [commission_one(seed, work, args.minutes, base_model, defect) for seed, defect in sensors]
     if not args.no_doc:
-        print(f"wrote {write_doc(rows, args, (load_before, os.getloadavg()[0]))}")
+        print(f"wrote {write_doc(rows, args, info)}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_commission")

@@ -5,7 +5,9 @@
 
 1. Draw a new simulated sensor (seed ``--sensor-seed``, outside the pretraining seeds) and record
    its calibration session with ``bubble collect --sim`` (through ``trainer.pretrain.collect_one``).
-2. Zero-shot: the base model on the held-out poses (``bubble evaluate`` path).
+2. Zero-shot: the base model, before any training step, on the fine-tune's held-out frames (the
+   loader, seed and in-class pose split ``train_model`` validates on), like for like with the
+   fine-tune's final metrics.
 3. Fine-tune from the base model for ``--minutes`` of training time, validating on the held-out
    poses (in-class pose split, 70/30) every ``--eval-s`` seconds: the a1-vs-minutes curve.
    Target: a1 >= 0.95 within 3 minutes on this 2-core CPU. Peak training memory (RSS) is reported.
@@ -14,8 +16,6 @@
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -24,11 +24,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.arguments import model_dir  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect.session_info import session_summary  # noqa: E402
+from trainer.dataset import load_frames  # noqa: E402
 from trainer.doc_sections import BENCH_TRAINER_HEADER, update_section  # noqa: E402
-from trainer.evaluation import evaluate_model  # noqa: E402
+from trainer.evaluation import predict_frames  # noqa: E402
+from trainer.inference import DepthEstimator  # noqa: E402
+from trainer.metrics import depth_metrics  # noqa: E402
 from collect.cli import DEFAULT_OBJECTS_ARG  # noqa: E402
 from trainer.pretrain import collect_one  # noqa: E402
+from trainer.splits import split_in_class  # noqa: E402
 from trainer.training import TrainConfig, train_model  # noqa: E402
 
 TARGET_A1 = 0.95
@@ -46,9 +52,22 @@ def first_time_at(history: list[dict], a1: float) -> float | None:
     return next((h["train_s"] / 60 for h in history if h["a1"] >= a1), None)
 
 
+def zero_shot(config: TrainConfig) -> dict:
+    """Metrics of ``config.init`` on the frames ``train_model(config)`` holds out and validates on at its end (its
+    loader, seed and in-class split), with ``n_val_frames``."""
+    frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
+    _, val_idx = split_in_class(frames, by=config.split, seed=config.seed)
+    held = frames.subset(val_idx)
+    estimator = DepthEstimator.load(config.init)
+    meta = estimator.metadata
+    metrics = depth_metrics(predict_frames(estimator, held.ir), held.depth, min_depth=meta.min_depth,
+                            max_depth=meta.max_depth)
+    return {**metrics, "n_val_frames": len(held)}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--init", default="base", help="model to fine-tune from (default: the base model)")
+    parser.add_argument("--init", type=model_dir, default="base", help="model to fine-tune from (default: the base model)")
     parser.add_argument("--minutes", type=float, default=TARGET_MINUTES)
     parser.add_argument("--eval-s", type=float, default=15.0)
     parser.add_argument("--sensor-seed", type=int, default=7)
@@ -59,7 +78,7 @@ def main() -> int:
     parser.add_argument("--work", help="keep sessions and models here (default: a temporary directory)")
     parser.add_argument("--no-doc", action="store_true")
     args = parser.parse_args()
-    load_before = os.getloadavg()[0]
+    info = machine_info()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -71,30 +90,30 @@ def main() -> int:
         if {name: o["poses"] for name, o in recorded["objects"].items()} != plan:  # one an earlier run left in --work
             sys.exit(f"bench_finetune: {session} holds other objects or poses than --objects {args.objects} "
                      f"--poses-per-object {args.poses_per_object}: use another --work, or delete it")
-        zero_shot = evaluate_model(args.init, [session], latency_repeats=5)
-        print(f"zero-shot a1 {zero_shot['a1']:.3f}", flush=True)
         runs = {"fine-tune from base": {"init": args.init}}
         if args.scratch:
             runs["from scratch"] = {"init": None}
+        configs = {name: TrainConfig(data=[str(session)], out=str(work / name.replace(" ", "_")), init=opts["init"],
+                                     minutes=args.minutes, eval_interval_s=args.eval_s, split="poses")
+                   for name, opts in runs.items()}
+        before = zero_shot(configs["fine-tune from base"])
+        print(f"zero-shot a1 {before['a1']:.3f} on {before['n_val_frames']} held-out frames", flush=True)
         results = {}
-        for name, opts in runs.items():
-            config = TrainConfig(data=[str(session)], out=str(work / name.replace(" ", "_")), init=opts["init"],
-                                 minutes=args.minutes, eval_interval_s=args.eval_s, split="poses")
+        for name, config in configs.items():
             results[name] = train_model(config)
             r = results[name]
             print(f"{name}: a1 {r.metrics['a1']:.3f} after {r.train_s / 60:.2f} min, peak RSS {r.peak_rss_mb:.0f} MB",
                   flush=True)
     lines = [
-        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} "
-        "(includes this benchmark and the one run just before it; numbers taken while other jobs share the "
-        "machine are provisional).",
+        provenance(info),
         "",
         f"New simulated sensor: seed {args.sensor_seed}, objects {args.objects}, {args.poses_per_object} poses each; "
         f"validation = held-out contact poses (30 %, in-class pose split). Budget {args.minutes} min of training "
         f"time (validation excluded). Target: a1 >= {TARGET_A1} within {TARGET_MINUTES} min.",
         "",
-        f"Zero-shot ({args.init}): a1 {zero_shot['a1']:.3f}, abs_rel {zero_shot['abs_rel']:.4f} (all contact frames).",
+        f"Zero-shot ({args.init}): a1 {before['a1']:.3f}, abs_rel {before['abs_rel']:.4f}, rmse "
+        f"{before['rmse'] * 1e3:.2f} mm on the fine-tune's held-out frames ({before['n_val_frames']}, the frames of its "
+        "final validation below), before any training step.",
         "",
         "a1 (δ<1.05) counts every valid pixel of a contact frame, the membrane around the dent included, and "
         "tolerates about 4.5 mm at 90 mm: a model that sees no contact at all scores close to 1, so where the "

@@ -8,18 +8,16 @@ saved as a model directory for the default 224 x 172 sensor, exported to ONNX an
 against torch (``trainer.onnx_export``); then the median wall time of
 ``DepthEstimator.predict`` (the deployed path: normalization, padding, network, crop) on one
 native frame, batch 1, through torch and through ONNX Runtime. Target: >= 60 fps (<= 16.7 ms)
-for the default model. The machine's other load is reported: numbers on a busy machine are
-provisional.
+for the default model. The load average at the start and the end is reported: numbers taken on a
+busy machine are marked provisional.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +26,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.arguments import positive_float, positive_int  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from trainer.doc_sections import BENCH_TRAINER_HEADER, update_section  # noqa: E402
 from trainer.inference import DepthEstimator  # noqa: E402
 from trainer.model_dir import ModelMetadata, save_model  # noqa: E402
@@ -58,14 +58,15 @@ def measure(arch: str, width: float, repeats: int, workdir: Path) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--widths", type=float, nargs="+", default=[0.25, 0.375, 0.5])
-    parser.add_argument("--threads", type=int, default=os.cpu_count())
+    parser.add_argument("--repeats", type=positive_int, default=50, help="timed runs per model and runtime")
+    parser.add_argument("--widths", type=positive_float, nargs="+", default=[0.25, 0.375, 0.5],
+                        help="network widths to time, besides each architecture's default")
+    parser.add_argument("--threads", type=positive_int, default=os.cpu_count(), help="torch CPU threads (default: all)")
     parser.add_argument("--no-doc", action="store_true", help="print only, do not update docs/bench_trainer.md")
     args = parser.parse_args()
+    info = machine_info()
     torch.set_num_threads(args.threads)
     rows = []
-    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         for arch in ARCH_NAMES:
             for width in sorted(set(args.widths) | {DEFAULT_WIDTHS[arch]}):
@@ -74,10 +75,7 @@ def main() -> int:
                 print(f"{arch:8s} w={width:<6} torch {row['torch']:7.2f} ms  onnx {row['onnx']:7.2f} ms  "
                       f"({1000 / row['deployed_ms']:.0f} fps deployed, max |ort-torch| {row['max_diff']:.1e} m)")
     lines = [
-        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, torch threads {args.threads}, torch {torch.__version__}, "
-        f"load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} (includes this benchmark and the one run just "
-        "before it; numbers taken while other jobs share the machine are provisional).",
+        f"{provenance(info)} Torch {torch.__version__}, {args.threads} threads.",
         "",
         "Median wall time of `DepthEstimator.predict` on one 224 x 172 frame (normalize, pad to 224 x 224, "
         f"network, crop), batch 1, {args.repeats} runs. Target <= {TARGET_MS:.1f} ms (60 fps). "

@@ -27,7 +27,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -40,6 +39,8 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.arguments import int_list  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.contact_patch import contact_points  # noqa: E402
 from calibrate.pose_estimation import Pose, ProximityPoseEstimator, quat_to_matrix, shape_from_object  # noqa: E402
 from hw_mocks.objects import load_object  # noqa: E402
@@ -170,16 +171,15 @@ def _stats_row(name: str, e_x: dict, e_theta: dict) -> str:
 
 
 def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: list[tuple[str, dict, dict]],
-                   command: str, reused: list[str]) -> None:
+                   command: str, reused: list[str], info: dict) -> None:
     """Write the page; ``per_session``: (label, pose check result, the model's ``training`` metadata);
     ``reused``: labels of the sessions whose recording and model came from an earlier run in
-    ``--work`` (only the pose check ran again)."""
+    ``--work`` (only the pose check ran again); ``info``: ``machine_info()`` at the run's start."""
     lines = [
         "# Pose estimation benchmark",
         "",
-        f"Command: `{command}` (rerun it on a quiet machine; numbers taken while other work runs are provisional).",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
-        f"Python {platform.python_version()}, numpy {np.__version__}; BLAS/OpenMP threads pinned to 1.",
+        f"Command: `{command}`  ",
+        f"{provenance(info)} NumPy {np.__version__}; BLAS/OpenMP threads pinned to 1.",
         "",
         "## Speed (one core, 1500 points, the mug's cylinder)",
         "",
@@ -246,7 +246,8 @@ def main(argv=None) -> int:
     ap.add_argument("--session", type=Path, help="simulated session with the mug (default: record one per --seeds)")
     ap.add_argument("--model", type=Path, help="model directory (default: fine-tune the base model)")
     ap.add_argument("--speed-only", action="store_true")
-    ap.add_argument("--seeds", default="0,1,2,3,4,5", help="simulated sensors to record and fine-tune (default 0-5)")
+    ap.add_argument("--seeds", type=int_list, default="0,1,2,3,4,5",
+                    help="comma-separated seeds of the simulated sensors to record and fine-tune (default 0-5)")
     ap.add_argument("--train-minutes", type=float, default=3.0)
     ap.add_argument("--work", type=Path, help="keep the recorded sessions and models here, or reuse those already there (default: a temporary folder)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_pose.md")
@@ -254,6 +255,7 @@ def main(argv=None) -> int:
     if (args.session is None) != (args.model is None):
         ap.error("give both --session and --model, or neither")
     command = "python benchmarks/bench_pose.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    info = machine_info()
     speed = bench_speed()
     print({k: round(v, 3) for k, v in speed.items()}, flush=True)
     accuracy, per_session, reused = None, [], []
@@ -264,13 +266,13 @@ def main(argv=None) -> int:
                 inputs = [(str(args.session), args.session, args.model)]
             else:
                 inputs = []
-                for seed in (int(x) for x in args.seeds.split(",") if x.strip()):
+                for seed in args.seeds:
                     session, model, was_reused = simulated_inputs(work / f"seed_{seed}", seed, args.train_minutes)
                     inputs.append((f"sensor seed {seed}", session, model))
                     if was_reused:
                         reused.append(f"sensor seed {seed}")
             accuracy, per_session = bench_accuracy(inputs, args.out.parent / "bench_pose_plots")
-    write_markdown(args.out, speed, accuracy, per_session, command.strip(), reused)
+    write_markdown(args.out, speed, accuracy, per_session, command.strip(), reused, info)
     print(f"wrote {args.out}")
     return 0
 

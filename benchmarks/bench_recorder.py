@@ -5,18 +5,24 @@
 
 Sections:
 1. Compression: frames/s the ``SessionWriter`` sustains unpaced (producer pushes as fast as the
-   queue takes) and bytes per frame, for LZF+shuffle (the choice), gzip-1+shuffle and no filter,
-   on frames rendered by the simulator (a press sequence on the mug, cycled).
+   queue takes) and bytes per frame, for four filters: shuffle+gzip-1 with parallel direct chunk
+   writes (the writer's ``IMAGE_COMPRESSION``, the choice), shuffle+LZF (h5py's filter),
+   shuffle+gzip-4 with direct chunk writes, and none; on frames rendered by the simulator (a press
+   sequence on the mug, cycled).
 2. Long recording: the writer alone fed at the camera rate (45 fps, real time) for ``--minutes``
-   with simulated frames; checks zero dropped frames (every produced frame is in the file,
-   contiguous sequence numbers, increasing device timestamps, and no frame handed to the writer
-   later than the camera's 8-frame queue would have kept it: a writer that blocks its producer
-   loses frames at the camera, not in the file), the producer's worst wait in
-   ``append_frame`` (the control loop must never wait on the disk), the process CPU share, and
-   file size per minute. The simulator cannot render 45 fps for 10 min in real time on a loaded
-   laptop, so the frames are pre-rendered and cycled: this measures the recorder, not the physics.
+   with simulated frames, and the arm's (125 Hz) and the pressure board's (100 Hz) samples of each
+   frame interval appended just before its frame, as the collection's recorder thread does; checks
+   zero dropped frames (every produced frame is in the file, contiguous sequence numbers,
+   increasing device timestamps, and no frame handed to the writer later than the camera's 8-frame
+   queue would have kept it: a writer that blocks its producer loses frames at the camera, not in
+   the file) and every sample in the file, the producer's worst wait in ``append_frame`` and, apart,
+   in ``append_arm`` / ``append_pressure`` (the control loop must never wait on the disk), the
+   process CPU share, and file size per minute. The simulator cannot render 45 fps for 10 min in real
+   time on a loaded laptop, so the frames are pre-rendered and cycled: this measures the recorder,
+   not the physics.
 3. Collection: ``bubble collect --sim`` with 4 objects x 8 poses; arm time on the simulated clock
-   (target <= 60 s), frames, dropped frames, file size.
+   (the session's recording time, as ``bubble info`` reports it; target <= 60 s), frames, dropped
+   frames, file size.
 
 Results go to docs/bench_recorder.md (markdown) and stdout.
 """
@@ -25,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -37,12 +42,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.arguments import positive_float, positive_int  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect import session_format as sf  # noqa: E402
+from collect.bench import BenchConfig  # noqa: E402
+from collect.session_info import session_summary  # noqa: E402
 from collect.session_reader import Session  # noqa: E402
 from collect.session_writer import IMAGE_COMPRESSION, SessionWriter  # noqa: E402
 from hw_mocks.fake_camera import QUEUE_SIZE  # noqa: E402  (depthai's queue of the ToF outputs: collect/camera.py)
+from hw_mocks.pressure_firmware import RATE_HZ as PRESSURE_HZ  # noqa: E402  (the board's reading rate)
 
 FPS = 45.0
+#: Arm state samples per second: the bench's default rate (the driver's lowest, a CB3 controller's).
+ARM_HZ = BenchConfig.state_hz
 COMPRESSIONS = {
     "shuffle+gzip-1, parallel direct chunk writes (chosen)": IMAGE_COMPRESSION,
     "shuffle+lzf, h5py filter": {"compression": "lzf", "shuffle": True},
@@ -111,36 +123,48 @@ def bench_compression(frames, spec, n_frames: int, repeats: int, tmp: Path) -> l
 
 def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
     path = tmp / "long.h5"
-    n_total = int(round(minutes * 60 * FPS))
+    n_total = int(np.ceil(minutes * 60 * FPS))
     writer = _writer(path, spec, IMAGE_COMPRESSION)
-    waits = np.zeros(n_total)
+    waits = np.zeros(n_total)  # s, each append_frame call
+    stream_waits = {"arm": [], "pressure": []}  # s, each append_arm / append_pressure call
     late_s = np.zeros(n_total)  # s, the append's start after the frame's capture time on the schedule
+    n_arm = n_pressure = 0  # samples appended so far
     t0, c0 = time.perf_counter(), time.process_time()
     start = time.monotonic()
     for i in range(n_total):
-        delay = start + i / FPS - time.monotonic()
+        t_frame = i / FPS
+        delay = start + t_frame - time.monotonic()
         if delay > 0:
             time.sleep(delay)
+        # the samples taken since the previous frame go first, as the collection's recorder thread queues them
+        while n_arm / ARM_HZ <= t_frame:
+            t_call = time.perf_counter()
+            writer.append_arm(start + n_arm / ARM_HZ, np.zeros(6), np.zeros(6))
+            stream_waits["arm"].append(time.perf_counter() - t_call)
+            n_arm += 1
+        while n_pressure / PRESSURE_HZ <= t_frame:
+            t_call = time.perf_counter()
+            writer.append_pressure(start + n_pressure / PRESSURE_HZ, 1065.0)
+            stream_waits["pressure"].append(time.perf_counter() - t_call)
+            n_pressure += 1
         ir, depth, true = frames[i % len(frames)]
-        late_s[i] = time.monotonic() - (start + i / FPS)
+        late_s[i] = time.monotonic() - (start + t_frame)
         t_call = time.perf_counter()
-        writer.append_frame(ir, depth, 100.0 + i / FPS, time.monotonic(), i, -1, -1, sf.PHASE_FREE, np.zeros(6),
+        writer.append_frame(ir, depth, 100.0 + t_frame, time.monotonic(), i, -1, -1, sf.PHASE_FREE, np.zeros(6),
                             true_depth=true)
-        if i % 3 == 0:  # ~15 Hz arm and pressure batches in the same queue, as in a collection
-            for k in range(8):
-                writer.append_arm(i / FPS + k / 125, np.zeros(6), np.zeros(6))
-            for k in range(2):
-                writer.append_pressure(i / FPS + k / 100, 1065.0)
         waits[i] = time.perf_counter() - t_call
     stats = writer.stats
     writer.close()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     with Session.open(path) as s:
         seq, t_dev, n = s.seq, s.t_device, s.n_frames
+        arm_in_file, pressure_in_file = len(s.arm().t), len(s.pressure().t)
     result = {
         "minutes": minutes,
         "frames_produced": n_total,
         "frames_in_file": n,
+        "arm_samples": (n_arm, arm_in_file),
+        "pressure_samples": (n_pressure, pressure_in_file),
         "seq_gaps": int(np.count_nonzero(np.diff(seq) != 1)),
         "non_increasing_t": int(np.count_nonzero(np.diff(t_dev) <= 0)),
         "late_beyond_queue": int(np.count_nonzero(late_s > QUEUE_SIZE / FPS)),
@@ -153,6 +177,8 @@ def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
         "writer_busy_share": stats.write_s / wall,
         "mb_per_minute": os.path.getsize(path) / 1e6 / (wall / 60),
     }
+    for name, w in stream_waits.items():
+        result[f"{name}_wait_p99_ms"], result[f"{name}_wait_max_ms"] = float(np.percentile(w, 99) * 1e3), max(w) * 1e3
     path.unlink()
     return result
 
@@ -165,14 +191,10 @@ def bench_collection(tmp: Path) -> dict:
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         return {"error": (proc.stderr or proc.stdout).strip().splitlines()[-1]}
-    from collect.session_info import session_summary
-
     info = session_summary(out)
-    with Session.open(out) as s:
-        span = float(s.t_host[-1] - s.t_host[0])  # bench clock, first to last frame of the run
     return {
         "wall_s": wall,
-        "arm_time_s": span,
+        "arm_time_s": info["duration_s"],  # the simulated camera's clock runs with the bench clock
         "frames": info["frames"],
         "fps": info["fps"],
         "dropped": info["dropped"],
@@ -183,15 +205,15 @@ def bench_collection(tmp: Path) -> dict:
     }
 
 
-def report(compression, long, collection, args) -> str:
+def report(compression, long, collection, args, info: dict) -> str:
+    """The page; ``info``: ``machine_info()`` at the run's start."""
     lines = [
         "# Recorder benchmark",
         "",
-        f"`{' '.join(['.venv/bin/python', 'benchmarks/bench_recorder.py'] + sys.argv[1:])}` on "
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-        f"{time.strftime('%Y-%m-%d %H:%M')}, load average {args.load_before:.1f} at the start and "
-        f"{os.getloadavg()[0]:.1f} at the end. Frames: simulated 224x172 (IR uint16, ToF depth uint16, true "
-        "depth float32 per frame). Results measured on a shared, loaded machine are provisional.",
+        f"`{' '.join(['.venv/bin/python', 'benchmarks/bench_recorder.py'] + sys.argv[1:])}`  ",
+        provenance(info),
+        "",
+        "Frames: simulated 224x172 (IR uint16, ToF depth uint16, true depth float32 per frame).",
         "",
         "## Compression (writer throughput, unpaced)",
         "",
@@ -225,7 +247,9 @@ def report(compression, long, collection, args) -> str:
         f"## Long recording: writer alone at {FPS:.0f} fps for {long['minutes']:g} min",
         "",
         "Simulated frames pre-rendered and cycled (the physics cannot run 45 fps for minutes on this machine; "
-        "this isolates the recorder), with arm (125 Hz) and pressure (100 Hz) samples in the same queue.",
+        f"this isolates the recorder), with arm ({ARM_HZ:g} Hz) and pressure ({PRESSURE_HZ:g} Hz) samples in the "
+        "same queue: each frame interval's samples appended just before its frame, as the collection's recorder "
+        "thread does. Waits are per call, in the producer (the thread that would be the control loop's).",
         "",
         "| metric | value |",
         "|---|---|",
@@ -234,8 +258,12 @@ def report(compression, long, collection, args) -> str:
         f"| frames a camera's {QUEUE_SIZE}-frame queue would have dropped (handed to the writer more than "
         f"{1e3 * QUEUE_SIZE / FPS:.0f} ms after capture) / latest hand-over | {long['late_beyond_queue']} / "
         f"{long['late_max_ms']:.1f} ms |",
+        f"| arm samples appended / in file; pressure readings appended / in file | {long['arm_samples'][0]} / "
+        f"{long['arm_samples'][1]}; {long['pressure_samples'][0]} / {long['pressure_samples'][1]} |",
         f"| producer wait in append_frame p99 / max (max: scheduling stalls of a loaded machine) | "
         f"{long['append_wait_p99_ms']:.2f} / {long['append_wait_max_ms']:.1f} ms |",
+        f"| producer wait in append_arm, append_pressure p99 / max | {long['arm_wait_p99_ms']:.2f} / "
+        f"{long['arm_wait_max_ms']:.2f} ms, {long['pressure_wait_p99_ms']:.2f} / {long['pressure_wait_max_ms']:.2f} ms |",
         f"| largest batch the writer drained | {long['max_queue_depth']} items |",
         f"| flushes | {long['flushes']} |",
         f"| process CPU share (one core = 100 %) | {100 * long['cpu_share']:.1f} % |",
@@ -250,7 +278,8 @@ def report(compression, long, collection, args) -> str:
             lines += [
                 "| metric | value |",
                 "|---|---|",
-                f"| arm time (simulated clock, first to last frame of the run; target <= 60 s) | {collection['arm_time_s']:.1f} s |",
+                f"| arm time (simulated clock: the session's recording time, as `bubble info` reports it; "
+                f"target <= 60 s) | {collection['arm_time_s']:.1f} s |",
                 f"| wall time | {collection['wall_s']:.1f} s |",
                 f"| poses with contact | {collection['poses']} |",
                 f"| frames / fps | {collection['frames']} / {collection['fps']:.1f} |",
@@ -269,13 +298,13 @@ def report(compression, long, collection, args) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--minutes", type=float, default=10.0, help="long-recording length (default 10)")
-    parser.add_argument("--throughput-frames", type=int, default=900, help="frames per compression run")
-    parser.add_argument("--repeats", type=int, default=3, help="runs per filter (median reported)")
+    parser.add_argument("--minutes", type=positive_float, default=10.0, help="long-recording length (default 10)")
+    parser.add_argument("--throughput-frames", type=positive_int, default=900, help="frames per compression run")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="runs per filter (median reported)")
     parser.add_argument("--no-collect", action="store_true", help="skip the bubble collect --sim run")
     parser.add_argument("--out", default=str(ROOT / "docs" / "bench_recorder.md"))
     args = parser.parse_args()
-    args.load_before = os.getloadavg()[0]
+    info = machine_info()
     frames, spec = render_frames(90)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -285,7 +314,7 @@ def main() -> None:
         print(long, flush=True)
         collection = None if args.no_collect else bench_collection(tmp)
         print(collection, flush=True)
-    text = report(compression, long, collection, args)
+    text = report(compression, long, collection, args, info)
     Path(args.out).write_text(text)
     print(text)
 

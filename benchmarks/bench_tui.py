@@ -16,8 +16,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import gc
-import os
-import platform
 import sys
 import tempfile
 import threading
@@ -32,6 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from textual import events  # noqa: E402
 
+from benchmarks.arguments import model_dir  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
 from calibrate.tui.app import BenchApp  # noqa: E402
@@ -172,7 +172,8 @@ def describe_outcome(app: BenchApp) -> str:
     return "accepted" if r.accepted else f"rejected ({r.reason})"
 
 
-def write_markdown(path: Path, stats: dict, args) -> None:
+def write_markdown(path: Path, stats: dict, args, info: dict) -> None:
+    """Write the page; ``info``: ``machine_info()`` at the run's start."""
     rows = []
     by_step: dict[str, list[Press]] = defaultdict(list)
     for press in stats["presses"]:
@@ -189,7 +190,6 @@ def write_markdown(path: Path, stats: dict, args) -> None:
         else:
             rows.append(f"| {phase} | 0 | - | - | - | - | - | - | {miss} | no |")
     all_lat = np.array([p.ms for p in stats["presses"]])
-    load = os.getloadavg()
     lines = [
         "# TUI responsiveness",
         "",
@@ -239,15 +239,10 @@ def write_markdown(path: Path, stats: dict, args) -> None:
             f"generation {gen}: {len(p)}, median {np.median(p):.1f} ms, max {max(p):.1f} ms"
             for gen, p in sorted(stats["gc_pauses"].items())) or "none") + ".",
         "",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-        f"load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (1/5/15 min); "
-        f"Python {platform.python_version()}.",
+        provenance(info) + " This benchmark's own work: the flow's collection, then fine-tuning on both cores.",
         "",
         *([f"Fine-tuned from `{args.base_model}` (given with `--base-model`), not the packaged base model.", ""]
           if args.base_model else []),
-        "The load average includes this benchmark's own flow (collection, then fine-tuning on both cores) and",
-        "whatever ran just before it; numbers taken while other jobs share the machine are provisional.",
-        "",
     ]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines))
@@ -265,17 +260,18 @@ def main() -> int:
                         help="nice increment of the flow in the compute steps")
     parser.add_argument("--python-gc", action="store_true",
                         help="keep Python's default garbage collector settings (bubble tui tunes them)")
-    parser.add_argument("--base-model", type=Path, help="model to fine-tune from (default: the packaged base model)")
+    parser.add_argument("--base-model", type=model_dir, help="model to fine-tune from (default: the packaged base model)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "bench_tui.md")
     args = parser.parse_args()
+    info = machine_info()
     with tempfile.TemporaryDirectory() as tmp:
         config = CommissionConfig(run_dir=Path(tmp) / "run", simulated=True, registry_dir=Path(tmp) / "registry",
                                   objects=("mug", "box"), poses_per_object=args.poses_per_object,
                                   finetune_minutes=args.finetune_minutes, leak_hold_s=3.0,
-                                  base_model=args.base_model)
+                                  base_model=None if args.base_model is None else Path(args.base_model))
         stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.bench_nice, args.compute_nice,
                                      not args.python_gc))
-    write_markdown(args.out, stats, args)
+    write_markdown(args.out, stats, args, info)
     print(args.out.read_text())
     return 0
 

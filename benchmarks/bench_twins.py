@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import threading
 import time
@@ -23,6 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.arguments import positive_float  # noqa: E402
+from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect.bench import BenchConfig, open_bench  # noqa: E402
 
 
@@ -77,11 +78,11 @@ def measure(seconds: float, idle: bool) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--seconds", type=positive_float, default=20.0, help="run length, half idle, half pressing")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "bench_twins.md")
     args = parser.parse_args(argv)
+    info = machine_info()
     rows = [measure(args.seconds / 2, idle=True), measure(args.seconds / 2, idle=False)]
-    load = os.getloadavg()
     lines = [
         "# Twins streaming together: CPU and rates",
         "",
@@ -89,10 +90,7 @@ def main(argv=None) -> int:
         "reads every camera frame). Targets: camera 45 fps with contiguous sequence numbers, arm state",
         "125-500 Hz (driver default 125 Hz), pressure 100 Hz, all three twins well under one CPU core.",
         "",
-        f"Machine: {platform.machine()}, {os.cpu_count()} CPUs, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}"
-        " (1/5/15 min) at the end of the run."
-        + " (includes this benchmark and the one run just before it)"
-        + (" **Provisional: the machine was shared and loaded.**" if load[0] > (os.cpu_count() or 1) else ""),
+        provenance(info),
         "",
         "| mode | wall s | sim s / wall s | CPU (cores) | camera fps | camera seq gaps | arm state Hz | pressure Hz | physics solves/s |",
         "|---|---|---|---|---|---|---|---|---|",

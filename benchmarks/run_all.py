@@ -5,6 +5,10 @@
     .venv/bin/python benchmarks/run_all.py --assemble-only        # rebuild the page from existing results
     .venv/bin/python benchmarks/run_all.py --only accuracy -- --quick   # arguments after -- go to the script(s)
 
+``bench_accuracy.py --quick`` checks that script end to end with tiny budgets: it writes its page into its
+work folder (``runs/bench_accuracy_quick/``), never over ``docs/bench_accuracy.md``, so the accuracy
+target then shows "stale" (its last run did not rewrite the page) until a full run.
+
 Each script writes its own markdown in docs/ (``docs/bench_*.md``); this runs them one after the
 other (never in parallel: they time the CPU), logs each to ``runs/bench_logs/NAME.log``, keeps the
 command, exit code, wall time and date of every run in ``docs/benchmarks.json``, and writes
@@ -34,7 +38,7 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.machine import machine_info, machine_line  # noqa: E402
+from benchmarks.machine import finish, machine_info  # noqa: E402
 
 DOCS = ROOT / "docs"
 LOGS = ROOT / "runs" / "bench_logs"
@@ -325,7 +329,7 @@ def run(bench: Benchmark, extra: tuple[str, ...] = ()) -> dict:
     LOGS.mkdir(parents=True, exist_ok=True)
     log = LOGS / f"{bench.name}.log"
     print(f"[{time.strftime('%H:%M:%S')}] {bench.name}: {bench.shown(extra)} (log {log.relative_to(ROOT)})", flush=True)
-    machine = machine_info()  # the load and date at the start
+    machine = machine_info()  # the date, load and CPU counters at the start
     page = DOCS / bench.doc
     before = page.stat().st_mtime_ns if page.is_file() else None
     t0 = time.perf_counter()
@@ -334,7 +338,7 @@ def run(bench: Benchmark, extra: tuple[str, ...] = ()) -> dict:
     wall = time.perf_counter() - t0
     rewritten = page.is_file() and page.stat().st_mtime_ns != before
     print(f"    exit {rc} after {wall / 60:.1f} min" + ("" if rewritten else f"; {bench.doc} not rewritten"), flush=True)
-    return {"command": bench.shown(extra), "exit": rc, "wall_min": round(wall / 60, 2), "machine": machine,
+    return {"command": bench.shown(extra), "exit": rc, "wall_min": round(wall / 60, 2), "machine": finish(machine),
             "page_rewritten": rewritten}
 
 
@@ -359,7 +363,7 @@ def demote(markdown: str) -> list[str]:
 
 def assemble(runs: dict) -> str:
     total = sum(r["wall_min"] for r in runs.values())
-    latest = max(runs.values(), key=lambda r: r["machine"]["date"], default=None)
+    dates = sorted(r["machine"]["date"] for r in runs.values())
     lines = [
         "# Benchmarks",
         "",
@@ -368,7 +372,8 @@ def assemble(runs: dict) -> str:
         "`--only NAME,...` reruns a subset, `--assemble-only` rebuilds the page). Runs, exit codes and wall "
         "times: [benchmarks.json](benchmarks.json); logs in `runs/bench_logs/`.",
         "",
-        (machine_line(latest["machine"]) + f" The runs listed below took {total:.0f} min in total." if latest else
+        (f"The runs listed below took {total:.0f} min in total, from {dates[0]} to {dates[-1]}; each one's machine, "
+         "load and the CPU other processes used are in its section and in benchmarks.json." if dates else
          "No benchmark has run through `run_all.py` yet: the sections below are the scripts' own pages."),
         "",
         "Numbers measured while other jobs share the machine are provisional; each section says when and where "
@@ -400,12 +405,18 @@ def assemble(runs: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        epilog="Arguments after -- go to the script(s). `--only accuracy -- --quick` checks bench_accuracy.py with tiny "
+               "budgets: its page goes to runs/bench_accuracy_quick/, docs/ keep the last full run's (the accuracy "
+               "target shows stale until the next full run).")
     parser.add_argument("--only", help="comma-separated benchmarks to run: " + ",".join(BY_NAME))
     parser.add_argument("--assemble-only", action="store_true", help="run nothing, rebuild docs/benchmarks.md")
     argv = sys.argv[1:] if argv is None else argv
     extra = tuple(argv[argv.index("--") + 1:]) if "--" in argv else ()
     args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    if args.assemble_only and (args.only is not None or extra):
+        parser.error("--assemble-only runs no benchmark: give it without --only and without arguments after --")
     names = list(BY_NAME) if not args.only else [n.strip() for n in args.only.split(",") if n.strip()]
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:

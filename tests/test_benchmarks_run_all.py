@@ -6,6 +6,8 @@ import math
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -112,3 +114,98 @@ def test_the_accuracy_page_renders_from_its_committed_results():
     page = bench_accuracy.markdown(json.loads((ROOT / "docs" / "bench_accuracy.json").read_text()))
     header = " | ".join(h for _, h, _, _ in PAPER_COLUMNS)
     assert page.count(header) >= 3 and "RMSE [mm]" in header
+
+
+# ---- the scripts' command lines and provenance (benchmarks/arguments.py, benchmarks/machine.py) -------------------
+
+def _refused(main, argv, capsys) -> str:
+    """The one error line of ``main(argv)``, which must exit 2 before any work."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    return capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_list_and_number_arguments_are_checked_by_the_parser():
+    import argparse
+
+    from benchmarks.arguments import int_list, name_list, positive_float, positive_int
+
+    assert int_list("101, 202,") == [101, 202] and name_list(("frames", "poses"))("frames,poses") == ["frames", "poses"]
+    assert positive_int("3") == 3 and positive_float("0.5") == 0.5
+    for parse, text in ((int_list, "a"), (int_list, "1,1"), (int_list, ","), (name_list(("frames", "poses")), "both"),
+                        (positive_int, "0"), (positive_int, "x"), (positive_float, "0"), (positive_float, "nan")):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse(text)
+
+
+def test_input_error_exits_2_with_one_line(capsys):
+    from benchmarks.arguments import run_main
+    from collect.errors import InputError
+
+    def main() -> int:
+        raise InputError("no such object 'cup'")
+
+    with pytest.raises(SystemExit) as exit_info:
+        run_main(main, "bench_x")
+    assert exit_info.value.code == 2 and capsys.readouterr().err == "bench_x: no such object 'cup'\n"
+
+
+def test_commission_refuses_a_work_folder_holding_earlier_runs(tmp_path, capsys):
+    """Was: a run folder there was resumed (the recorded verdict, no timings), or an unseen-mesh session crashed it."""
+    from benchmarks import bench_commission
+
+    (tmp_path / "run_101").mkdir()
+    (tmp_path / "unseen_909_leak_1.h5").touch()
+    line = _refused(bench_commission.main, ["--seeds", "101,202", "--defects", "leak", "--work", str(tmp_path)], capsys)
+    assert str(tmp_path / "run_101") in line and "unseen_909_leak_1.h5" in line and "new --work" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run_101", "unseen_909_leak_1.h5"]  # nothing written
+
+
+def test_run_all_refuses_only_with_assemble_only(capsys):
+    line = _refused(run_all.main, ["--only", "simulator", "--assemble-only"], capsys)
+    assert "--assemble-only" in line and "--only" in line
+
+
+def test_a_quick_accuracy_run_writes_its_page_in_its_work_folder():
+    """Was: ``run_all.py --only accuracy -- --quick`` overwrote the committed docs/bench_accuracy.md."""
+    from benchmarks import bench_accuracy
+
+    quick = bench_accuracy.parse_args(["--quick"])
+    assert quick.out == quick.work / "bench_accuracy.md" and quick.work.is_relative_to(ROOT / "runs")
+    assert bench_accuracy.parse_args([]).out == ROOT / "docs" / "bench_accuracy.md"
+
+
+def test_machine_line_and_provisional_runs():
+    from benchmarks import machine
+
+    info = {"cpu": "AMD EPYC 7B13", "cores": 2, "load": 0.3, "python": "3.11.7", "date": "2026-11-22 03:40"}
+    assert machine.machine_line(info) == ("Machine: AMD EPYC 7B13, 2 cores, load average 0.3 at the start, "
+                                          "Python 3.11.7; 2026-11-22 03:40.")
+    quiet, busy = {**info, "others_cores": 0.05}, {**info, "others_cores": 0.8}
+    assert not machine.provisional(quiet) and machine.provisional_note(quiet) == (
+        " Other processes used 0.05 cores on average during the run.")
+    assert machine.provisional(busy) and "**Provisional**" in machine.provisional_note(busy)
+    assert machine.provisional_note(info) == ""  # a record from before the CPU was counted
+
+
+def test_the_cpu_of_other_processes_is_counted_and_not_this_ones(monkeypatch):
+    """Was: the load average at the start, which lags a minute (a benchmark right after another read as
+    busy) and counts the benchmark's own work."""
+    import time
+
+    from benchmarks import machine
+
+    busy_before, own_before = machine.cpu_seconds()
+    deadline = time.process_time() + 0.5
+    while time.process_time() < deadline:  # this process's own work shows in both counters
+        pass
+    busy_after, own_after = machine.cpu_seconds()
+    assert own_after - own_before >= 0.45 and busy_after - busy_before >= 0.45
+    # 10 s of a run: the machine busy for 20 CPU seconds, 7 of them this benchmark's
+    info = {"cpu": "x", "cores": 2, "load": 0.1, "python": "3.11", "date": "2026-11-26 12:00",
+            "started": {"busy_s": 100.0, "own_s": 5.0, "t": time.monotonic() - 10.0}}
+    monkeypatch.setattr(machine, "cpu_seconds", lambda: (120.0, 12.0))
+    done = machine.finish(info)
+    assert done["others_cores"] == pytest.approx(1.3, abs=0.01) and "started" not in done and "load_end" in done
+    assert machine.provisional(done)

@@ -199,12 +199,13 @@ def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, d
     return frames.subset(train_idx), frames.subset(val_idx), info
 
 
-def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, split_info: dict, world_size: int) -> dict:
+def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, split_info: dict, world_size: int,
+                init_info: dict | None) -> dict:
     """What decides which frames train, which validate and in what order, and the recipe they train
     with (the initial weights, by their SHA-256, the learning rate, the loss and the augmentation): a
     checkpoint resumes only with the same (``_check_resume``; was: the recipe unchecked, so that a
     resume without ``--init`` recorded ``init: null`` for a fine-tuned model)."""
-    init = weights_sha256(config.init) if config.init else None
+    init = init_info["weights_sha256"] if init_info else None  # (``_build``'s)
     return plain_json({
         "data": [s.sha256 for s in frames.sources],
         "val_data": [s.sha256 for s in val_frames.sources] if config.val_data else [],
@@ -295,8 +296,8 @@ def _build(config: TrainConfig, frames: FrameSet) -> tuple[nn.Module, ModelMetad
         arch, width = init_meta.arch, init_meta.width
         min_depth, max_depth = init_meta.min_depth, init_meta.max_depth
         input_size = (init_meta.geometry.input_height, init_meta.geometry.input_width)
-        init_info = {"model_dir": str(config.init), "metrics": init_meta.metrics,
-                     "sensor_serials": init_meta.training.get("sensor_serials", [])}
+        init_info = {"model_dir": str(config.init), "weights_sha256": weights_sha256(config.init),
+                     "metrics": init_meta.metrics, "sensor_serials": init_meta.training.get("sensor_serials", [])}
         network.train()
     else:
         arch = config.arch or DEFAULT_ARCH
@@ -356,7 +357,7 @@ def train_model(
     val_t = to_network_tensors(val_frames, metadata.geometry, metadata.normalization)
     sources = [s.to_dict() for s in frames.sources]
     val_sources = [s.to_dict() for s in val_frames.sources] if config.val_data else []
-    frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size)
+    frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size, init_info)
     serials = sorted({s.sensor_serial for s in frames.sources})
     objects = sorted(set(train_frames.object_name) - {""})
     del frames, train_frames, val_frames  # the native copies; training uses the tensors only
