@@ -48,6 +48,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Callable
 
@@ -102,8 +103,10 @@ HEALTH_FRAMES = 16
 REFERENCE_FRAMES = 30
 #: Bench snapshots per second while the bench is connected.
 SNAPSHOT_HZ = 4.0
-#: ``state.json`` key of the registry entry's id while the run registers (``_Flow.finish``).
+#: ``state.json`` key of the run's registry entry id, set before its first registration (``_Flow.finish``).
 REGISTRATION_KEY = "registration_id"
+#: ``state.json`` key of the registries (resolved paths) the run's verdict is registered in.
+REGISTERED_IN_KEY = "registered_in"
 #: Steps that need the bench.
 BENCH_STEPS = (Step.CONNECT, Step.LEAK_TEST, Step.CAMERA_HEALTH, Step.REFERENCE, Step.COLLECT)
 
@@ -568,11 +571,9 @@ class _Flow:
         """acceptance.json, report.html, (unless stopped) the registry entry and (a verdict reached:
         neither fault nor stop) the verdict step in ``state.json``.
 
-        The registry entry carries an id that ``state.json`` keeps from before the registration until
-        the run's end is recorded there: a run killed in between and run again replaces its entry
-        instead of adding a second one."""
-        from calibrate.sensor_registry import SensorRegistry
-
+        The registry entry carries an id that ``state.json`` keeps from before the registration (until the
+        end of a run that ends in a fault, for good with a verdict): a run killed between the registration
+        and the record of its end, and run again, replaces its entry instead of adding a second one."""
         checks = self.state.checks()
         accepted = acceptance.accepted(checks) and fault is None and not stopped and self._all_done()
         reason = acceptance.rejection_reason(checks, fault)
@@ -586,33 +587,46 @@ class _Flow:
             # a re-run reaches the verdict again (was: registered, exit 0 or 1)
             return self.finish(stopped=True)
         report_path = self.run_dir / REPORT_FILE
-        serial = self.state.data.get("serial")
-        if not stopped and serial:
-            connect = self.state.get(Step.CONNECT)
+        if not stopped and self.state.data.get("serial"):
             if REGISTRATION_KEY not in self.state.data:
                 self.state.data[REGISTRATION_KEY] = uuid.uuid4().hex
                 self.state.save()
-            SensorRegistry(self.config.registry_dir).register(
-                serial,
-                entry_id=self.state.data[REGISTRATION_KEY],
-                accepted=accepted,
-                run_dir=self.run_dir,
-                intrinsics=connect.get("intrinsics", {}),
-                camera_in_tcp=connect.get("camera_in_tcp"),
-                simulated=bool(self.config.simulated),
-                acceptance=plain_json(doc),
-                reason=reason,
-                model_dir=self.run_dir / MODEL_DIR if accepted else None,
-                reference=registry_reference(self.run_dir / VALIDATION_FILE) if accepted else None,
-            )
-        self.state.data.pop(REGISTRATION_KEY, None)  # saved with the run's end: one save, no gap
-        if fault is None and not stopped:
+            self._register(accepted, doc, reason)  # state.json saved with the run's end below: one save, no gap
+        if fault is None and not stopped:  # the verdict's entry id and registries stay, for _register_elsewhere
             self.state.record(Step.VERDICT, {"ok": accepted, "summary": "accepted" if accepted else reason,
                                              "reason": reason, "fault": fault})
-        else:
+        else:  # a fault's entry is its own: the resumed run registers its verdict under a new id
+            for key in (REGISTRATION_KEY, REGISTERED_IN_KEY):
+                self.state.data.pop(key, None)
             self.state.save()
         self.emit(Verdict(accepted, checks, str(report_path)))
         return CommissionResult(accepted, checks, self.run_dir, report_path, stopped=stopped, fault=fault, reason=reason)
+
+    def _register(self, accepted: bool, doc: dict, reason: str, when: datetime | None = None) -> None:
+        """Register the run's outcome (``doc``: the ``acceptance.json`` content) in ``config.registry_dir``
+        under the run's entry id, at ``when`` (default: now), and add that registry to ``state.json``'s
+        ``REGISTERED_IN_KEY`` list (saved by the caller)."""
+        from calibrate.sensor_registry import SensorRegistry
+
+        registry = SensorRegistry(self.config.registry_dir)
+        connect = self.state.get(Step.CONNECT)
+        registry.register(
+            self.state.data["serial"],
+            entry_id=self.state.data[REGISTRATION_KEY],
+            accepted=accepted,
+            run_dir=self.run_dir,
+            intrinsics=connect.get("intrinsics", {}),
+            camera_in_tcp=connect.get("camera_in_tcp"),
+            simulated=bool(self.config.simulated),
+            acceptance=plain_json(doc),
+            reason=reason,
+            model_dir=self.run_dir / MODEL_DIR if accepted else None,
+            reference=registry_reference(self.run_dir / VALIDATION_FILE) if accepted else None,
+            when=when,
+        )
+        registered = self.state.data.setdefault(REGISTERED_IN_KEY, [])
+        if str(registry.root.resolve()) not in registered:
+            registered.append(str(registry.root.resolve()))
 
     def _all_done(self) -> bool:
         return all(self.state.done(s) for s in STEPS if s != Step.VERDICT)
@@ -694,8 +708,8 @@ class _Flow:
 
     def _finished_before(self) -> CommissionResult:
         """The verdict of a run that already finished in this directory, as its ``state.json`` recorded it
-        (nothing runs again, and the sensor is not registered again: it was at the time; a deleted
-        report or ``acceptance.json`` is written again from ``state.json``)."""
+        (nothing runs again, and the sensor is not registered again in a registry it was registered in; a
+        deleted report or ``acceptance.json`` is written again from ``state.json``)."""
         for step in STEPS:
             if self.state.done(step):
                 rec = self.state.get(step)
@@ -704,10 +718,30 @@ class _Flow:
                 self.emit(StepFinished(step, False, "not run", resumed=True, skipped=True))
         verdict, checks = self.state.get(Step.VERDICT), self.state.checks()
         report = self.run_dir / REPORT_FILE
+        doc = None
         if not report.is_file() or not (self.run_dir / ACCEPTANCE_FILE).is_file():  # deleted since: written anew
-            self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
+            doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
+        self._register_elsewhere(verdict, doc)
         self.emit(Verdict(verdict["ok"], checks, str(report)))
         return CommissionResult(verdict["ok"], checks, self.run_dir, report, fault=verdict["fault"], reason=verdict["reason"])
+
+    def _register_elsewhere(self, verdict: dict, doc: dict | None) -> None:
+        """Register a finished run in ``config.registry_dir`` when that is a registry it is not in yet (was:
+        nothing registered, and nothing said, when the same command ran again with another ``--registry``):
+        the same entry id, at the time of the verdict. ``doc``: the ``acceptance.json`` content just written
+        (None: written again from ``state.json``, the file may have been edited since). Runs that finished
+        before the registries were recorded are left as they are."""
+        from calibrate.sensor_registry import SensorRegistry
+
+        registered = self.state.data.get(REGISTERED_IN_KEY)
+        if registered is None or REGISTRATION_KEY not in self.state.data:
+            return
+        if str(SensorRegistry(self.config.registry_dir).root.resolve()) in registered:
+            return
+        if doc is None:
+            doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
+        self._register(verdict["ok"], doc, verdict["reason"], when=datetime.fromisoformat(verdict["finished"]))
+        self.state.save()
 
     def _speed(self) -> float:
         return float(self.config.sim_speed) if self.config.simulated else 1.0

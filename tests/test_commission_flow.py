@@ -485,6 +485,7 @@ def _finished_run_without_its_verdict(faulted_then_resumed, tmp_path):
     shutil.copytree(faulted_then_resumed["config"].registry_dir, config.registry_dir)
     state = RunState(config.run_dir / "state.json", json.loads((config.run_dir / "state.json").read_text()))
     del state.data["steps"]["verdict"]
+    del state.data["registration_id"], state.data["registered_in"]  # set by the verdict's registration
     state.save()
     return config
 
@@ -512,7 +513,26 @@ def test_a_run_killed_after_it_registered_replaces_its_entry_when_run_again(faul
     assert [h["accepted"] for h in profile.history] == [False, True, True]
     assert len({h["id"] for h in profile.history}) == 3  # the fault's, the copied run's, this one's
     state = json.loads((config.run_dir / "state.json").read_text())
-    assert state["steps"]["verdict"]["ok"] and "registration_id" not in state
+    assert state["steps"]["verdict"]["ok"] and state["registered_in"] == [str(config.registry_dir.resolve())]
+
+
+def test_a_finished_run_run_again_with_another_registry_is_registered_there_once(faulted_then_resumed, tmp_path):
+    """Was: nothing registered and nothing said; the sensor missing from the registry the command named."""
+    config = faulted_then_resumed["config"]
+    run_dir = tmp_path / "run"
+    shutil.copytree(config.run_dir, run_dir)
+    state = json.loads((run_dir / "state.json").read_text())
+    before = sorted(p.read_bytes() for p in config.registry_dir.rglob("*") if p.is_file())
+    elsewhere = dataclasses.replace(config, run_dir=run_dir, registry_dir=tmp_path / "lab_registry")
+    for _ in range(2):  # the second time it is in that registry already
+        assert run_commissioning(elsewhere, lambda e: None).accepted
+        (profile,) = SensorRegistry(elsewhere.registry_dir).survey().profiles
+        assert [(h["id"], h["time"], h["accepted"]) for h in profile.history] == [
+            (state["registration_id"], state["steps"]["verdict"]["finished"], True)]
+        assert profile.status == "accepted" and profile.model_dir is not None
+    after = json.loads((run_dir / "state.json").read_text())["registered_in"]
+    assert after == [str(config.registry_dir.resolve()), str(elsewhere.registry_dir.resolve())]
+    assert sorted(p.read_bytes() for p in config.registry_dir.rglob("*") if p.is_file()) == before
 
 
 def test_a_stop_during_the_last_step_is_honoured_before_the_verdict(faulted_then_resumed, tmp_path):
@@ -629,10 +649,11 @@ def test_a_finished_runs_deleted_report_is_written_again(faulted_then_resumed, t
     run_dir = tmp_path / "run"
     shutil.copytree(config.run_dir, run_dir)
     (run_dir / "report.html").unlink()
-    result = run_commissioning(dataclasses.replace(config, run_dir=run_dir, registry_dir=tmp_path / "reg"),
-                               lambda e: None)
+    registry = tmp_path / "registry"  # the registry it was registered in (a copy: the paths differ)
+    shutil.copytree(config.registry_dir, registry)
+    result = run_commissioning(dataclasses.replace(config, run_dir=run_dir, registry_dir=registry), lambda e: None)
     assert result.accepted and result.report_path.is_file() and "ACCEPTED" in result.report_path.read_text()
-    assert not (tmp_path / "reg").exists()  # registered at the time, not again
+    assert len(SensorRegistry(registry).survey().profiles[0].history) == 2  # the same entry id: replaced, not added
 
 
 def test_a_stop_while_the_verdict_is_written_registers_nothing(faulted_then_resumed, tmp_path, monkeypatch):
