@@ -146,10 +146,9 @@ def reusable(out: Path, config: dict) -> dict | None:
     t = meta.training
     init, recorded = config.get("init"), t["init"] or {}
     if init:
-        current = load_metadata(init)
         same_init = (recorded.get("model_dir") == init and (recorded["weights_sha256"] == weights_sha256(init)
                                                             if "weights_sha256" in recorded else
-                                                            recorded.get("metrics") == current.metrics))
+                                                            recorded.get("metrics") == load_metadata(init).metrics))
     else:
         same_init = not recorded
     same = (t["budget"].get("minutes") == config["minutes"] and same_init

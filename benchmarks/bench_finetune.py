@@ -24,7 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import model_dir  # noqa: E402
+from benchmarks.arguments import model_dir, run_main  # noqa: E402
+from collect.errors import InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect.session_info import session_summary  # noqa: E402
 from trainer.dataset import load_frames  # noqa: E402
@@ -34,8 +35,7 @@ from trainer.inference import DepthEstimator  # noqa: E402
 from trainer.metrics import depth_metrics  # noqa: E402
 from collect.cli import DEFAULT_OBJECTS_ARG  # noqa: E402
 from trainer.pretrain import collect_one  # noqa: E402
-from trainer.splits import split_in_class  # noqa: E402
-from trainer.training import TrainConfig, train_model  # noqa: E402
+from trainer.training import TrainConfig, split_frames, train_model  # noqa: E402
 
 TARGET_A1 = 0.95
 TARGET_MINUTES = 3.0
@@ -54,10 +54,9 @@ def first_time_at(history: list[dict], a1: float) -> float | None:
 
 def zero_shot(config: TrainConfig) -> dict:
     """Metrics of ``config.init`` on the frames ``train_model(config)`` holds out and validates on at its end (its
-    loader, seed and in-class split), with ``n_val_frames``."""
+    loader and split), with ``n_val_frames``."""
     frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
-    _, val_idx = split_in_class(frames, by=config.split, seed=config.seed)
-    held = frames.subset(val_idx)
+    _, held, _ = split_frames(config, frames)
     estimator = DepthEstimator.load(config.init)
     meta = estimator.metadata
     metrics = depth_metrics(predict_frames(estimator, held.ir), held.depth, min_depth=meta.min_depth,
@@ -88,8 +87,8 @@ def main() -> int:
         recorded = session_summary(session)
         plan = {name: args.poses_per_object for name in args.objects.split(",")}
         if {name: o["poses"] for name, o in recorded["objects"].items()} != plan:  # one an earlier run left in --work
-            sys.exit(f"bench_finetune: {session} holds other objects or poses than --objects {args.objects} "
-                     f"--poses-per-object {args.poses_per_object}: use another --work, or delete it")
+            raise InputError(f"{session} holds other objects or poses than --objects {args.objects} "
+                             f"--poses-per-object {args.poses_per_object}: use another --work, or delete it")
         runs = {"fine-tune from base": {"init": args.init}}
         if args.scratch:
             runs["from scratch"] = {"init": None}
@@ -142,4 +141,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_finetune")

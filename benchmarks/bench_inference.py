@@ -8,8 +8,9 @@ saved as a model directory for the default 224 x 172 sensor, exported to ONNX an
 against torch (``trainer.onnx_export``); then the median wall time of
 ``DepthEstimator.predict`` (the deployed path: normalization, padding, network, crop) on one
 native frame, batch 1, through torch and through ONNX Runtime. Target: >= 60 fps (<= 16.7 ms)
-for the default model. The load average at the start and the end is reported: numbers taken on a
-busy machine are marked provisional.
+for the default model. The page's provenance line (``benchmarks/machine.py``) says what the CPU was
+shared with: numbers taken while other processes used more than a quarter of a core are marked
+provisional.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import positive_float, positive_int  # noqa: E402
+from benchmarks.arguments import positive_float, positive_int, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from trainer.doc_sections import BENCH_TRAINER_HEADER, update_section  # noqa: E402
 from trainer.inference import DepthEstimator  # noqa: E402
@@ -99,4 +100,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_inference")

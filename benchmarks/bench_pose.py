@@ -39,7 +39,8 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import int_list  # noqa: E402
+from benchmarks.arguments import int_list, run_main  # noqa: E402
+from collect.errors import InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.contact_patch import contact_points  # noqa: E402
 from calibrate.pose_estimation import Pose, ProximityPoseEstimator, quat_to_matrix, shape_from_object  # noqa: E402
@@ -143,8 +144,9 @@ def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Pa
     if reused_model:
         training = load_metadata(model).training
         if training["budget"]["minutes"] != minutes or training["split"].get("object") != "mug":
-            sys.exit(f"bench_pose: {model} was fine-tuned for {training['budget']['minutes']} min with split "
-                     f"{training['split']}, not --train-minutes {minutes:g} holding out the mug: use another --work")
+            raise InputError(f"{model} was fine-tuned for {training['budget']['minutes']} min with split "
+                             f"{training['split']}, not --train-minutes {minutes:g} holding out the mug: use another "
+                             "--work")
         print(f"reusing {model}", flush=True)
     else:
         _bubble("train", "--data", str(session), "--init", "base", "--holdout-object", "mug",
@@ -278,4 +280,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_pose")

@@ -15,9 +15,9 @@ Sections:
    zero dropped frames (every produced frame is in the file, contiguous sequence numbers,
    increasing device timestamps, and no frame handed to the writer later than the camera's 8-frame
    queue would have kept it: a writer that blocks its producer loses frames at the camera, not in
-   the file) and every sample in the file, the producer's worst wait in ``append_frame`` and, apart,
-   in ``append_arm`` / ``append_pressure`` (the control loop must never wait on the disk), the
-   process CPU share, and file size per minute. The simulator cannot render 45 fps for 10 min in real
+   the file; the arm and pressure samples appended and in the file are reported), the producer's
+   worst wait in ``append_frame`` and, apart, in ``append_arm`` / ``append_pressure`` (the control
+   loop must never wait on the disk), the process CPU share, and file size per minute. The simulator cannot render 45 fps for 10 min in real
    time on a loaded laptop, so the frames are pre-rendered and cycled: this measures the recorder,
    not the physics.
 3. Collection: ``bubble collect --sim`` with 4 objects x 8 poses; arm time on the simulated clock
@@ -42,7 +42,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import positive_float, positive_int  # noqa: E402
+from benchmarks.arguments import positive_float, positive_int, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect import session_format as sf  # noqa: E402
 from collect.bench import BenchConfig  # noqa: E402
@@ -320,4 +320,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "bench_recorder")

@@ -32,6 +32,7 @@ import trimesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.arguments import run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from hw_mocks.bubble_sim import BubbleSim  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS, BenchObject, fixture_plate, load_object  # noqa: E402
@@ -160,4 +161,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_simulator")

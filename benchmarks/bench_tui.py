@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from textual import events  # noqa: E402
 
-from benchmarks.arguments import model_dir  # noqa: E402
+from benchmarks.arguments import model_dir, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
@@ -277,4 +277,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_tui")

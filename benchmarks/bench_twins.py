@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.arguments import positive_float  # noqa: E402
+from benchmarks.arguments import positive_float, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect.bench import BenchConfig, open_bench  # noqa: E402
 
@@ -116,4 +116,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "bench_twins")

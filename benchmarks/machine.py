@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import time
@@ -10,6 +11,8 @@ from pathlib import Path
 #: A run during which other processes used more than this many cores on average (``finish``) shared the
 #: CPU with them: its numbers are provisional. (The load average cannot tell: it lags by a minute, so a
 #: benchmark that starts right after another one read as busy; and it counts this benchmark's own work.)
+#: "Other processes" is the machine's busy time (/proc/stat) less this process's: it includes the kernel's
+#: interrupt and writeback work for this benchmark's own I/O, and, in a container, other tenants' time.
 OTHERS_MAX_CORES = 0.25
 #: /proc/stat's busy fields of the "cpu" line: user, nice, system, irq, softirq, steal (1-based columns).
 _BUSY_COLUMNS = (1, 2, 3, 6, 7, 8)
@@ -53,13 +56,14 @@ def machine_info() -> dict:
 
 def finish(info: dict) -> dict:
     """``info`` (``machine_info()`` at the run's start) at its end: ``started`` replaced by ``others_cores``, the
-    cores other processes used on average during the run (nan where /proc/stat is missing), and ``load_end``."""
+    cores other processes used on average during the run (None where /proc/stat is missing), and ``load_end``."""
     busy, own = cpu_seconds()
     started = info["started"]
     wall = max(time.monotonic() - started["t"], 1e-9)
-    others = max(0.0, (busy - started["busy_s"]) - (own - started["own_s"])) / wall
+    others = (busy - started["busy_s"]) - (own - started["own_s"])
     done = {k: v for k, v in info.items() if k != "started"}
-    return {**done, "others_cores": round(others, 2), "load_end": round(os.getloadavg()[0], 1)}
+    return {**done, "others_cores": None if math.isnan(others) else round(max(0.0, others) / wall, 2),
+            "load_end": round(os.getloadavg()[0], 1)}
 
 
 def machine_line(info: dict) -> str:
@@ -70,8 +74,9 @@ def machine_line(info: dict) -> str:
 
 
 def provisional(info: dict) -> bool:
-    """Whether other processes used more than ``OTHERS_MAX_CORES`` during the run (``info`` from ``finish``)."""
-    return info.get("others_cores", 0.0) > OTHERS_MAX_CORES
+    """Whether other processes used more than ``OTHERS_MAX_CORES`` during the run (``info`` from ``finish``;
+    False where that was not measured)."""
+    return (info.get("others_cores") or 0.0) > OTHERS_MAX_CORES
 
 
 def provisional_note(info: dict) -> str:
@@ -79,6 +84,8 @@ def provisional_note(info: dict) -> str:
     was measured), with a leading space, and **Provisional** when ``provisional(info)``."""
     if "others_cores" not in info:
         return ""
+    if info["others_cores"] is None:
+        return " The CPU other processes used was not measured (no /proc/stat)."
     note = f" Other processes used {info['others_cores']:.2f} cores on average during the run."
     if provisional(info):
         note += (f" **Provisional**: above {OTHERS_MAX_CORES:g}, they shared the CPU with this benchmark; "

@@ -187,11 +187,11 @@ class Session:
         plan = _text(attrs.get(sf.ATTR_COLLECTION_PLAN, ""))
         self._collection_plan = _root_json(f, sf.ATTR_COLLECTION_PLAN, "a JSON object", _is_object) if plan else None
         resumed = sf.ATTR_RESUMED_AT_FRAMES in attrs
-        #: frame indices where the recording's resumed segments start (``bubble collect --resume``)
-        self.resumed_at_frames = [int(i) for i in _root_json(
-            f, sf.ATTR_RESUMED_AT_FRAMES, "a JSON list of increasing frame indices",
-            lambda v: isinstance(v, list) and all(isinstance(i, int) and i > 0 for i in v)
-            and all(a < b for a, b in zip(v, v[1:])))] if resumed else []  # was: unsorted or repeated ones taken
+        #: frame indices where the recording's resumed segments start (``bubble collect --resume``), in
+        #: order, each once (a crash between the attribute's write and its frames' can repeat one)
+        self.resumed_at_frames = sorted({int(i) for i in _root_json(
+            f, sf.ATTR_RESUMED_AT_FRAMES, "a JSON list of frame indices",
+            lambda v: isinstance(v, list) and all(isinstance(i, int) and i > 0 for i in v))}) if resumed else []
         try:
             serial, simulated = attrs[sf.ATTR_SENSOR_SERIAL], attrs[sf.ATTR_SIMULATED]
             if not isinstance(serial, (str, bytes)):

@@ -550,7 +550,9 @@ class SessionWriter:
         pressures = [item for item in batch if item[0] == "pressure"]
         if frames:
             if self._segment_start is not None:  # flushed together with the segment's first frames
-                segments = json.loads(self._file.attrs.get(sf.ATTR_RESUMED_AT_FRAMES, "[]"))
+                # a segment that crashed before its first frames were on disk left its start behind: replaced
+                segments = [i for i in json.loads(self._file.attrs.get(sf.ATTR_RESUMED_AT_FRAMES, "[]"))
+                            if i < self._segment_start]
                 self._file.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps(segments + [self._segment_start])
                 self._segment_start = None
             columns = {

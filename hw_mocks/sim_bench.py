@@ -212,7 +212,7 @@ class SimBench:
     def stop(self) -> None:
         """Stop the physics thread; log each scheduled fault the run ended before (was: nothing said, and a
         ``--sim-fault camera-stall@100`` on a 4-second run looked like a fault that did not trip)."""
-        if self._loop.running:
+        if self._loop.running:  # (not after the physics thread failed: that failure is the run's fault)
             now = self.now()
             for fault in self.faults:
                 if fault.at_s > now:

@@ -157,10 +157,6 @@ CASES = {
     "phase-enum-swapped": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
                                {**sf.PHASES, "press": sf.PHASES["hold"], "hold": sf.PHASES["press"]})),
                            "frames/phase attr 'enum' must be the format's phases"),
-    # was: taken, and bubble info counted segments twice (6.4 s at 29 fps for 4.2 s at 45)
-    "resumed-at-frames-unsorted": (_set_attr(sf.ATTR_RESUMED_AT_FRAMES, "[20, 10]"),
-                                   "root attr 'resumed_at_frames' must be a JSON list of increasing frame indices, "
-                                   "got [20, 10]"),
     "depth-invalid-65535": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_INVALID, 65535),
                             "frames/depth attr 'invalid' must be 0 (this software reads 0 as no depth), got 65535"),
 }

@@ -627,6 +627,31 @@ def test_info_counts_pressed_poses_and_recording_time_without_the_pause_of_a_res
     assert info["fps"] == pytest.approx(45.0) and info["duration_s"] == pytest.approx(44 / 45 + 59 / 45)
 
 
+def test_a_segment_start_left_by_a_crash_is_replaced_not_repeated(tmp_path):
+    """A crash after the attribute's write and before its segment's first frames reached the disk: the
+    next resume starts at the same frame. Was: the index listed twice, and bubble info counted the
+    segments twice."""
+    from collect.session_info import session_summary
+
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        for i in range(45):
+            w.append_frame(*_frame(i), i / 45, i / 45, i, 0, 0, sf.PHASE_FREE, np.zeros(6))
+    with h5py.File(path, "a") as f:  # the crashed segment's start, and one beyond the frames (an uneven batch)
+        f.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps([45, 47])
+    with _writer(path, resume=True) as w:
+        for i in range(45):
+            w.append_frame(*_frame(i), 2 + i / 45, 2 + i / 45, 45 + i, 0, 0, sf.PHASE_FREE, np.zeros(6))
+    with h5py.File(path, "r") as f:
+        assert json.loads(f.attrs[sf.ATTR_RESUMED_AT_FRAMES]) == [45]
+    with h5py.File(path, "a") as f:  # a file written before this was fixed: read in order, each once
+        f.attrs[sf.ATTR_RESUMED_AT_FRAMES] = json.dumps([45, 45, 20, 45])
+    with Session.open(path) as s:
+        assert s.resumed_at_frames == [20, 45]
+    info = session_summary(path)
+    assert info["duration_s"] == pytest.approx(2 * 44 / 45 - 1 / 45) and info["fps"] == pytest.approx(45.0)
+
+
 def test_info_reports_a_camera_that_restarted_its_clock_and_numbering(tmp_path):
     """A camera that rebooted mid-recording: its clock and sequence numbers start again (was: a negative
     duration at 0.0 fps, and no word of the restart; the host clock's steps back went unreported)."""

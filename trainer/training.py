@@ -172,7 +172,11 @@ def evaluate_tensors(network: nn.Module, tensors: NetworkTensors, device: str, m
     return depth_metrics(pred, tensors.depth[:, 0].numpy(), min_depth=min_depth, max_depth=max_depth)
 
 
-def _split(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, dict]:
+def split_frames(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, FrameSet, dict]:
+    """(training frames, validation frames, the split's description) of ``frames``, loaded from
+    ``config.data`` as ``train_model`` loads them, by ``config``'s split: ``val_data`` sessions, a held-out
+    object or the in-class split. InputError for a split that leaves either side empty, or validates on
+    no contact frame."""
     if config.val_data:
         val = load_frames(config.val_data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
         return frames, val, {"kind": "sessions", "val_data": [str(p) for p in config.val_data]}
@@ -347,7 +351,7 @@ def train_model(
     out_dir = Path(config.out)
 
     frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
-    train_frames, val_frames, split_info = _split(config, frames)
+    train_frames, val_frames, split_info = split_frames(config, frames)
     check_each_recording_once({"--data": frames.sources, "--val-data": val_frames.sources if config.val_data else []})
     if val_frames.size != train_frames.size:
         raise InputError(f"validation frames are {val_frames.size[1]}x{val_frames.size[0]}, training frames "
