@@ -17,9 +17,9 @@ Sections:
    queue would have kept it: a writer that blocks its producer loses frames at the camera, not in
    the file; the arm and pressure samples appended and in the file are reported), the producer's
    worst wait in ``append_frame`` and, apart, in ``append_arm`` / ``append_pressure`` (the control
-   loop must never wait on the disk), the process CPU share, and file size per minute. The simulator cannot render 45 fps for 10 min in real
-   time on a loaded laptop, so the frames are pre-rendered and cycled: this measures the recorder,
-   not the physics.
+   loop must never wait on the disk), the process CPU share, and file size per minute. The
+   simulator cannot render 45 fps for 10 min in real time on a loaded laptop, so the frames are
+   pre-rendered and cycled: this measures the recorder, not the physics.
 3. Collection: ``bubble collect --sim`` with 4 objects x 8 poses; arm time on the simulated clock
    (the session's recording time, as ``bubble info`` reports it; target <= 60 s), frames, dropped
    frames, file size.

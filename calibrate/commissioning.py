@@ -608,9 +608,8 @@ class _Flow:
         ``REGISTERED_IN_KEY`` list (saved by the caller)."""
         from calibrate.sensor_registry import SensorRegistry
 
-        registry = SensorRegistry(self.config.registry_dir)
         connect = self.state.get(Step.CONNECT)
-        registry.register(
+        SensorRegistry(self.config.registry_dir).register(
             self.state.data["serial"],
             entry_id=self.state.data[REGISTRATION_KEY],
             accepted=accepted,
@@ -625,8 +624,14 @@ class _Flow:
             when=when,
         )
         registered = self.state.data.setdefault(REGISTERED_IN_KEY, [])
-        if str(registry.root.resolve()) not in registered:
-            registered.append(str(registry.root.resolve()))
+        if self._registry_root() not in registered:
+            registered.append(self._registry_root())
+
+    def _registry_root(self) -> str:
+        """The resolved path of ``config.registry_dir`` (or the default registry), as ``REGISTERED_IN_KEY`` lists it."""
+        from calibrate.sensor_registry import SensorRegistry
+
+        return str(SensorRegistry(self.config.registry_dir).root.resolve())
 
     def _all_done(self) -> bool:
         return all(self.state.done(s) for s in STEPS if s != Step.VERDICT)
@@ -731,12 +736,8 @@ class _Flow:
         the same entry id, at the time of the verdict. ``doc``: the ``acceptance.json`` content just written
         (None: written again from ``state.json``, the file may have been edited since). Runs that finished
         before the registries were recorded are left as they are."""
-        from calibrate.sensor_registry import SensorRegistry
-
         registered = self.state.data.get(REGISTERED_IN_KEY)
-        if registered is None or REGISTRATION_KEY not in self.state.data:
-            return
-        if str(SensorRegistry(self.config.registry_dir).root.resolve()) in registered:
+        if registered is None or REGISTRATION_KEY not in self.state.data or self._registry_root() in registered:
             return
         if doc is None:
             doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
