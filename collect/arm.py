@@ -83,6 +83,9 @@ REAL_TIME_SLACK = 10.0
 #: After a force excursion the monitor watches for a new one once the force has fallen below this
 #: fraction of the limit (hysteresis: sensor noise at the limit is not a string of new faults).
 FORCE_REARM_FRACTION = 0.8
+#: A retract stops when the force rises this fraction of the limit above the force it started with,
+#: when that is over the limit (the hysteresis above keeps the monitor from seeing a collision then).
+RETRACT_FORCE_RISE_FRACTION = 0.15
 #: Slowest kick rate the controller's watchdog accepts (Hz; ``setWatchdog``), at most half the
 #: monitor's rate: without a kick for 0.5 s (a hung host, a dead link) the robot stops its move. Not
 #: shorter: a loaded host may hold the monitor thread back a tenth of a second.
@@ -267,14 +270,19 @@ class Arm:
         self._fault: HardwareFault | None = None  # the first recorded fault (sticky)
         self._latest_fault: HardwareFault | None = None  # the last recorded fault (ends a retract)
         self._retract_pose: np.ndarray | None = None
+        self._retracting = False  # a retract is under way (``abort`` does not stop it)
         self._stop_request: threading.Event | None = None
         self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
         self._monitor_ended = False  # the monitor thread returned (a fault, or close)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        """Start the monitor thread (idempotent); blocks until the first sample is in."""
+        """Start the monitor thread (idempotent); blocks until the first sample is in. Raises the
+        fault the monitor ended on when it returned by itself (a lost link, a failed read): no motion
+        is sent without it (was: sent, unwatched, and raised only at its first sample, unstopped)."""
         if self._monitor_loop.running:
+            if self._monitor_ended:
+                raise self._latest_fault or HardwareFault("arm-monitor", "arm: the state monitor has ended")
             return
         with self._ctl_lock:
             armed = self._ctl.setWatchdog(self.watchdog_hz)
@@ -322,6 +330,7 @@ class Arm:
         while not self._monitor_loop.stop_event.is_set():
             if not self._rcv.isConnected():
                 self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
+                self.stop()  # most likely unsent: then the controller's watchdog stops the robot
                 return
             now_t = self._rcv.getTimestamp()
             if now_t != controller_t:
@@ -391,9 +400,15 @@ class Arm:
 
     def abort(self, fault: HardwareFault) -> None:
         """Record ``fault`` from another device (camera stall, serial loss) and stop the arm: the
-        running motion raises it at its next sample (within 1/state_hz)."""
-        self._set_fault(fault)
-        self.stop()
+        running motion raises it at its next sample (within 1/state_hz). A retract under way goes on
+        (was: stopped, leaving the bubble pressed on its object for a camera that went silent): only
+        the arm's own faults end it."""
+        with self._cond:
+            if self._fault is None:
+                self._fault = fault
+            retracting = self._retracting
+        if not retracting:
+            self.stop()
 
     def check(self) -> None:
         """Raise the recorded fault, if any, then ``StopRequested`` if the operator's stop is set."""
@@ -457,16 +472,21 @@ class Arm:
         budget = move_duration_s(linear_path_m(start.tcp_pose, target), speed, accel) + MOVE_TIMEOUT_MARGIN_S
         known_fault = self._latest_fault
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
+        try:
+            return self._supervise(target, guard, ignore_faults, known_fault, budget)
+        except BaseException:  # whatever ends the move (was: a lost sample left it running unwatched)
+            self.stop()
+            raise
+
+    def _supervise(self, target: np.ndarray, guard, ignore_faults: bool, known_fault: HardwareFault | None,
+                   budget: float) -> tuple[ArmState, bool]:
+        """``_run_move``'s watch of the move it sent, sample by sample (the stop is the caller's)."""
         t_end = self.clock() + budget
         t_end_real = time.monotonic() + REAL_TIME_SLACK * budget
         while True:
             sample = self._next_sample()
             if not ignore_faults:
-                try:
-                    self.check()
-                except (HardwareFault, StopRequested):
-                    self.stop()
-                    raise
+                self.check()
             elif safety_stops(bits := self._rcv.getSafetyStatusBits()):  # the robot holds still: no finish
                 raise safety_stop_fault(bits, "arm: during the move the robot went into")
             elif self._latest_fault is not known_fault:  # the arm was stopped there (a collision)
@@ -479,7 +499,6 @@ class Arm:
                     and np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S):
                 return sample, False
             if self.clock() > t_end or time.monotonic() > t_end_real:
-                self.stop()
                 raise HardwareFault("arm-timeout", f"arm: move did not finish within {budget:.1f} s")
 
     def _settle(self) -> ArmState:
@@ -507,6 +526,7 @@ class Arm:
         rise = self.state().tcp_pose.copy()
         if rise[2] < target[2] - ARRIVAL_TOL_M:
             rise[2] = target[2]
+            self.limits.check_path(rise, target)  # both legs checked before the rise (was: the second after it)
             self.move_to(rise, speed, accel)
         return self.move_to(target, speed, accel)
 
@@ -603,20 +623,49 @@ class Arm:
         as the workspace box allows; otherwise it stays put. Moves away after any fault, a force fault
         included (the fault already recorded does not stop it); a new fault on the way (a collision
         over the force limit) stops it there and is raised, and so is ``HardwareFault('protective-stop')``
-        when the robot is in protective stop or goes into it on the way.
+        when the robot is in protective stop or goes into it on the way. A retract that starts over
+        the force limit (after a force fault, where the monitor waits for the force to fall before
+        it watches again) stops with ``HardwareFault('force-limit')`` when the force rises
+        ``RETRACT_FORCE_RISE_FRACTION`` of the limit above where it started. Other devices' faults
+        (``abort``) do not stop it. The remembered pose is used once: a retract that a fault ended
+        is not sent along the same path again (was: the safe stop's retract drove on into the
+        collision, the force unwatched in the monitor's hysteresis); the next one backs off along
+        the force.
         """
         if safety_stops(bits := self._rcv.getSafetyStatusBits()):
             raise safety_stop_fault(bits, "arm: cannot retract, robot is in")
         now = self.state()
         if self._retract_pose is not None:
-            target = self._retract_pose
+            target, self._retract_pose = self._retract_pose, None
         else:
             away = backoff_direction(now.tcp_wrench, self.settings.max_preload_n)
             if away is None:
                 return now
             target = now.tcp_pose.copy()
             target[:3] += away * self.limits.room_along(now.tcp_pose[:3], away, self.settings.retract_m)
-        sample, _ = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,
-                                   ignore_faults=True)
-        self._retract_pose = None
+        limit = self.limits.force_limit_n
+        start_n = float(np.linalg.norm(now.tcp_wrench[:3]))
+        stop_n = max(limit, start_n + RETRACT_FORCE_RISE_FRACTION * limit)
+        rose_n: list[float] = []  # the force that stopped it
+
+        def force_rose(smp: ArmState) -> bool:
+            force = float(np.linalg.norm(smp.tcp_wrench[:3]))
+            if force > stop_n:
+                rose_n.append(force)
+            return bool(rose_n)
+
+        with self._cond:
+            self._retracting = True
+        try:
+            sample, rose = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,
+                                          guard=force_rose, ignore_faults=True)
+        finally:
+            with self._cond:
+                self._retracting = False
+        if rose:
+            fault = HardwareFault("force-limit", f"arm: the force rose to {rose_n[0]:.1f} N while retracting (from "
+                                                 f"{start_n:.1f} N; limit {limit:.1f} N): something is in the way; "
+                                                 f"arm stopped")
+            self._set_fault(fault)
+            raise fault
         return sample

@@ -42,7 +42,7 @@ import numpy as np
 
 from collect import session_format as sf
 from collect.arm import retract_speed
-from collect.errors import HardwareFault, InputError, StopRequested
+from collect.errors import RECORDER_FAULT, HardwareFault, InputError, StopRequested
 from collect.pose_planner import CollectionPlan, PlanSettings, plan_collection
 from collect.session_writer import SessionWriter
 from collect.stop_signals import INTERRUPTS, acknowledge_stop, stop_signals_handled
@@ -195,6 +195,12 @@ class _Recorder(threading.Thread):
                 self.bench.pressure.check()
                 self._report()
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
+            if isinstance(err, Exception) and not isinstance(err, HardwareFault):
+                # a frame of another shape, a failing progress callback: the arm must not go on
+                # unrecorded and unwatched (was: the phase ran to its end, then a traceback)
+                log.debug("recorder thread failed", exc_info=err)
+                wrapped = HardwareFault(RECORDER_FAULT, f"recorder: stopped recording ({type(err).__name__}: {err})")
+                wrapped.__cause__, err = err, wrapped
             self.error = err
             if isinstance(err, HardwareFault):
                 self.bench.arm.abort(err)  # the running motion stops now and raises it
@@ -325,17 +331,19 @@ def run_collection(
         result.stopped = True
         _safe_stop(bench, recorder)
     except BaseException as err:
-        # a fault's stop: a signal now is only acknowledged (a Ctrl-C's own stop acknowledges repeats already)
+        # a fault's stop: a signal now is only acknowledged (a Ctrl-C's own stop acknowledges repeats
+        # already), until the recording has ended (was: a Ctrl-C there replaced the fault with exit 130)
         with stop_signals_handled(acknowledge_stop, INTERRUPTS):
             _safe_stop(bench, recorder)
-        if isinstance(err, HardwareFault) and isinstance(recorder.error, HardwareFault) and err is not recorder.error:
-            # the arm's error followed from the device fault (e.g. a retract aborted by it): report the cause
+            _end_recording(recorder)
+        if isinstance(err, HardwareFault) and recorder.error is not None and err is not recorder.error \
+                and arm.fault is recorder.error:
+            # the device fault came first and the arm's error followed from it: report the cause (not
+            # when the arm's own fault came first, and the camera failed during its safe stop)
             raise recorder.error from err
         raise
     finally:
-        recorder.halt.set()
-        recorder.join()
-        recorder.write_remaining_streams()  # e.g. the safe-stop retract after the camera failed
+        _end_recording(recorder)
         result.duration_s = float(arm.state().t - t_start)
     if recorder.error is not None and not result.stopped:
         raise recorder.error
@@ -346,6 +354,14 @@ def press_target_n(contact, added_n: float, cap_n: float) -> float:
     """Force (N) a press aims for: the force along the pressing axis at first contact (``contact``,
     an ``ArmState``) plus ``added_n``, at most ``cap_n``."""
     return min(max(contact.pressing_force_n(), 0.0) + added_n, cap_n)
+
+
+def _end_recording(recorder: _Recorder) -> None:
+    """Stop the recorder thread and queue what it left (e.g. the safe-stop retract after the camera
+    failed); safe to repeat."""
+    recorder.halt.set()
+    recorder.join()
+    recorder.write_remaining_streams()
 
 
 def _safe_stop(bench, recorder: _Recorder) -> None:

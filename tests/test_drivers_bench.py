@@ -7,6 +7,9 @@ run the production collection loop (``collect.collection.run_collection`` and it
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 import time
 
 import numpy as np
@@ -114,6 +117,96 @@ def test_a_collision_during_the_safe_stop_after_another_fault_stops_the_retract(
         assert bench.arm.state().tcp_pose[2] < above[2] - 1e-3  # stopped on the way out
     said = [r.getMessage() for r in caplog.records if "not retracted" in r.getMessage()]
     assert len(said) == 1 and "sudden jump" in said[0], said
+
+
+def test_another_devices_fault_during_the_safe_stop_does_not_stop_its_retract():
+    """Was: a camera stall (or a serial fault) while the safe stop retracted after Ctrl-C stopped the
+    retract there, the bubble left pressed on its object; the retract now goes on to its pose."""
+    with open_bench(_config()) as bench:
+        above = _press_cycle(bench, hold_s=0.0)
+        stall = threading.Timer(0.05, bench.arm.abort, [HardwareFault("camera-stall", "camera: no frame for 0.6 s")])
+        stall.start()
+        try:
+            assert bench.safe_stop()
+        finally:
+            stall.join()
+        assert bench.arm.fault.kind == "camera-stall"
+        time.sleep(0.1)
+        np.testing.assert_allclose(bench.arm.state().tcp_pose, above, atol=5e-4)
+
+
+def _collect_with(bench, out, progress, plan_settings=None):
+    plan = plan_bench_collection(bench, plan_settings or PlanSettings(poses_per_object=1, seed=1, hold_s=3.0))
+    with pytest.raises(HardwareFault) as err, open_collection_writer(out, bench, plan, resume=False) as writer:
+        run_collection(bench, plan, writer, progress)
+    return plan, err.value
+
+
+def test_a_recorder_that_fails_stops_the_arm_at_once_and_keeps_the_data(tmp_path, monkeypatch):
+    """Was: an error other than a device fault in the recorder thread (a frame of another shape than
+    the session's, a failing progress callback) ended the recording silently; the arm ran the hold
+    to its end unrecorded and unwatched, and the run ended in a traceback (exit 1)."""
+    out = tmp_path / "s.h5"
+    failed_at = []
+    with open_bench(_config()) as bench:
+        def progress(phase, **_):
+            if phase == "hold":
+                failed_at.append(bench.clock())
+                raise ValueError("frame shape (480, 640) != session shape (172, 224)")
+
+        safe_stops = []
+        real_safe_stop = bench.safe_stop
+        monkeypatch.setattr(bench, "safe_stop", lambda: safe_stops.append(bench.clock()) or real_safe_stop())
+        _, fault = _collect_with(bench, out, progress)
+        assert fault.kind == "recorder" and "ValueError: frame shape" in str(fault)
+        assert safe_stops[0] < failed_at[0] + 0.1  # not after the 3 s hold
+    with Session.open(out) as s:
+        assert s.closed_cleanly and len(s.select(phase="press")) > 0
+
+
+def test_the_arms_own_fault_is_reported_when_another_device_fails_during_its_safe_stop(tmp_path, monkeypatch):
+    """A force fault first, then the camera stalls during the safe stop: the run reports the force
+    fault (was: the camera's, as if the camera had caused the stop)."""
+    with open_bench(_config()) as bench:
+        def progress(phase, **_):
+            if phase == "hold" and not bench.sim.faults:
+                bench.sim.faults.append(SimFault("force-spike", bench.clock() + 0.2))
+
+        real_safe_stop = bench.safe_stop
+
+        def safe_stop_with_stall():
+            bench.sim.faults.append(SimFault("camera-stall", bench.clock()))
+            time.sleep(0.8)  # the recorder sees the silence (0.5 s) during the stop
+            return real_safe_stop()
+
+        monkeypatch.setattr(bench, "safe_stop", safe_stop_with_stall)
+        _, fault = _collect_with(bench, tmp_path / "s.h5", progress)
+        assert fault.kind == "force-spike", fault
+
+
+def test_a_ctrl_c_while_a_fault_ends_the_recording_keeps_the_faults_exit(tmp_path, monkeypatch):
+    """Was: a Ctrl-C while the recorder thread was joined after a fault's safe stop raised
+    KeyboardInterrupt there, and the run exited 130 with its fault unsaid."""
+    import collect.collection as collection
+
+    real_join = collection._Recorder.join
+    interrupted = []
+
+    def join_with_ctrl_c(self, *args):
+        if not interrupted:
+            interrupted.append(True)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler runs here
+        return real_join(self, *args)
+
+    monkeypatch.setattr(collection._Recorder, "join", join_with_ctrl_c)
+    with open_bench(_config()) as bench:
+        def progress(phase, **_):
+            if phase == "hold" and not bench.sim.faults:
+                bench.sim.faults.append(SimFault("force-spike", bench.clock() + 0.2))
+
+        _, fault = _collect_with(bench, tmp_path / "s.h5", progress)
+        assert fault.kind == "force-spike" and interrupted
 
 
 def test_parse_sim_fault():

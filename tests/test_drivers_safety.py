@@ -483,3 +483,118 @@ def test_the_monitor_samples_state_hz_of_a_fast_simulated_clock():
         arm.close()
     bench_s = stream[-1].t - stream[0].t
     assert bench_s > 1.5 and (len(stream) - 1) / bench_s > 90  # 125 asked; 31 before
+
+
+class _Pressed(_Still):
+    """A block under the bubble (``stiffness`` N/m below ``top`` m, pushing up) and, once ``snag_from``
+    (m) is set, a fixture beside it that pushes sideways (+x, ``snag_stiffness`` N/m) as the TCP
+    rises above that height; ``ceiling`` (m): something above that pushes down once the TCP rises past it."""
+
+    def __init__(self, top=0.25, stiffness=5000.0):
+        super().__init__()
+        self.top, self.stiffness = top, stiffness
+        self.snag_from, self.snag_stiffness, self.ceiling = None, 10000.0, None
+
+    def wrench(self, pose, t):
+        w = self.force.copy()
+        w[2] += self.stiffness * max(0.0, self.top - pose[2])
+        if self.snag_from is not None:
+            w[0] += self.snag_stiffness * max(0.0, pose[2] - self.snag_from)
+        if self.ceiling is not None:
+            w[2] -= self.stiffness * max(0.0, pose[2] - self.ceiling)
+        return w
+
+
+def _pressed_arm(scene):
+    controller = SimURController(scene, [0.4, 0.0, 0.27, *DOWN])
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    arm.start()
+    assert arm.move_until_contact(force_threshold_n=0.5) is not None
+    return arm, control, controller
+
+
+def test_a_retract_that_starts_over_the_force_limit_stops_when_the_force_rises():
+    """After a force fault the force is still over the limit, and the monitor waits for it to fall
+    before it watches again: a retract that snags on something then (the force never falls) stopped
+    only at the controller's own 150 N; now it stops once the force rises 15 % of the limit above its start."""
+    scene = _Pressed()
+    arm, control, controller = _pressed_arm(scene)
+    try:
+        with pytest.raises(HardwareFault) as err:
+            arm.press(depth_m=0.006)  # 30 N wanted: the monitor stops the press at the 20 N limit
+        assert err.value.kind == "force-limit"
+        start_n = np.linalg.norm(arm.state().tcp_wrench[:3])
+        assert start_n > LIMITS.force_limit_n
+        scene.snag_from = arm.state().tcp_pose[2]  # a fixture catches the bubble's side as it rises
+        with pytest.raises(HardwareFault, match="while retracting") as err:
+            arm.retract()
+        assert err.value.kind == "force-limit" and arm.fault.kind == "force-limit"
+        time.sleep(0.05)
+        assert np.linalg.norm(controller.tcp_speed()[:3]) == 0.0
+        peak = np.linalg.norm(scene.wrench(controller.tcp_pose(), 0.0)[:3])
+        assert peak < 1.5 * LIMITS.force_limit_n  # the trigger, a sample's travel and the stopL's braking (was: 150 N)
+        assert not controller.safety_status_bits() & 1 << 2  # not the controller's protective stop
+    finally:
+        arm.close()
+
+
+def test_a_retract_a_collision_ended_is_not_sent_along_the_same_path_again():
+    """Was: the safe stop (and open_bench's exit) retried the retract toward the same pose, into the
+    collision, with the force unwatched in the monitor's hysteresis (60 N at a 20 N limit)."""
+    scene = _Pressed()
+    arm, control, controller = _pressed_arm(scene)
+    try:
+        scene.ceiling = arm.state().tcp_pose[2] + 0.008  # something comes down above the bubble
+        with pytest.raises(HardwareFault) as err:
+            arm.retract()
+        assert err.value.kind in ("force-limit", "force-spike")
+        moves = control.moves
+        for _ in range(2):  # the safe stop's retract, open_bench's: pushed down only, nothing to back off along
+            arm.stop()
+            arm.retract()
+        assert control.moves == moves
+        assert np.linalg.norm(scene.wrench(controller.tcp_pose(), 0.0)[:3]) < 1.1 * LIMITS.force_limit_n
+    finally:
+        arm.close()
+
+
+def test_no_motion_is_sent_once_the_monitor_has_ended():
+    """Was: after the receive link reported lost (the monitor thread returned), the safe stop's
+    retract still sent moveL, then raised at its first sample without stopL: the arm moved unwatched."""
+    scene = _Pressed()
+    controller = SimURController(scene, [0.4, 0.0, 0.27, *DOWN])
+    control = _CountingControl(controller)
+    receive = FakeRTDEReceive(controller)
+    arm = Arm(control, receive, LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        arm.move_until_contact(force_threshold_n=0.5)
+        receive.isConnected = lambda: False
+        assert wait_until(lambda: arm.fault is not None, 2.0)
+        moves = control.moves
+        for motion in (arm.retract, lambda: arm.move_to([0.4, 0.0, 0.27, *DOWN])):
+            with pytest.raises(HardwareFault) as err:
+                motion()
+            assert err.value.kind == "arm-disconnected"
+        assert control.moves == moves
+    finally:
+        arm.close()
+
+
+def test_travel_to_checks_both_legs_before_the_rise():
+    """Was: the second leg's tilt on the way was checked only after the rise had moved the arm, so a
+    refused travel (``SafetyViolation``: nothing sent) had already moved it."""
+    from collect.pose_planner import pressing_rotation
+
+    start = np.array([0.4, 0.0, 0.1, *pressing_rotation(19.0, 0.314, -0.615).as_rotvec()])
+    across = np.array([0.4, 0.0, 0.2, *pressing_rotation(19.0, 5.659, 2.786).as_rotvec()])  # 2x deg on the way
+    controller = SimURController(_Still(), start)
+    control = _CountingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        with pytest.raises(SafetyViolation, match="on the way"):
+            arm.travel_to(across)
+        assert control.moves == 0
+    finally:
+        arm.close()
