@@ -542,9 +542,11 @@ class _Flow:
         return {"summary": result.summary().splitlines()[1], "pose": pose, "checks": checks}
 
     # ------------------------------------------------------------------ verdict
-    def write_outcome(self, accepted: bool, reason: str, fault: str | None, stopped: bool) -> dict:
+    def write_outcome(self, accepted: bool, reason: str, fault: str | None, stopped: bool,
+                      finished: str | None = None) -> dict:
         """Write ``acceptance.json`` and ``report.html`` from ``state.json`` and the verdict; returns the
-        acceptance document."""
+        acceptance document. ``finished``: the verdict's time (ISO 8601, UTC) when it is written again
+        for a run that finished before (was: the time of writing, later than the registry's); default now."""
         validate = self.state.get(Step.VALIDATE)
         doc = {
             "accepted": accepted,
@@ -560,8 +562,10 @@ class _Flow:
             "per_object": validate.get("per_object"),
             "contact": validate.get("contact"),
             "vs_true": validate.get("vs_true"),
-            "steps": {s.value: self.state.get(s).get("summary") for s in STEPS if self.state.done(s)},
-            "finished": utc_now(),
+            # the steps before the verdict (was: the verdict too, when written again after it)
+            "steps": {s.value: self.state.get(s).get("summary") for s in STEPS
+                      if s is not Step.VERDICT and self.state.done(s)},
+            "finished": finished or utc_now(),
         }
         write_json(self.run_dir / ACCEPTANCE_FILE, doc)
         write_run_report(self.run_dir, self.state, doc)
@@ -725,7 +729,7 @@ class _Flow:
         report = self.run_dir / REPORT_FILE
         doc = None
         if not report.is_file() or not (self.run_dir / ACCEPTANCE_FILE).is_file():  # deleted since: written anew
-            doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
+            doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False, verdict["finished"])
         self._register_elsewhere(verdict, doc)
         self.emit(Verdict(verdict["ok"], checks, str(report)))
         return CommissionResult(verdict["ok"], checks, self.run_dir, report, fault=verdict["fault"], reason=verdict["reason"])
@@ -740,7 +744,7 @@ class _Flow:
         if registered is None or REGISTRATION_KEY not in self.state.data or self._registry_root() in registered:
             return
         if doc is None:
-            doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False)
+            doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False, verdict["finished"])
         self._register(verdict["ok"], doc, verdict["reason"], when=datetime.fromisoformat(verdict["finished"]))
         self.state.save()
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +26,7 @@ from collect.atomic_files import replacing
 #: The paper's table columns: (metric key, header, format).
 PAPER_COLUMNS = (
     ("abs_rel", "Abs.Rel", "{:.4f}"),
-    ("sq_rel", "Sq.Rel", "{:.2e}"),
+    ("sq_rel", "Sq.Rel (m)", "{:.2e}"),  # a length, as DESIGN.md defines it (was: no unit beside RMSE in mm)
     ("rmse", "RMSE (mm)", "mm"),
     ("rmse_log", "RMSE_log", "{:.4f}"),
     ("silog", "SILog", "{:.3f}"),
@@ -256,23 +255,28 @@ def _training_plot(curve: list[dict]) -> str:
     return _png(fig)
 
 
-def _four_digits(value):
-    """``value`` (a number, or lists and dicts of them) with its floats cut to 4 significant digits."""
+def _value_text(value) -> str:
+    """A table cell for ``value``: floats to 4 significant digits, lists joined by " / " (as the keys
+    name them: "median / mean / variance"), dicts as "key: value" pairs, booleans yes / no, None "none"
+    (was: JSON, "[0.1992, 0.2214, 0.01764]" and {"2": 0.082, ...})."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if value is None:
+        return "none"
     if isinstance(value, float):
-        return float(f"{value:.4g}")
-    if isinstance(value, list):
-        return [_four_digits(v) for v in value]
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return " / ".join(_value_text(v) for v in value)
     if isinstance(value, dict):
-        return {k: _four_digits(v) for k, v in value.items()}
-    return value
+        return "; ".join(f"{k}: {_value_text(v)}" for k, v in value.items())
+    return str(value)
 
 
 def _kv_table(items: dict) -> str:
-    rows = "".join(
-        f"<tr><th>{html.escape(str(k))}</th><td>"
-        f"{html.escape(v if isinstance(v, str) else json.dumps(_four_digits(v)))}</td></tr>"
-        for k, v in items.items()
-    )
+    rows = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(_value_text(v))}</td></tr>"
+                   for k, v in items.items())
     return f"<table class='kv'>{rows}</table>"
 
 

@@ -16,6 +16,7 @@ import shutil
 import signal
 import threading
 import time
+from datetime import datetime
 
 import numpy as np
 import pytest
@@ -648,12 +649,18 @@ def test_a_finished_runs_deleted_report_is_written_again(faulted_then_resumed, t
     config = faulted_then_resumed["config"]
     run_dir = tmp_path / "run"
     shutil.copytree(config.run_dir, run_dir)
+    first = json.loads((run_dir / "acceptance.json").read_text())
     (run_dir / "report.html").unlink()
     registry = tmp_path / "registry"  # the registry it was registered in (a copy: the paths differ)
     shutil.copytree(config.registry_dir, registry)
     result = run_commissioning(dataclasses.replace(config, run_dir=run_dir, registry_dir=registry), lambda e: None)
     assert result.accepted and result.report_path.is_file() and "ACCEPTED" in result.report_path.read_text()
     assert len(SensorRegistry(registry).survey().profiles[0].history) == 2  # the same entry id: replaced, not added
+    again = json.loads((run_dir / "acceptance.json").read_text())  # was: stamped with the time it was written again
+    verdict_t = json.loads((run_dir / "state.json").read_text())["steps"]["verdict"]["finished"]
+    assert again["finished"] == verdict_t and abs(datetime.fromisoformat(verdict_t)
+                                                  - datetime.fromisoformat(first["finished"])).total_seconds() < 5
+    assert again["steps"] == first["steps"] and "verdict" not in again["steps"]
 
 
 def test_a_stop_while_the_verdict_is_written_registers_nothing(faulted_then_resumed, tmp_path, monkeypatch):

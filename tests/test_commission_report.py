@@ -86,3 +86,15 @@ def test_an_object_name_with_dollar_signs_is_text_in_the_figures(tmp_path):
     data = _full_report_data(True)
     data.example_labels = ["cup$^$ pose 2", "box pose 1"]
     assert write_report(data, tmp_path / "report.html").read_text().count("data:image/png;base64,") == 6
+
+
+def test_the_pose_and_run_tables_read_as_text_not_json(tmp_path):
+    """Was: the pose section showed "[0.1992, 0.2214, 0.01764]" and {"2": 0.082, ...}, and Sq.Rel had no unit."""
+    data = _full_report_data(True)
+    data.pose = {"e_x (mm), predicted vs measured depth: median / mean / variance (mm^2)": [0.19916004, 0.22138, 0.0176383],
+                 "e_x (mm) median per held-out mug pose": {"2": 0.082, "4": 0.38}, "hold frames used / held": "35/35"}
+    data.run_info["settings"] = {"simulated": True, "objects": ["mug", "box"], "registry": None}
+    text = write_report(data, tmp_path / "report.html").read_text()
+    assert "<td>0.1992 / 0.2214 / 0.01764</td>" in text and "<td>2: 0.082; 4: 0.38</td>" in text
+    assert "<td>simulated: yes; objects: mug / box; registry: none</td>" in text
+    assert "Sq.Rel (m)" in text and "[0." not in text

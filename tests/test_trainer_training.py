@@ -76,6 +76,8 @@ def test_training_writes_model_dir_and_learns(trained, session):
     meta = load_metadata(result.model_dir)
     assert meta.training["sources"][0]["sha256"] and meta.training["sensor_serials"] == ["SYN-0001"]
     assert meta.training["split"]["kind"] == "in-class-poses"
+    device = f"cuda:0 ({torch.cuda.get_device_name(0)})" if torch.cuda.is_available() else "cpu"
+    assert meta.training["device"] == device and meta.training["torch"] == torch.__version__
     assert meta.metrics["a1"] == result.metrics["a1"] and meta.inference["onnx_matches_torch"]
     assert meta.geometry.to_dict()["offset_top_left"] == [8, 0]
     assert not has_checkpoint(result.model_dir)

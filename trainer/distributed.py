@@ -58,6 +58,10 @@ class DistContext:
             torch.cuda.set_device(local_rank)
         return cls(rank, world, local_rank, local_world, f"cuda:{local_rank}" if cuda else "cpu")
 
+    def device_name(self) -> str:
+        """What this process trains on, for the model's metadata: ``cpu`` or ``cuda:<i> (<GPU name>)``."""
+        return "cpu" if self.device == "cpu" else f"{self.device} ({torch.cuda.get_device_name(self.device)})"
+
     def cpu_threads(self) -> int:
         """Torch intra-op threads for this process: the machine's cores shared by the local processes."""
         return max(1, (os.cpu_count() or 1) // self.local_world_size)

@@ -545,6 +545,8 @@ def train_model(
             "ended_at_deadline": at_deadline,
             "batch_size": config.batch_size * ctx.world_size,
             "world_size": ctx.world_size,
+            "device": ctx.device_name(),  # rank 0's; train_s depends on it (was: not recorded)
+            "torch": torch.__version__,
             "optimizer": {"name": "adam", "betas": [0.9, 0.999], "lr": config.lr,
                           "lr_halving": f"x0.5 after every {int(LR_HALVING_FRACTION * 100)} % of the budget"},
             "budget": {"epochs": config.epochs, "minutes": minutes},
