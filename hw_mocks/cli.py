@@ -20,7 +20,8 @@ MAX_PREVIEW_PRESS_MM = 30.0
 
 def register(subparsers) -> None:
     sim = subparsers.add_parser("sim", help="simulated bubble: draw sensors, preview frames")
-    sim_sub = sim.add_subparsers(dest="sim_command", required=True, parser_class=type(sim))
+    # no dest: a missing subcommand reads "required: {new-sensor,preview}" (was: "required: sim_command")
+    sim_sub = sim.add_subparsers(required=True, parser_class=type(sim))
 
     new = sim_sub.add_parser("new-sensor", help="draw a plausible new simulated sensor from a seed")
     new.add_argument("--seed", type=int, required=True, help="sensor seed (>= 0); same seed, same sensor")
@@ -31,7 +32,7 @@ def register(subparsers) -> None:
     prev = sim_sub.add_parser("preview", help="render IR, ToF depth, true depth and depth error to a PNG")
     prev.add_argument("--sensor", type=named_path, required=True, help="sensor spec YAML")
     prev.add_argument("--object", required=True, help="mug, wine_glass, box, fingers or a mesh file (STL/OBJ/PLY)")
-    prev.add_argument("--press-mm", type=float, default=5.0, help="press depth below first touch of the top (mm)")
+    prev.add_argument("--press-mm", type=float, default=5.0, help="press depth below first touch of the top (mm; default %(default)g)")
     prev.add_argument("--out", type=named_path, required=True, help="PNG to write")
     prev.set_defaults(func=_preview)
 

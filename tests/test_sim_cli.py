@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from calibrate.cli import main
@@ -59,3 +60,15 @@ def test_bad_input_exits_2(tmp_path, capsys):
     spec_text = spec_path.read_text()
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "2", "--out", str(spec_path)], "already exists")
     assert spec_path.read_text() == spec_text  # the spec a recording was made with is never replaced
+
+
+def test_sim_help_names_the_subcommands_and_the_press_default(capsys):
+    """Was: "the following arguments are required: sim_command", and --press-mm without its default."""
+    with pytest.raises(SystemExit) as refused:
+        main(["sim"])
+    assert refused.value.code == 2
+    assert capsys.readouterr().err == "bubble: error: the following arguments are required: {new-sensor,preview}\n"
+    with pytest.raises(SystemExit) as done:
+        main(["sim", "preview", "--help"])
+    assert done.value.code == 0
+    assert "(mm; default 5)" in " ".join(capsys.readouterr().out.split())

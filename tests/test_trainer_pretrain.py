@@ -4,10 +4,15 @@ import json
 import os
 import re
 import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 from conftest import make_synthetic_session
 
+import trainer.pretrain
 import trainer.training
 from trainer.checkpoint import has_checkpoint
 from trainer.model_dir import BASE_MODEL_DIR, WEIGHTS_FILE, load_metadata
@@ -25,13 +30,23 @@ def _sensor_sessions(work, n):
     return work
 
 
-def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_path):
-    work = _sensor_sessions(tmp_path / "work", 3)
-    card = tmp_path / "card.md"
+def _shipped_model_and_card(tmp_path, monkeypatch):
+    """Stand-ins in ``tmp_path`` for the shipped base model directory (not created) and its model card
+    (``# Model card``): the real ones are never written by a test. Returns both paths."""
+    shipped, card = tmp_path / "trainer" / "base_model", tmp_path / "docs" / "model_card.md"
+    card.parent.mkdir()
     card.write_text("# Model card\n")
-    out = tmp_path / "base"
+    monkeypatch.setattr(trainer.pretrain, "BASE_MODEL_DIR", shipped)
+    monkeypatch.setattr(trainer.pretrain, "MODEL_CARD", card)
+    return shipped, card
+
+
+def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_path, monkeypatch, capsys):
+    """Packaged into the shipped base model (``--out`` names it), the model card is rewritten by default."""
+    work = _sensor_sessions(tmp_path / "work", 3)
+    out, card = _shipped_model_and_card(tmp_path, monkeypatch)
     code = main(["train", "--work", str(work), "--out", str(out), "--val-sensors", "1", "--width", "0.125",
-                 "--epochs", "0.5", "--frame-stride", "2", "--model-card", str(card)])
+                 "--epochs", "0.5", "--frame-stride", "2"])
     assert code == 0
     assert sorted(p.name for p in out.iterdir()) == ["metadata.json", "model.onnx", WEIGHTS_FILE]
     meta = load_metadata(out)
@@ -39,15 +54,59 @@ def test_pretrain_trains_on_sensors_validates_on_held_out_ones_and_packages(tmp_
     assert [s["sensor_serial"] for s in meta.training["val_sources"]] == ["SYN-2"]
     text = card.read_text()
     assert text.startswith("# Model card") and "<!-- begin:pretraining -->" in text and "SYN-0, SYN-1" in text
+    first = capsys.readouterr().out.splitlines()[0]  # the untrained model's validation (was: "loss nan mm")
+    assert first.startswith("[eval] epoch 0.00 step 0 loss - val a1 "), first
     assert main(["train", "--work", str(tmp_path / "empty"), "--out", str(out)]) == 2
 
 
-def test_pretrain_continues_a_model_in_its_own_architecture(tmp_path):
+def test_pretrain_continues_a_model_in_its_own_architecture_and_replaces_it(tmp_path, monkeypatch):
+    """A model directory of an earlier run is replaced (--init base --out trainer/base_model continues the
+    shipped model). Packaged elsewhere than the shipped base model, no model card is written by default
+    (was: the shipped model's card rewritten to describe a trial run)."""
     work = _sensor_sessions(tmp_path / "work", 2)
-    common = ["train", "--work", str(work), "--val-sensors", "1", "--epochs", "0.2", "--model-card", ""]
-    assert main([*common, "--out", str(tmp_path / "first"), "--arch", "packnet", "--width", "0.125"]) == 0
-    assert main([*common, "--out", str(tmp_path / "second"), "--init", str(tmp_path / "first")]) == 0
-    assert load_metadata(tmp_path / "second").arch == "packnet"
+    _, card = _shipped_model_and_card(tmp_path, monkeypatch)
+    out = tmp_path / "first"
+    common = ["train", "--work", str(work), "--val-sensors", "1", "--epochs", "0.2", "--out", str(out)]
+    assert main([*common, "--arch", "packnet", "--width", "0.125"]) == 0
+    first = load_metadata(out)
+    assert main([*common, "--init", str(out)]) == 0
+    second = load_metadata(out)
+    assert second.arch == "packnet" and second.training["init"] and not first.training["init"]
+    assert card.read_text() == "# Model card\n"
+
+
+def test_pretrain_refuses_an_out_that_holds_other_files(tmp_path, capsys):
+    """``--out`` must be new, empty or a model directory: a folder with other files in it is refused
+    before the training, its files untouched (was: trained, then its metadata.json replaced). And --out
+    has no default (was: the shipped base model)."""
+    work = _sensor_sessions(tmp_path / "work", 2)
+    common = ["train", "--work", str(work), "--val-sensors", "1", "--width", "0.125", "--epochs", "0.2",
+              "--model-card", ""]
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / METADATA_FILE).write_text('{"mine": true}')
+    assert main([*common, "--out", str(foreign)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"pretrain: error: --out {foreign} is neither empty nor a model directory (it has no {WEIGHTS_FILE}); "
+        "refusing to replace its files: choose a new or empty folder, or an earlier model"]
+    (foreign / WEIGHTS_FILE).write_bytes(b"mine")
+    assert main([*common, "--out", str(foreign)]) == 2  # a metadata.json that is not a model's
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "is neither empty nor a model directory (model " in err[0] and "'format'" in err[0], err
+    run = tmp_path / "run"  # a folder with a model and more: a commissioning run, a fine-tune's checkpoint
+    run.mkdir()
+    for name in (WEIGHTS_FILE, METADATA_FILE, "report.md"):
+        (run / name).write_text("mine")
+    assert main([*common, "--out", str(run)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and f"--out {run} is neither empty nor a model directory (it holds report.md)" in err[0]
+    assert (foreign / METADATA_FILE).read_text() == '{"mine": true}' and (foreign / WEIGHTS_FILE).read_bytes() == b"mine"
+    assert (run / "report.md").read_text() == "mine"
+    assert not (work / TRAIN_DIR).exists()  # refused before training
+    with pytest.raises(SystemExit) as refused:
+        main(common)
+    assert refused.value.code == 2
+    assert capsys.readouterr().err == "pretrain: error: the following arguments are required: --out\n"
 
 
 def test_pretrain_refuses_to_package_into_its_own_training_directory(tmp_path, capsys):
@@ -79,17 +138,89 @@ def test_pretrain_checks_its_training_options_like_bubble_train(tmp_path, capsys
 
 
 def test_pretrain_collect_refuses_bad_options_before_recording(tmp_path, capsys):
-    """Was: tracebacks (``--jobs 0``, a file as ``--work``), or exit 0 after recording nothing."""
+    """Was: tracebacks (``--jobs 0``, a file as ``--work``), or exit 0 after recording nothing; a sensor
+    seed out of the simulator's range failed every sensor (exit 1) after creating --work."""
     afile = tmp_path / "afile"
     afile.write_text("")
+    seeds = "sensor seeds --first-seed .. --first-seed + --sensors - 1 must be within 0..4294967295, got"
     for argv, says in ((["--jobs", "0"], "must be at least 1"), (["--sensors", "-1"], "must be at least 1"),
-                       (["--objects", " , "], "--objects names no object"), (["--work", str(afile)], "is a file")):
+                       (["--objects", " , "], "--objects names no object"), (["--work", str(afile)], "is a file"),
+                       (["--first-seed", "-1"], f"{seeds} -1..14"),
+                       (["--first-seed", "4294967296", "--sensors", "1"], f"{seeds} 4294967296..4294967296"),
+                       (["--first-seed", "4294967295", "--sensors", "2"], f"{seeds} 4294967295..4294967296")):
         assert main(["collect", "--work", str(tmp_path / "w"), *argv]) == 2
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and says in err[0], err
     assert not (tmp_path / "w").exists()
-    assert main(["train", "--work", str(tmp_path / "missing")]) == 2
+    assert main(["train", "--work", str(tmp_path / "missing"), "--out", str(tmp_path / "base")]) == 2
     assert "is not a directory of sessions" in capsys.readouterr().err
+
+
+def _help_by_option(argv, capsys) -> dict[str, str]:
+    """``--help`` of ``python -m trainer.pretrain ARGV``: each option's help text, on one line."""
+    with pytest.raises(SystemExit) as done:
+        main([*argv, "--help"])
+    assert done.value.code == 0
+    blocks = re.split(r"\n  (?=-)", capsys.readouterr().out.split("\noptions:\n", 1)[1])
+    return {block.split()[0].rstrip(","): " ".join(block.split()) for block in blocks}
+
+
+def test_pretrain_help_describes_every_option_with_its_default(capsys):
+    """Was: no help for --sensors, --first-seed, --poses-per-object, train's --work, --out, --seed, no
+    defaults shown, and "the following arguments are required: step" without a step."""
+    collect = _help_by_option(["collect"], capsys)
+    for option, default in (("--sensors", "(default 16)"), ("--first-seed", "(default 1000;"),
+                            ("--poses-per-object", "(default 8)"), ("--sim-speed", "default 20)"),
+                            ("--jobs", "(default 2)"), ("--work", "directory of the sessions")):
+        assert default in collect[option], collect[option]
+    train = _help_by_option(["train"], capsys)
+    for option, says in (("--work", "WORK/model"), ("--out", "trainer/base_model"), ("--seed", "(default 0)"),
+                         ("--val-sensors", "(default 2)"), ("--eval-interval", "(default 60)"),
+                         ("--model-card", "default: docs/model_card.md when --out is the shipped base model")):
+        assert says in train[option], train[option]
+    with pytest.raises(SystemExit) as refused:
+        main([])
+    assert refused.value.code == 2
+    assert capsys.readouterr().err == "pretrain: error: the following arguments are required: {collect,train}\n"
+
+
+def _processes_naming(path: Path) -> list[str]:
+    """Command lines of the running processes that name ``path``."""
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            text = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # ended meanwhile
+            continue
+        if str(path) in text:
+            found.append(text)
+    return found
+
+
+def test_pretrain_collect_stops_at_ctrl_c_and_keeps_the_sessions_recorded(tmp_path):
+    """Ctrl-C in ``pretrain collect`` stops the session being recorded and starts no other: exit 130,
+    one line, the sessions recorded so far kept (was: every queued sensor recorded first)."""
+    work = tmp_path / "w"
+    work.mkdir()
+    recorded = work / "sensor_01000.h5"  # recorded by an earlier run: skipped, and kept
+    recorded.write_bytes(b"a session")
+    proc = subprocess.Popen([sys.executable, "-m", "trainer.pretrain", "collect", "--work", str(work), "--sensors", "3",
+                             "--jobs", "1", "--objects", "box", "--poses-per-object", "1", "--sim-speed", "100"],
+                            cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    recording = work / "sensor_01001.partial.h5"  # the next sensor's session, being recorded by bubble collect
+    deadline = time.monotonic() + 120
+    while not recording.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and err.splitlines() == ["pretrain: interrupted"], (proc.returncode, err)
+    assert out.splitlines() == [f"sensor seed 1000: {recorded}"]
+    assert sorted(p.name for p in work.glob("sensor_*") if ".partial" not in p.name) == [
+        "sensor_01000.h5", "sensor_01001.yaml"]  # sensor 1002 not started
+    assert recorded.read_bytes() == b"a session"
+    assert not _processes_naming(work)  # its bubble collect stopped with it
 
 
 def test_pretrain_checks_the_model_card_before_training(tmp_path, capsys):

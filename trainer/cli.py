@@ -43,7 +43,9 @@ def add_training_options(parser: argparse.ArgumentParser, *, init_help: str, min
                         help=f"training budget in minutes of training time (default {minutes:g})")
     parser.add_argument("--frame-stride", type=int, default=frame_stride, metavar="K",
                         help=f"keep every K-th contact frame (default {frame_stride})")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="random seed of the initialization, the split, the frame order and the augmentation "
+                             "(default %(default)s)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint of the training run")
     parser.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
                         help=f"frames per optimizer step (default {DEFAULT_BATCH_SIZE})")
@@ -93,7 +95,8 @@ def register(subparsers) -> None:
 
     evaluate = subparsers.add_parser("evaluate", help="the paper's metrics of a model on session files")
     evaluate.add_argument("--model", type=named_path, required=True, metavar="MODEL_DIR", help="model directory ('base' = the shipped base model)")
-    evaluate.add_argument("--data", type=named_path, nargs="+", required=True, metavar="SESSION.h5")
+    evaluate.add_argument("--data", type=named_path, nargs="+", required=True, metavar="SESSION.h5",
+                          help="session files to evaluate on")
     evaluate.add_argument("--objects", help="comma-separated objects to evaluate on (default: all)")
     evaluate.add_argument("--runtime", choices=("onnx", "torch"), help="inference runtime (default: the model's)")
     evaluate.add_argument("--json", type=named_path, metavar="OUT.json", help="write the metrics (keys at top level) here")

@@ -60,7 +60,11 @@ class DistContext:
 
     def device_name(self) -> str:
         """What this process trains on, for the model's metadata: ``cpu`` or ``cuda:<i> (<GPU name>)``."""
-        return "cpu" if self.device == "cpu" else f"{self.device} ({torch.cuda.get_device_name(self.device)})"
+        if self.device == "cpu":
+            return "cpu"
+        index = torch.device(self.device).index
+        index = torch.cuda.current_device() if index is None else index  # a single process: "cuda"
+        return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
 
     def cpu_threads(self) -> int:
         """Torch intra-op threads for this process: the machine's cores shared by the local processes."""

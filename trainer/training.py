@@ -348,6 +348,10 @@ def train_model(
         raise InputError("a wall-time deadline is for single-process training, not under torchrun")
     torch.set_num_threads(config.threads or ctx.cpu_threads())
     torch.manual_seed(config.seed)
+    if ctx.device != "cpu":  # CUDA's default kernels do not repeat a run bit for bit (was: a seeded training, or a
+        # resumed one against its uninterrupted twin, 0.01-0.09 apart in its weights on an H200); the CPU's do
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True, warn_only=True)
     out_dir = Path(config.out)
 
     frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
