@@ -25,8 +25,10 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "commission",
         help="commission a sensor: leak test, camera health, calibration set, fine-tune, validate, report",
-        description="Commission a new bubble sensor end to end and register it. Exit 0 accepted, 1 rejected, "
-        "2 bad input. Re-running with the same --out resumes from the last completed step.",
+        description="Commission a new bubble sensor end to end and register it. Exit 0 accepted, 1 rejected (a "
+        "failed check or a hardware fault), 2 bad input, 3 the recorder stopped (this computer's disk: nothing "
+        "registered), 130 stopped by Ctrl-C (143 SIGTERM, 129 SIGHUP). Re-running with the same --out resumes from "
+        "the last completed step.",  # was: 0, 1 and 2 only
     )
     p.add_argument("--bench", type=named_path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
     p.add_argument("--out", type=named_path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
@@ -60,7 +62,7 @@ def add_run_options(p) -> None:
                    help="wall-time budget of the whole run; the fine-tune is shortened to fit it (default %(default)s)")
     p.add_argument("--leak-hold-s", type=float, default=CommissionConfig.leak_hold_s, metavar="S",
                    help=f"leak-test hold, s of bench time (default {CommissionConfig.leak_hold_s:g})")
-    p.add_argument("--objects", help=f"comma-separated objects to press (default: a --bench file's objects, else "
+    p.add_argument("--objects", help=f"comma-separated objects to press (default: those of bubble commission's --bench file, else "
                                      f"{DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
                    help="contact poses per object (default %(default)s)")

@@ -41,7 +41,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("info", help="summarize a recorded session file",
                               description="Print what a session holds: sensor, frames per object and phase, "
                               "duration, frame rate, dropped frames, storage sizes.")
-    p.add_argument("file", type=named_path, metavar="FILE.h5")
+    p.add_argument("file", type=named_path, metavar="FILE.h5", help="a session file (bubble collect's --out)")
     p.set_defaults(func=run_info)
 
 
