@@ -24,6 +24,9 @@ if TYPE_CHECKING:
 #: (a second is a hundred samples of the pressure board; ten minutes is far more than a leak needs to show).
 LEAK_HOLD_S = 10.0
 LEAK_HOLD_RANGE_S = (1.0, 600.0)
+#: The commands that write a run folder, for the refusal of one that another of them is writing
+#: (``collect.output_files.output_folder_lock``).
+RUN_DIR_WRITERS = "bubble commission (or bubble tui)"
 #: Wall time (s) the fine-tune step may take beyond its training budget: loading the calibration
 #: set, the live validations, the final validation and the ONNX export (about 20 s on the 2-core
 #: CPU of docs/benchmarks.md, 28-35 s on one half as fast). The trainer's deadline cuts training
@@ -87,11 +90,11 @@ class CommissionConfig:
 
 def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     """Raise ``InputError`` for any bad setting, before the bench opens (``bubble commission`` and
-    ``bubble tui`` alike): paths, objects, numbers, the base model, the thresholds and the registry.
-    Returns the loaded thresholds."""
+    ``bubble tui`` alike): paths (and a run folder that another run is writing), objects, numbers, the
+    base model, the thresholds and the registry. Returns the loaded thresholds."""
     from calibrate.run_directory import SESSION_FILE, RunState, recording_done, run_settings
     from calibrate.sensor_registry import PROFILE, SensorRegistry
-    from collect.output_files import check_parent_dirs
+    from collect.output_files import check_parent_dirs, output_folder_lock
     from collect.pose_planner import MAX_POSES_PER_OBJECT, check_unique_names
     from collect.session_writer import check_free_space
     from hw_mocks.objects import load_object
@@ -101,6 +104,10 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     run_dir = Path(config.run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"run directory {run_dir} exists and is not a directory")
+    if run_dir.is_dir():  # another run writing it: refused now, its lock let go at once (was: in the TUI, once
+        # the operator had confirmed the start)
+        with output_folder_lock(run_dir, RUN_DIR_WRITERS):
+            pass
     check_parent_dirs(run_dir / SESSION_FILE)
     if not recording_done(run_dir):  # the recorder's own refusal would come after the arm's first moves
         check_free_space(run_dir / SESSION_FILE)

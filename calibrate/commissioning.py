@@ -55,7 +55,7 @@ from typing import Callable
 import numpy as np
 
 from calibrate import acceptance
-from calibrate.commission_config import CommissionConfig, load_sensor_spec, validate_config
+from calibrate.commission_config import RUN_DIR_WRITERS, CommissionConfig, load_sensor_spec, validate_config
 from calibrate.commission_events import (
     STEPS,
     ArmSafeStopped,
@@ -828,6 +828,6 @@ def run_commissioning(
     spec = load_sensor_spec(config) if config.simulated else None
     flow = _Flow(config, on_event, stop_event or threading.Event(), thresholds, spec)
     flow.run_dir.mkdir(parents=True, exist_ok=True)
-    with output_folder_lock(flow.run_dir, "bubble commission (or bubble tui)"):
+    with output_folder_lock(flow.run_dir, RUN_DIR_WRITERS):
         remove_leftovers(flow.run_dir)  # of a run killed while it wrote a file
         return flow.run()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from datetime import datetime
 from pathlib import Path
@@ -49,4 +50,9 @@ def run_tui(args) -> int:
 
     with stop_signals_handled(quit_app):
         app.run()
-    return exit_code(received[0]) if received else (app.return_code or 0)  # a crashed app: non-zero
+    code = exit_code(received[0]) if received else (app.return_code or 0)  # a crashed app: non-zero
+    if app.left_flow_running:  # left to stop by itself: exit without waiting for it (was: for ever, at exit)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code

@@ -11,14 +11,20 @@ from __future__ import annotations
 import asyncio
 import gc
 import os
+import signal
+import subprocess
+import sys
 import threading
+import time
 import weakref
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import pytest
 from textual.geometry import Region
 
+from calibrate import acceptance
 from calibrate.commission_events import (
     ArmSafeStopped,
     BenchSnapshot,
@@ -32,6 +38,7 @@ from calibrate.commission_events import (
     Verdict,
 )
 from calibrate.commissioning import CommissionConfig, CommissionResult
+from calibrate.run_directory import FLOW_LOG
 from calibrate.sensor_registry import SensorRegistry
 from calibrate.tui.halfblock import UPPER_HALF
 from calibrate.tui.app import IDLE_HINT, RUN_HINT, BenchApp
@@ -159,6 +166,56 @@ def in_tmp(tmp_path, monkeypatch):
     return tmp_path
 
 
+@pytest.fixture
+def time_zone():
+    """``time_zone(tz)`` makes ``tz`` (a POSIX TZ string, e.g. ``UTC0``) the local time zone until the test's end."""
+    before = os.environ.get("TZ")
+
+    def set_zone(tz: str) -> None:
+        os.environ["TZ"] = tz
+        time.tzset()
+
+    yield set_zone
+    if before is None:
+        os.environ.pop("TZ", None)
+    else:
+        os.environ["TZ"] = before
+    time.tzset()
+
+
+def rendered_lines(widget) -> list[str]:
+    """The text of each line ``widget`` draws (border included)."""
+    strips = widget.render_lines(Region(0, 0, *widget.outer_size))
+    return ["".join(segment.text for segment in strip) for strip in strips]
+
+
+def flood_until_stopped(config, on_event, stop_event):
+    """A flow for the child process: writes its pid to ``run_dir/flow.pid``, sends a camera-sized bench
+    snapshot every 50 ms until the stop (each fills a pipe that nobody reads), then closes its "session
+    file" (writes ``run_dir/closed``) and returns."""
+    run_dir = Path(config.run_dir)
+    (run_dir / "flow.pid").write_text(str(os.getpid()))
+    ir, depth = bench_images()
+    snapshot = BenchSnapshot(True, [0.45, 0.0, 0.07, 3.1416, 0.0, 0.0], [0.0] * 6, 1065.5, ir, depth)
+    while not stop_event.wait(0.05):
+        on_event(snapshot)
+    (run_dir / "closed").write_text("closed after the stop\n")
+    return "stopped"
+
+
+def deaf_to_its_stop(config, on_event, stop_event):
+    """A flow for the child process that writes its pid to ``run_dir/flow.pid`` and ignores its stop
+    for 30 s (a device call that hangs)."""
+    Path(config.run_dir).mkdir(parents=True, exist_ok=True)
+    (Path(config.run_dir) / "flow.pid").write_text(str(os.getpid()))
+    time.sleep(30.0)
+
+
+def raise_in_the_flow(config, on_event, stop_event):
+    """A flow for the child process that fails with an exception of its own."""
+    raise ValueError("boom in the flow")
+
+
 async def wait_for(predicate, pilot, timeout=10.0):
     """Let the app run until ``predicate()`` holds."""
     loop = asyncio.get_running_loop()
@@ -200,18 +257,21 @@ def test_confirmation_guards_the_start(in_tmp):
     asyncio.run(scenario())
 
 
-def test_banner_keeps_its_line_when_a_run_starts(in_tmp):
-    """The idle hint gives way to the run's stop hint in place: nothing below it moves."""
+@pytest.mark.parametrize("size", [(80, 24), (100, 30), SIZE])
+def test_banner_keeps_its_line_when_a_run_starts(in_tmp, size):
+    """The idle hint gives way to the run's stop hint in place, each on one line: nothing below it
+    moves (was: at 100 x 30, the documented minimum, the idle hint took two lines and the run hint one)."""
     async def scenario():
         flow = ScriptedFlow([])
         app = BenchApp(make_config(), flow=flow)
-        async with app.run_test(size=SIZE) as pilot:
+        async with app.run_test(size=size) as pilot:
             await pilot.pause()
             assert app.banner.level == "hint" and str(app.banner.content) == IDLE_HINT
+            assert app.banner.size.height == 1
             main_before = app.query_one("#main").region
             await start_and_wait(pilot, flow)
             assert app.running and app.banner.display and str(app.banner.content) == RUN_HINT
-            assert app.query_one("#main").region == main_before
+            assert app.banner.size.height == 1 and app.query_one("#main").region == main_before
             flow.release.set()
             await wait_for(lambda: not app.running and app.result is not None, pilot)
 
@@ -426,6 +486,7 @@ def test_a_bench_reading_too_wide_for_its_panel_is_cut_not_wrapped(in_tmp):
 
     shown = asyncio.run(scenario())
     assert any("force  |F| 1234.50 N  Fz -1234.…" in line for line in shown), shown
+    assert any("r [+3.14 +0.00 +0.00] rad" in line for line in shown), shown  # was: no unit
     assert shown[-2].startswith("│ camera 224x172"), shown
 
 
@@ -480,22 +541,18 @@ def test_a_narrow_terminal_keeps_one_line_per_step_and_every_pass_fail_whole(in_
     acceptance table gives way in the check names and thresholds, not in PASS/FAIL ("PA…")."""
     passed = sum(1 for check in CHECKS if check["passed"])
 
-    def lines(widget):
-        strips = widget.render_lines(Region(0, 0, *widget.outer_size))
-        return ["".join(segment.text for segment in strip) for strip in strips]
-
     async def scenario(size):
         flow = ScriptedFlow(mid_run_events(), result=lambda config, stopped: CommissionResult(
             accepted=False, checks=CHECKS, run_dir=config.run_dir, report_path=Path("run/report.html")))
         app = BenchApp(make_config(), flow=flow, clock=FixedClock())
         async with app.run_test(size=size) as pilot:
             await start_and_wait(pilot, flow)
-            steps = "\n".join(lines(app.steps))
+            steps = "\n".join(rendered_lines(app.steps))
             flow.release.set()
             await wait_for(lambda: not app.running, pilot)
             await pilot.press("3")
             await pilot.pause()
-            words = " ".join(lines(app.acceptance.table)).split()
+            words = " ".join(rendered_lines(app.acceptance.table)).split()
         return steps, words.count("PASS"), words.count("FAIL")
 
     for size in ((80, 24), (100, 30)):
@@ -611,9 +668,8 @@ def test_snapshot_fault_banner(snap_compare, in_tmp):
     assert snap_compare(app, terminal_size=SIZE, run_before=run_before)
 
 
-def test_snapshot_registry(snap_compare, in_tmp):
-    from datetime import datetime, timezone
-
+def test_snapshot_registry(snap_compare, in_tmp, time_zone):
+    time_zone("UTC0")  # the times are shown in local time
     registry = SensorRegistry(Path("registry"))
     intrinsics = {"fx": 160.0, "fy": 160.0, "cx": 111.5, "cy": 85.5, "width": 224, "height": 172}
     for serial, accepted, a1 in (("SB-0041", True, 0.941), ("SB-0042", False, 0.612)):
@@ -949,3 +1005,204 @@ def test_a_long_serial_is_cut_and_leaves_the_other_registry_columns_in_view(in_t
     max_scroll_x, serials = asyncio.run(scenario())
     assert max_scroll_x == 0
     assert "SB-0042" in serials and any(s.startswith("SB-777") and s.endswith("…") and len(s) == 16 for s in serials)
+
+
+# ---------------------------------------------------------------- audit fixes
+
+#: The UI side of ``bubble tui`` in a process of its own: ``ProcessFlowRunner`` runs ``flood_until_stopped``
+#: (argv: run folder, this tests folder) and reads its events until it is killed.
+UI_PROCESS = """
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+sys.path.insert(0, sys.argv[2])
+from calibrate.tui.flow_runner import ProcessFlowRunner
+from test_tui_app import flood_until_stopped
+ProcessFlowRunner(flood_until_stopped, 0, 0).run(SimpleNamespace(run_dir=Path(sys.argv[1])), lambda event: None)
+"""
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (not ended, nor a zombie left for its new parent to reap)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_the_flow_process_ends_when_the_ui_process_is_killed(tmp_path):
+    """The UI process killed (kill -9, a crash): the orphaned child stops the flow, which closes its
+    files, and exits within a few seconds (was: it stayed for ever, its exit waiting for the queue's
+    feeder thread, blocked on a pipe nobody read; deaf to SIGTERM)."""
+    run_dir = tmp_path / "run"
+    ui = subprocess.Popen([sys.executable, "-c", UI_PROCESS, str(run_dir), str(Path(__file__).parent)])
+    pid_file = run_dir / "flow.pid"
+    flow_pid = None
+    try:
+        deadline = time.monotonic() + 60
+        while not (pid_file.is_file() and pid_file.read_text()):
+            assert time.monotonic() < deadline and ui.poll() is None, "the flow did not start"
+            time.sleep(0.05)
+        flow_pid = int(pid_file.read_text())
+        time.sleep(0.3)  # snapshots on their way
+        ui.send_signal(signal.SIGKILL)
+        ui.wait()
+        deadline = time.monotonic() + 5.0
+        while process_alive(flow_pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not process_alive(flow_pid), "the flow's process outlived its UI"
+    finally:
+        if ui.poll() is None:
+            ui.kill()
+            ui.wait()
+        if flow_pid is not None and process_alive(flow_pid):
+            os.kill(flow_pid, signal.SIGKILL)
+    assert (run_dir / "closed").is_file()  # the flow saw the stop and closed its files
+    assert "the UI process is gone: stopping the flow" in (run_dir / FLOW_LOG).read_text()
+
+
+def test_an_internal_error_of_the_flow_process_names_its_class_once_and_its_log(in_tmp, monkeypatch):
+    """Was: "Internal error: RuntimeError: ValueError: boom in the flow", and no word of flow.log."""
+    monkeypatch.setattr("calibrate.commissioning.run_commissioning", raise_in_the_flow)  # in the child process
+
+    async def scenario():
+        app = BenchApp(make_config(), bench_nice=0, compute_nice=0)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("c", "y")
+            await wait_for(lambda: app.error is not None, pilot, timeout=60)
+            return str(app.banner.content)
+
+    assert asyncio.run(scenario()) == "Internal error: ValueError: boom in the flow; see run/flow.log"
+    assert "ValueError: boom in the flow" in Path("run", FLOW_LOG).read_text()  # with its traceback
+
+
+def test_giving_up_on_a_flow_process_that_ignores_its_stop_leaves_it(in_tmp, monkeypatch):
+    """Quitting gave up on the flow after QUIT_WAIT_S: the app's end no longer waits for the flow
+    process (was: "left it to stop by itself" said, then the worker thread, and with it the app's
+    asyncio loop and the process, waited for the flow to end, however long that took)."""
+    import calibrate.tui.app as tui_app
+
+    monkeypatch.setattr(tui_app, "QUIT_WAIT_S", 0.3)
+    monkeypatch.setattr("calibrate.commissioning.run_commissioning", deaf_to_its_stop)  # in the child process
+    pid_file = Path("run", "flow.pid")
+
+    async def scenario():
+        app = BenchApp(make_config(), bench_nice=0, compute_nice=0)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("c", "y")
+            await wait_for(pid_file.is_file, pilot, timeout=60)
+            await pilot.press("q")
+            await wait_for(lambda: not app.is_running, pilot, timeout=5)
+        return app
+
+    started = time.monotonic()
+    try:
+        app = asyncio.run(scenario())  # asyncio.run waits for the worker thread
+        assert time.monotonic() - started < 25.0, "the app's end waited for the flow"
+        assert app.return_code == 1 and app.left_flow_running
+        assert process_alive(int(pid_file.read_text()))  # left to stop by itself (bubble tui exits without it)
+    finally:
+        if pid_file.is_file() and process_alive(int(pid_file.read_text())):
+            os.kill(int(pid_file.read_text()), signal.SIGKILL)
+
+
+def test_acceptance_values_are_not_rounded_onto_their_limit(in_tmp):
+    """Was: a failed a1 of 0.94996 shown as 0.95 beside ">= 0.95" (and 1110.4 hPa as 1110 beside
+    "in [1030, 1110]"); and a unit "ratio", which the reasons leave out, written after the value."""
+    thresholds = acceptance.load_thresholds(None)
+    checks = [acceptance.evaluate(thresholds, "heldout_a1", 0.94996),
+              acceptance.evaluate(thresholds, "inflation_pressure_hpa", 1110.4),
+              {"name": "contrast_ratio", "value": 0.5, "threshold": 0.3, "op": ">=", "unit": "ratio", "passed": True}]
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]))
+        async with app.run_test(size=SIZE) as pilot:
+            app.acceptance.show(False, checks, "run/report.html")
+            await pilot.press("3")
+            await pilot.pause()
+            return [line.split() for line in rendered_lines(app.acceptance.table)]
+
+    rows = {words[0]: words[1:] for words in asyncio.run(scenario()) if words}
+    assert rows["heldout_a1"][:3] == ["0.94996", ">=", "0.95"], rows
+    assert rows["inflation_pressure_hpa"][:2] == ["1110.4", "hPa"], rows
+    assert rows["contrast_ratio"] == ["0.5", ">=", "0.3", "PASS"], rows
+
+
+def test_the_tui_refuses_a_run_folder_another_run_is_writing_before_it_starts(in_tmp, capsys):
+    """Was: refused by the flow only once the operator had confirmed the start. The check holds the
+    folder's lock for an instant only, and writes nothing in it (no flow.log)."""
+    from calibrate.cli import main
+    from collect.output_files import output_folder_lock
+
+    run = Path("run")
+    run.mkdir()
+    args = ["tui", "--sim", "--out", "run", "--registry", "registry"]
+    with output_folder_lock(run):  # another run writes it (a lock is per open file: this one is another's)
+        assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "run is being written by another bubble commission (or bubble tui)" in err, err
+    assert main(args) == 2  # a free folder: checked, then refused for pytest's stdin (no terminal)
+    assert "needs an interactive terminal" in capsys.readouterr().err
+    with output_folder_lock(run, "a test"):  # not left held by the check
+        pass
+    assert list(run.iterdir()) == []
+
+
+def test_the_eta_of_a_resumed_step_counts_only_the_progress_made_in_this_run(in_tmp):
+    """A resumed collection starts at the share the earlier run recorded (14 of 16 poses here): the ETA
+    comes from the progress made since the step's first report (was: 14/16 done in this run's first
+    seconds, "ETA 0:01" for two poses of ~9 s each)."""
+    clock = FixedClock()
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]), clock=clock)
+        async with app.run_test(size=SIZE):
+            def eta_after(seconds: float, *events) -> str:
+                app.apply_events(list(events))
+                clock.now += seconds
+                return app.steps.row(Step.COLLECT).time_text(clock.now)
+
+            resumed = [eta_after(4.0, StepStarted(Step.COLLECT, 160.0), StepProgress(Step.COLLECT, 14 / 16)),
+                       eta_after(0.0, StepProgress(Step.COLLECT, 14 / 16)),
+                       eta_after(5.0), eta_after(0.0, StepProgress(Step.COLLECT, 15 / 16))]
+            fresh = [eta_after(10.0, StepStarted(Step.COLLECT, 160.0), StepProgress(Step.COLLECT, 0.0)),
+                     eta_after(0.0, StepProgress(Step.COLLECT, 0.25))]
+        return resumed, fresh
+
+    resumed, fresh = asyncio.run(scenario())
+    # the announced 160 s for the 2/16 left, then 9 s per pose
+    assert resumed == ["ETA 0:16", "ETA 0:16", "ETA 0:11", "ETA 0:09"]
+    assert fresh == ["ETA 2:30", "ETA 0:30"]  # a step from the start: as before
+
+
+def test_the_registry_shows_the_last_run_in_local_time(in_tmp, time_zone):
+    """As the run folders are named (was: the stored UTC time, its offset cut off)."""
+    time_zone("CEST-2")  # UTC+2
+    SensorRegistry(Path("registry")).register(
+        "SB-0042", accepted=True, run_dir=Path("run"), intrinsics={"width": 4, "height": 3}, camera_in_tcp=None,
+        simulated=True, acceptance={"accepted": True, "a1": 0.9}, when=datetime(2025, 5, 1, 9, 30, tzinfo=timezone.utc))
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]))
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("4")
+            return str(app.registry.table.get_cell_at((0, 2)))
+
+    assert asyncio.run(scenario()) == "2025-05-01 11:30"
+
+
+def test_the_sensor_captions_give_their_units_and_name_a_frame_without_depth(in_tmp):
+    """Was: "IR 0-42000" with no unit, and "depth 0.0-0.0 mm" for a frame with no valid depth pixel."""
+    ir, depth = bench_images()
+
+    async def scenario():
+        app = BenchApp(make_config(), flow=ScriptedFlow([]))
+        async with app.run_test(size=SIZE) as pilot:
+            view = app.live_sensor
+            view.show(ir, np.zeros_like(depth))
+            await pilot.pause()
+            return str(view.ir_caption.content), str(view.depth_caption.content)
+
+    ir_caption, depth_caption = asyncio.run(scenario())
+    assert ir_caption.startswith("IR ") and ir_caption.endswith(" counts"), ir_caption
+    assert depth_caption == "depth: no valid pixels"

@@ -122,3 +122,29 @@ def test_the_child_stops_the_flow_when_the_ui_process_is_gone():
     stop = threading.Event()
     _stop_when_orphaned(stop, parent_pid=os.getppid() + 1)  # not our parent: the UI is gone
     assert stop.is_set()
+
+
+def flood_then_stop(config, on_event, stop_event):
+    """Sends events (about 1 MB, more than a pipe holds) before and after the stop, then returns."""
+    chunk = "x" * 4096
+    for _ in range(256):
+        on_event(chunk)
+    stop_event.wait(30.0)
+    for _ in range(256):  # its safe stop's reports
+        on_event(chunk)
+    return "stopped"
+
+
+def test_a_ui_side_that_fails_waits_for_the_flows_stop_without_hanging(config):
+    """The UI's event handler raises: the flow is stopped and the failure raised once the child has
+    ended (was: the child's last messages filled the pipe nobody read, and the UI waited for it for ever)."""
+    def failing_ui(event):
+        raise RuntimeError("the UI failed")
+
+    runner = ProcessFlowRunner(flood_then_stop)
+    done = []
+    thread = threading.Thread(target=lambda: done.append(pytest.raises(RuntimeError, runner.run, config, failing_ui)),
+                              daemon=True)
+    thread.start()
+    thread.join(60.0)
+    assert done and "the UI failed" in str(done[0].value), "the UI side hung on its stopped flow"

@@ -44,8 +44,8 @@ from calibrate.commission_events import (
     Verdict,
 )
 from calibrate.run_directory import FLOW_LOG
-from calibrate.tui.flow_runner import (BENCH_NICE, COMPUTE_NICE, Flow, FlowRunner, ProcessFlowRunner, ThreadFlowRunner,
-                                       start_resource_tracker)
+from calibrate.tui.flow_runner import (BENCH_NICE, COMPUTE_NICE, Flow, FlowError, FlowRunner, ProcessFlowRunner,
+                                       ThreadFlowRunner, start_resource_tracker)
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, FrameGapCollector
 from calibrate.tui.inbox import EventInbox
 from calibrate.tui.widgets.acceptance_table import AcceptanceTable
@@ -62,9 +62,11 @@ from hw_mocks.objects import object_name
 
 #: The banner's line when idle, and during a run until a stop, a fault or the outcome replaces it. It never
 #: hides once shown: hiding it would shift the whole screen up a line and re-lay every panel out in
-#: the frame that answers the start (docs/tui.md "Responsiveness").
-IDLE_HINT = "Press c to commission (the arm moves only after you confirm). s or space stops the arm at any time."
-RUN_HINT = "Commissioning... s or space stops the arm and retracts it; recorded data is kept."
+#: the frame that answers the start (docs/tui.md "Responsiveness"). Both fit one line of an 80-column terminal
+#: (78 cells inside the banner's padding; was: the idle hint took two lines below 101 columns, the run hint one,
+#: so the start still moved the screen at the documented minimum of 100 x 30).
+IDLE_HINT = "Press c to commission (asks before the arm moves). s or space stops the arm."
+RUN_HINT = "Commissioning... s or space stops and retracts the arm; recorded data is kept."
 
 #: The smallest terminal (columns, rows) in which every panel shows whole (docs/tui.md); below it the
 #: app says so once per shrink. The stop keys work at any size.
@@ -157,6 +159,9 @@ class BenchApp(App):
         self._quit_requested = False
         self._stop_requested = False  # this run was asked to stop: its flow's Verdict is no verdict
         self._gave_up = False  # quitting gave up on the flow after QUIT_WAIT_S
+        #: Quitting gave up on a flow in a child process that still runs (``FlowRunner.abandon``): whoever
+        #: ran the app ends this process without joining it (multiprocessing joins children at exit).
+        self.left_flow_running = False
         self._arm_state = "idle"
         self._bench_open = False  # the flow holds the bench (from the start until collection ends)
         self._connected = False
@@ -364,6 +369,7 @@ class BenchApp(App):
         """Quitting waited ``QUIT_WAIT_S`` for a flow that did not end: leave without it."""
         if self.running:
             self._gave_up = True
+            self.left_flow_running = self._runner.abandon()  # the worker returns: the app's exit waits for it
             self.exit(return_code=1, message=f"bubble tui: the run did not end within {QUIT_WAIT_S:g} s of quitting; "
                                              f"left it to stop by itself (see {Path(self.config.run_dir) / FLOW_LOG})")
 
@@ -526,6 +532,8 @@ class BenchApp(App):
                 text = f"FAULT {err.kind}: {err}"
             elif isinstance(err, InputError):
                 text = f"Input error: {err}"
+            elif isinstance(err, FlowError):  # the flow's class and message, and its log: shown as they are
+                text = f"Internal error: {err}"
             else:
                 text = f"Internal error: {type(err).__name__}: {err}"
             # the flow safe-stopped the arm before it raised: what that did (not retracted: the pendant)

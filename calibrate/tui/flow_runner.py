@@ -12,8 +12,10 @@ sets the flow's ``stop_event``: the flow safe-stops the arm, retracts and closes
   everything else), and from the first compute step on (fine-tuning, the bench is closed by then)
   well below it (``COMPUTE_NICE``, inherited by torch's worker threads), so the UI process wins
   the CPU while training keeps every core busy. The child ignores SIGINT (the UI decides when to
-  stop), stops the arm by itself when the UI process dies, and writes its log (stdout, stderr, log
-  records) to ``RUN_DIR/flow.log`` instead of the terminal the UI draws on.
+  stop), stops the arm by itself when the UI process dies (and then exits without waiting for
+  anyone to read its last messages), and writes its log (stdout, stderr, log records) to
+  ``RUN_DIR/flow.log`` instead of the terminal the UI draws on. An exception of the flow other than
+  ``HardwareFault`` and ``InputError`` comes back as ``FlowError``, which names that log.
 * ``ThreadFlowRunner``: the flow runs in a thread of this process, with the same priority rule
   (per thread on Linux). For flows that cannot be sent to another process (test doubles, embedding).
 """
@@ -49,8 +51,12 @@ COMPUTE_NICE = 10
 COMPUTE_STEPS = (Step.FINETUNE, Step.VALIDATE, Step.POSE_CHECK, Step.VERDICT)
 #: How often the UI side checks that the child is still alive, and the child that the UI is, s.
 POLL_S = 0.25
-#: How long to wait for a child that sent its result to exit, before terminating it, s.
-EXIT_WAIT_S = 10.0
+
+
+class FlowError(RuntimeError):
+    """The flow in the child process failed otherwise than with a ``HardwareFault`` or an ``InputError``:
+    it raised another exception, or its process ended without a result. The text says which (the
+    exception's own class and message) and names ``RUN_DIR/flow.log``, which holds the traceback."""
 
 
 def _lower_thread_priority(increment: int) -> None:
@@ -110,6 +116,12 @@ class FlowRunner(ABC):
     def request_stop(self) -> None:
         """Ask the flow to stop (thread-safe; also before ``run`` starts it)."""
 
+    def abandon(self) -> bool:
+        """Stop waiting for a flow that was asked to stop and has not (quitting gave up on it): ``run``
+        raises ``FlowError`` at once and leaves the flow to end by itself. True where that is possible
+        (a flow in a child process); a flow in a thread of this process cannot be left: False."""
+        return False
+
 
 class ThreadFlowRunner(FlowRunner):
     """The flow in a dedicated thread of this process."""
@@ -147,11 +159,19 @@ class ProcessFlowRunner(FlowRunner):
         start_resource_tracker()
         self._context = multiprocessing.get_context("spawn")
         self._stop_event = self._context.Event()
+        self._abandoned = threading.Event()
 
     def request_stop(self) -> None:
         self._stop_event.set()
 
+    def abandon(self) -> bool:
+        """The child goes on alone: it has its stop, and stops by itself once this process is gone
+        (was: ``run``, and with it the UI's exit, waited for it however long it took)."""
+        self._abandoned.set()
+        return True
+
     def run(self, config, on_event: OnEvent):
+        log = Path(config.run_dir) / FLOW_LOG
         messages = self._context.Queue()
         child = self._context.Process(
             target=_child_main,
@@ -164,27 +184,30 @@ class ProcessFlowRunner(FlowRunner):
                 try:
                     kind, payload = messages.get(timeout=POLL_S)
                 except queue.Empty:
+                    if self._abandoned.is_set():
+                        raise FlowError(f"left the commissioning process to stop by itself; see {log}") from None
                     if child.is_alive():
                         continue
                     try:  # it may have sent its last message just before exiting
                         kind, payload = messages.get(timeout=1.0)
                     except queue.Empty:
-                        raise RuntimeError(
-                            f"the commissioning process ended without a result (exit code {child.exitcode}); "
-                            f"see {Path(config.run_dir) / FLOW_LOG}"
-                        ) from None
+                        raise FlowError(f"the commissioning process ended without a result (exit code "
+                                        f"{child.exitcode}); see {log}") from None
                 if kind == "event":
                     on_event(payload)
                 elif kind == "result":
                     return payload
                 else:
-                    raise _error_from_record(*payload)
+                    raise _error_from_record(*payload, log)
         finally:
             if child.is_alive():
                 self._stop_event.set()  # the UI side failed: the flow must not go on unattended
-            child.join(EXIT_WAIT_S)
-            if child.is_alive():
-                child.terminate()
+            while child.is_alive() and not self._abandoned.is_set():  # its safe stop's messages read and dropped:
+                try:  # a full pipe would hold it for ever (was: a join, then SIGTERM, which it ignores, and a join)
+                    messages.get(timeout=POLL_S)
+                except queue.Empty:
+                    pass
+            if not self._abandoned.is_set():
                 child.join()
             messages.close()
 
@@ -261,13 +284,29 @@ def _error_record(err: BaseException) -> tuple[str, str, str]:
     return type(err).__name__, "", str(err)
 
 
-def _error_from_record(name: str, kind: str, message: str) -> BaseException:
-    """The exception the UI shows for a record of ``_error_record``."""
+def _error_from_record(name: str, kind: str, message: str, log: Path) -> BaseException:
+    """The exception the UI shows for a record of ``_error_record``; ``log``: the child's ``flow.log``."""
     if name == "HardwareFault":
         return HardwareFault(kind, message)
     if name == "InputError":
         return InputError(message)
-    return RuntimeError(f"{name}: {message}")
+    # the flow's class once, and where its traceback is (was: RuntimeError("ValueError: ..."), shown as
+    # "Internal error: RuntimeError: ValueError: ..." with no word of the log)
+    return FlowError(f"{name}: {message}; see {log}")
+
+
+def _send_last(messages, message: tuple, parent_pid: int) -> None:
+    """Put the flow's last ``message`` on ``messages`` and wait until the queue's feeder thread has
+    written everything to the pipe, or until the UI process (``parent_pid``) is gone, checked every
+    ``POLL_S`` s: nobody reads the pipe then, and a feeder blocked on a full pipe never ends. (Was: the
+    exit waited for the feeder without a limit, so a child whose UI process had died (killed, crashed)
+    stayed for ever after saving its data, deaf to SIGTERM, until kill -9.)"""
+    messages.put(message)
+    messages.close()
+    flushing = threading.Thread(target=messages.join_thread, name="queue-flush", daemon=True)
+    flushing.start()
+    while flushing.is_alive() and os.getppid() == parent_pid:
+        flushing.join(POLL_S)
 
 
 def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compute_nice: int, parent_pid: int) -> None:
@@ -284,9 +323,8 @@ def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compu
     forward = _yield_on_compute(lambda event: messages.put(("event", event)), 0, compute_nice - bench_nice,
                                 threading.get_ident())
     try:
-        result = flow(config, on_event=forward, stop_event=stop_event)
+        last = ("result", flow(config, on_event=forward, stop_event=stop_event))
     except BaseException as err:
         logging.getLogger(__name__).exception("the commissioning flow raised")
-        messages.put(("error", _error_record(err)))
-    else:
-        messages.put(("result", result))
+        last = ("error", _error_record(err))
+    _send_last(messages, last, parent_pid)

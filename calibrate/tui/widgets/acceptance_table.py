@@ -9,11 +9,12 @@ from rich.text import Text
 from textual.containers import Vertical, VerticalScroll
 from textual.widgets import Static
 
+from calibrate.acceptance import SILENT_UNITS, check_value_text
 from calibrate.tui.widgets.formatting import number
 
 
 def _with_unit(text: str, unit: str | None) -> str:
-    return f"{text} {unit}" if unit and unit != "fraction" and text != "-" else text
+    return f"{text} {unit}" if unit and unit not in SILENT_UNITS and text != "-" else text  # was: "ratio" written
 
 
 def threshold_text(check: dict) -> str:
@@ -26,8 +27,10 @@ def threshold_text(check: dict) -> str:
 
 
 def value_text(check: dict) -> str:
-    """The measured value with its unit, ``-`` when it was not measured."""
-    return _with_unit(number(check.get("value")), check.get("unit"))
+    """The measured value with its unit, ``-`` when it was not measured: 4 significant digits, more where
+    those would round it onto its limit (``acceptance.check_value_text``, as the report; was: a failed a1
+    of 0.94996 shown as ``0.95`` beside ``>= 0.95``)."""
+    return _with_unit(check_value_text(check), check.get("unit"))
 
 
 class AcceptanceTable(Vertical):

@@ -68,11 +68,12 @@ class BenchPanel(Static):
 
     @classmethod
     def _reading_rows(cls, snap: BenchSnapshot) -> list[tuple[str, Text | str]]:
-        """The snapshot's rows: TCP pose, force, torque, bubble pressure, camera."""
+        """The snapshot's rows: TCP pose (mm; rotation vector in rad, to 0.01 rad so that the unit fits
+        the panel; was: to 0.001 with no unit), force and torque (base frame), bubble pressure, camera."""
         x, y, z, rx, ry, rz = (float(v) for v in snap.tcp_pose)
         rows: list[tuple[str, Text | str]] = [
             ("TCP", f"x {x * 1e3:8.1f} mm"), ("", f"y {y * 1e3:8.1f} mm"), ("", f"z {z * 1e3:8.1f} mm"),
-            ("", f"r [{rx:+.3f} {ry:+.3f} {rz:+.3f}]")]
+            ("", f"r [{rx:+.2f} {ry:+.2f} {rz:+.2f}] rad")]
         fx, fy, fz, tx, ty, tz = (float(v) for v in snap.wrench)
         force = math.sqrt(fx * fx + fy * fy + fz * fz)
         rows += [("force", f"|F| {force:6.2f} N  Fz {fz:+6.2f}"), ("torque", f"{tx:+.3f} {ty:+.3f} {tz:+.3f} Nm")]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime
 from pathlib import Path
 
 from rich.text import Text
@@ -24,10 +25,15 @@ def _short_serial(serial: str) -> str:
 
 
 def _short_time(iso: str | None) -> str:
-    """``YYYY-MM-DD HH:MM`` of an ISO-8601 time stamp (as stored), ``-`` when missing."""
+    """``YYYY-MM-DD HH:MM`` of an ISO-8601 time stamp in local time, as the run folders are named (was:
+    the stored UTC time with its offset cut off, unmarked); ``-`` when missing, a text that is no time
+    stamp cut to 16 characters."""
     if not iso:
         return "-"
-    return str(iso)[:16].replace("T", " ")
+    try:
+        return datetime.fromisoformat(str(iso)).astimezone().strftime("%Y-%m-%d %H:%M")
+    except ValueError:
+        return str(iso)[:16]
 
 
 class RegistryView(Vertical):

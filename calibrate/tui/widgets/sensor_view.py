@@ -123,7 +123,7 @@ class SensorView(Vertical):
         return f"[#db3907]near[/] → [#3e7df5]far[/]  [on #460046]  [/] no data{no_data}"
 
     def show(self, ir: np.ndarray | None, depth_m: np.ndarray | None) -> None:
-        """Draw new images: ``ir`` (H,W) uint16 amplitude, ``depth_m`` (H,W) float32 m, 0 = invalid.
+        """Draw new images: ``ir`` (H,W) uint16 amplitude (counts), ``depth_m`` (H,W) float32 m, 0 = invalid.
 
         None, or the very array drawn last (showing the sensor tab again with no new snapshot), leaves
         that image as it is.
@@ -132,11 +132,13 @@ class SensorView(Vertical):
             self._shown_ir = ir
             scaled = scale_image(np.asarray(ir, dtype=np.float32))
             self.ir_image.set_image(scaled)
-            self.ir_caption.update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f}", layout=False)
+            self.ir_caption.update(f"IR {scaled.lo:.0f}-{scaled.hi:.0f} counts", layout=False)
         if depth_m is not None and depth_m is not self._shown_depth:
             self._shown_depth = depth_m
             depth = np.asarray(depth_m, dtype=np.float32)
             scaled = scale_image(depth, valid=depth > 0)
             self.depth_image.set_image(scaled)
-            self.depth_caption.update(f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm", layout=False)
+            # was: "depth 0.0-0.0 mm" for a frame with no valid pixel
+            self.depth_caption.update("depth: no valid pixels" if scaled.invalid_fraction == 1.0 else
+                                      f"depth {scaled.lo * 1e3:.1f}-{scaled.hi * 1e3:.1f} mm", layout=False)
             self.legend.update(self._legend_text(f" {scaled.invalid_fraction * 100:.0f} %"), layout=False)

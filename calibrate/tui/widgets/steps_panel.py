@@ -38,7 +38,8 @@ _LOOK = {
     "skipped": ("–", "dim", "grey35"),
 }
 
-#: Below this fraction the ETA comes from the step's announced duration, not from its progress.
+#: Below this progress since the step's first report the ETA comes from the step's announced duration, not
+#: from its rate of progress.
 _MIN_FRACTION_FOR_RATE = 0.05
 #: Bar width range, cells: the bar gives way to the summary column in narrow terminals.
 BAR_WIDTH = (10, 24)
@@ -61,15 +62,24 @@ class StepState:
     eta_s: float | None = None
     fraction: float = 0.0
     summary: str = ""
+    #: The step's first progress report: its fraction (the share an earlier, interrupted run had done,
+    #: for a resumed step) and when it came (s of the app's clock).
+    first_fraction: float = 0.0
+    first_report_at: float | None = None
 
     def time_text(self, now: float) -> str:
-        """ETA while running, duration when done, blank otherwise."""
+        """ETA while running, duration when done, blank otherwise.
+
+        The ETA is the time left at the rate of the progress made since the step's first report, or
+        before enough progress the announced duration, scaled to the share left at that report (was:
+        the fraction done over this run's time, so that a resumed collection counted the poses of the
+        earlier run as done in seconds: ETA 0:01 for two poses of ~9 s each)."""
         if self.status == "running" and self.started_at is not None:
-            elapsed = now - self.started_at
-            if self.fraction >= _MIN_FRACTION_FOR_RATE:
-                remaining = elapsed * (1.0 - self.fraction) / self.fraction
+            gained = self.fraction - self.first_fraction
+            if gained >= _MIN_FRACTION_FOR_RATE:
+                remaining = (now - self.first_report_at) * (1.0 - self.fraction) / gained
             elif self.eta_s is not None:
-                remaining = max(self.eta_s - elapsed, 0.0)
+                remaining = max(self.eta_s * (1.0 - self.first_fraction) - (now - self.started_at), 0.0)
             else:
                 remaining = None
             return f"ETA {duration(remaining)}"
@@ -101,6 +111,8 @@ class StepsPanel(Static):
         elif isinstance(event, StepProgress):
             row = self.row(event.step)
             row.fraction = max(row.fraction, min(max(float(event.fraction), 0.0), 1.0))  # never backwards
+            if row.first_report_at is None:
+                row.first_fraction, row.first_report_at = row.fraction, now
             if event.message:
                 row.summary = event.message
         elif isinstance(event, StepFinished):
