@@ -6,9 +6,10 @@ the packaged values. Each evaluated check is a plain dict (the ``acceptance.json
 ``Verdict.checks`` entry)::
 
     {"name": str, "value": float | None, "threshold": float | [lo, hi], "op": ">=" | "<=" | "in",
-     "unit": str, "passed": bool, "verdict": "pass" | "fail", "gate": bool, "reason": str}
+     "unit": str, "passed": bool, "verdict": "pass" | "fail" | "not run", "gate": bool, "reason": str}
 
-``gate``: when a gate check fails, the steps after its own are not run (the run is rejected).
+``gate``: when a gate check fails, the steps after its own are not run (the run is rejected); the
+``acceptance.json`` of a run that ended early lists their checks as ``not run`` (``not_run``).
 """
 
 from __future__ import annotations
@@ -249,6 +250,15 @@ def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str =
         "gate": th.gate,
         "reason": reason,
     }
+
+
+def not_run(thresholds: Thresholds, name: str) -> dict:
+    """The check ``name`` of a run that ended before its step: no value, not passed, verdict "not run"
+    (was: left out of ``acceptance.json``, which then held the checks of the steps that ran alone)."""
+    th = thresholds[name]
+    op, limit = th.limit()
+    return {"name": name, "value": None, "threshold": limit, "op": op, "unit": th.unit, "passed": False,
+            "verdict": "not run", "gate": th.gate, "reason": f"{th.describe}: not run, the run ended before it"}
 
 
 def failed(checks: list[dict]) -> list[dict]:

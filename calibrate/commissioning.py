@@ -556,7 +556,7 @@ class _Flow:
             "fault": fault,
             "stopped": stopped,
             "thresholds": {"version": self.thresholds.version, "source": self.thresholds.source},
-            "checks": self.state.checks(),
+            "checks": self._all_checks(),
             **dict.fromkeys(METRIC_KEYS),  # null when the run ended before validation
             **validate.get("metrics", {}),
             "per_object": validate.get("per_object"),
@@ -570,6 +570,14 @@ class _Flow:
         write_json(self.run_dir / ACCEPTANCE_FILE, doc)
         write_run_report(self.run_dir, self.state, doc)
         return doc
+
+    def _all_checks(self) -> list[dict]:
+        """Every check of the thresholds: those the run's steps made, in step order, then those of the
+        steps it never reached, as ``not run``."""
+        checks = self.state.checks()
+        made = {c["name"] for c in checks}
+        return checks + [acceptance.not_run(self.thresholds, name) for name in self.thresholds.checks
+                         if name not in made]
 
     def finish(self, fault: str | None = None, stopped: bool = False) -> CommissionResult:
         """acceptance.json, report.html, (unless stopped) the registry entry and (a verdict reached:

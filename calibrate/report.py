@@ -108,7 +108,7 @@ def _checks_table(checks: list[dict]) -> str:
         thr = c["threshold"]
         thr_s = f"{thr[0]:g} &ndash; {thr[1]:g}" if isinstance(thr, (list, tuple)) else html.escape(f"{c['op']} {thr:g}")
         val = "&ndash;" if c["value"] is None else check_value_text(c)
-        cls = "pass" if c["passed"] else "fail"
+        cls = "pass" if c["passed"] else ("fail" if c["verdict"] == "fail" else "skip")  # skip: not run
         rows += (
             f"<tr class='{cls}'><td>{html.escape(c['name'])}</td><td>{val}</td><td>{thr_s}</td>"
             f"<td>{html.escape(c.get('unit', ''))}</td><td class='v'>{c['verdict'].upper()}</td>"
@@ -288,6 +288,7 @@ h1{margin-bottom:4px} h2{border-bottom:1px solid #ccc;padding-bottom:2px;margin-
 .reason{font-size:15px;margin-top:6px}
 table{border-collapse:collapse;font-size:13px;margin:8px 0} td,th{border:1px solid #ccc;padding:3px 7px;text-align:left}
 tr.pass td.v{color:#2e7d32;font-weight:bold} tr.fail td.v{color:#c62828;font-weight:bold} tr.fail{background:#fdecea}
+tr.skip td{color:#777}
 table.metrics td{text-align:right} img{max-width:100%} .note{color:#777;font-style:italic}
 """
 

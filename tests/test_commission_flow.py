@@ -365,6 +365,13 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
     assert not doc["accepted"] and failing in [c["name"] for c in doc["checks"] if not c["passed"]]
     assert doc["a1"] is None and doc["abs_rel"] is None  # the metric keys are there, without a validation
     assert not (tmp_path / "run" / "session.h5").exists()  # a failed hardware check stops before collecting
+    # every check of the thresholds, those of the steps never reached as "not run" (was: left out)
+    from calibrate.acceptance import load_thresholds
+    assert [c["name"] for c in doc["checks"]][-2:] == ["pose_e_x_median_mm", "pose_e_theta_median"]
+    assert sorted(c["name"] for c in doc["checks"]) == sorted(load_thresholds(None).checks)
+    verdicts = {c["name"]: c["verdict"] for c in doc["checks"]}
+    assert verdicts[failing] == "fail" and verdicts["heldout_a1"] == "not run"
+    assert all(c["value"] is None and not c["passed"] for c in doc["checks"] if c["verdict"] == "not run")
     assert SensorRegistry(tmp_path / "registry").get(draw_sensor(11, defect).serial).status == "rejected"
 
 
