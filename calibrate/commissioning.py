@@ -54,7 +54,7 @@ from typing import Callable
 
 import numpy as np
 
-from calibrate import acceptance
+from calibrate import acceptance, commission_config
 from calibrate.commission_config import RUN_DIR_WRITERS, CommissionConfig, load_sensor_spec, validate_config
 from calibrate.commission_events import (
     STEPS,
@@ -88,7 +88,8 @@ from calibrate.run_directory import (
 from calibrate.run_report import write_run_report
 from calibrate.run_statistics import collection_stats, nocontact_maps, pick_examples, registry_reference
 from collect.atomic_files import remove_leftovers, save_npz
-from collect.errors import DISK_FULL_ERRNOS, RECORDER_FAULT, HardwareFault, InputError, StopRequested
+from collect.errors import (DISK_FULL_ERRNOS, HOST_FAULTS, HOST_TOO_SLOW_FAULT, RECORDER_FAULT, HardwareFault,
+                           InputError, StopRequested)
 from collect.json_files import plain_json, write_json
 from collect.loop_thread import LoopThread
 from collect.output_files import output_folder_lock
@@ -423,6 +424,11 @@ class _Flow:
         result = train_model(config, on_progress, self.stop_event)
         if result.stopped:
             raise StopRequested("commissioning: stopped by the operator")
+        if result.ended_at_deadline and result.train_s < commission_config.MIN_TRAINING_SHARE * deadline_s:
+            raise HardwareFault(HOST_TOO_SLOW_FAULT, f"the fine-tune trained {result.train_s:.0f} s of its "
+                                f"{deadline_s:.0f} s ({result.steps} steps; loading and validating took the rest): "
+                                "this computer is too slow or too busy for the budget; nothing judged, nothing "
+                                "registered; free it or raise --finetune-minutes, and run the same command again")
         cut = ""
         if result.ended_at_deadline:
             cut = (f" (cut short to fit the run's {self.config.total_minutes:g}-min budget)" if run_bound
@@ -572,9 +578,12 @@ class _Flow:
         return doc
 
     def _all_checks(self) -> list[dict]:
-        """Every check of the thresholds: those the run's steps made, in step order, then those of the
-        steps it never reached, as ``not run``."""
+        """The checks the run's steps made, in step order; a run that ended before its last step adds
+        every other check of the thresholds as ``not run`` (a run that reached its end lists what it
+        made: without the mug there is no pose check, and the run was not cut short)."""
         checks = self.state.checks()
+        if self._all_done():
+            return checks
         made = {c["name"] for c in checks}
         return checks + [acceptance.not_run(self.thresholds, name) for name in self.thresholds.checks
                          if name not in made]
@@ -666,7 +675,10 @@ class _Flow:
         etas = {Step.LEAK_TEST: (LEAK_SETTLE_S + self.config.leak_hold_s) / self._speed()}
         if self.state.done(Step.VERDICT):
             return self._finished_before()
-        pending_bench = [s for s in BENCH_STEPS if not self.state.done(s)]
+        # a gate failure skips the steps after it: they are not pending (was: a run stopped at its verdict
+        # after a failed leak test reopened the bench when run again, and refused a sensor taken off it)
+        gate_failed = any(_gate_failure(self.state.get(s)) for s in STEPS if self.state.done(s))
+        pending_bench = [] if gate_failed else [s for s in BENCH_STEPS if not self.state.done(s)]
         try:
             if pending_bench and self.state.done(Step.CONNECT):
                 self.open_bench()  # resuming a bench step: reconnect and re-identify
@@ -713,7 +725,7 @@ class _Flow:
         except HardwareFault as fault:
             self.emit(FaultRaised(fault.kind, str(fault)))
             self.close_bench(safe_stop=True)
-            if fault.kind == RECORDER_FAULT:  # the host's disk, not the sensor: no verdict (was: rejected, registered)
+            if fault.kind in HOST_FAULTS:  # the host's disk or CPU, not the sensor: no verdict (was: rejected, registered)
                 raise
             return self.finish(fault=f"{fault.kind}: {fault}")
         except StopRequested:

@@ -96,14 +96,22 @@ class RunState:
     @classmethod
     def open(cls, run_dir: Path, settings: dict) -> "RunState":
         """Load the state of ``run_dir`` (or start one); raises ``InputError`` when the directory
-        holds a run with other settings."""
+        holds a run with other settings. A run resumed with other budgets, faults or speed records
+        them as its ``settings``, those of the attempts before in ``earlier_settings`` (oldest first;
+        was: the first attempt's alone, which the report of the attempt that reached the verdict
+        showed as its own); a finished run keeps the settings of its verdict."""
         path = run_dir / STATE_FILE
         if not path.exists():
             cls._check_no_other_files(run_dir)
             state = cls(path, {"version": STATE_VERSION, "settings": settings, "created": utc_now(), "steps": {}})
             state.save()
             return state
-        return cls._read(run_dir, settings)
+        state = cls._read(run_dir, settings)
+        if not state.done(Step.VERDICT) and state.data["settings"] != settings:
+            state.data.setdefault("earlier_settings", []).append(state.data["settings"])
+            state.data["settings"] = settings
+            state.save()
+        return state
 
     @classmethod
     def check(cls, run_dir: Path, settings: dict) -> None:

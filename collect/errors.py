@@ -29,6 +29,11 @@ class InputError(Exception):
 #: Kind of the ``HardwareFault`` of the session recorder once it stopped writing (a full disk, the
 #: file deleted): the host's fault, not a device's (``collect.session_writer``).
 RECORDER_FAULT = "recorder"
+#: Kind of the ``HardwareFault`` of a commissioning whose fine-tune could hardly train in its time (a
+#: computer too slow or too busy for the budget): the host's too, judged neither way.
+HOST_TOO_SLOW_FAULT = "host-too-slow"
+#: The faults of this computer, not of the sensor or the bench: a commissioning ends without a verdict.
+HOST_FAULTS = (RECORDER_FAULT, HOST_TOO_SLOW_FAULT)
 #: ``OSError.errno`` of a write that found no room: the disk full, or the user's quota spent.
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 

@@ -38,7 +38,7 @@ from calibrate.commission_events import (
 )
 from calibrate.commissioning import run_commissioning
 from calibrate.sensor_registry import SensorRegistry
-from collect.errors import InputError
+from collect.errors import HardwareFault, InputError
 from collect.safety import SafetyViolation
 from collect.session_reader import Session
 from conftest import interrupt_once_recording
@@ -90,6 +90,7 @@ def faulted_then_resumed(tmp_path_factory):
     events: list = []
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(commission_config, "MIN_FINETUNE_STEP_S", 8.0)
+        mp.setattr(commission_config, "MIN_TRAINING_SHARE", 0.0)  # its loading takes most of 8 s: not a slow host
         result = run_commissioning(resumed_config, events.append)
     return {
         "config": resumed_config, "first": first, "first_events": first_events, "state_after_fault": state_after_fault,
@@ -125,6 +126,11 @@ def test_rerun_resumes_after_the_last_completed_step(faulted_then_resumed):
     result = faulted_then_resumed["result"]
     assert result.accepted and result.fault is None and not result.stopped, result.reason
     assert finished["pose_check"].skipped  # no mug in this calibration set
+    state = json.loads((faulted_then_resumed["config"].run_dir / "state.json").read_text())
+    assert state["settings"]["sim_faults"] == [] and state["settings"]["finetune_minutes"] == 1.0  # this attempt's
+    assert [s["sim_faults"] for s in state["earlier_settings"]] == [["camera-stall@6"]]  # was: the first's alone
+    checks = json.loads((faulted_then_resumed["config"].run_dir / "acceptance.json").read_text())["checks"]
+    assert checks and all(c["verdict"] == "pass" for c in checks)  # no pose check, and no "not run" either
 
 
 def test_run_budget_shortens_the_finetune_step(faulted_then_resumed):
@@ -392,8 +398,8 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
          "check 'leak_rate_hpa_per_min': max must be >= 0"),
         (None, ["--poses-per-object", "0"], "poses per object"),
         (None, ["--poses-per-object", "1001"], "poses per object must be 2..1000 (one or more is held out), got 1001"),
-        (None, ["--leak-hold-s", "1e12"], "leak-test hold must be 1..600 s, got 1e+12 s"),  # was: a leak test without end
-        (None, ["--leak-hold-s", "1e-9"], "leak-test hold must be 1..600 s, got 1e-09 s"),  # was: a refusal after it
+        (None, ["--leak-hold-s", "1e12"], "leak-test hold must be 2..600 s, got 1e+12 s"),  # was: a leak test without end
+        (None, ["--leak-hold-s", "1e-9"], "leak-test hold must be 2..600 s, got 1e-09 s"),  # was: a refusal after it
         (None, ["--total-minutes", "0"], "total minutes"),
         # was: refused by the trainer after the whole recording
         (None, ["--finetune-minutes", "1e6"], "fine-tune minutes must be in (0, 10080] (a week), got 1000000.0"),
@@ -472,7 +478,7 @@ def test_an_interrupt_during_commissioning_stops_the_arm_and_keeps_the_data(tmp_
     """Ctrl-C and SIGTERM alike: the flow stops the arm and closes the run, exit 128 + signal."""
     run = tmp_path / "run"
     code, err = interrupt_once_recording(["commission", "--sim", "--objects", "box", "--poses-per-object", "2",
-                                          "--leak-hold-s", "1", "--sim-speed", "2", "--quiet",
+                                          "--leak-hold-s", "2", "--sim-speed", "2", "--quiet",
                                           "--registry", str(tmp_path / "registry"), "--out", str(run)],
                                          run / "session.h5", signum=signum)
     assert code == 128 + signum, err
@@ -496,6 +502,51 @@ def _finished_run_without_its_verdict(faulted_then_resumed, tmp_path):
     del state.data["registration_id"], state.data["registered_in"]  # set by the verdict's registration
     state.save()
     return config
+
+
+def test_a_fine_tune_that_could_hardly_train_is_the_computers_fault_not_the_sensors(tmp_path, monkeypatch):
+    """Loading and validating took nearly all of the fine-tune step's time (a busy or slow computer):
+    no verdict, nothing registered, and the same command fine-tunes again (was: the base model, trained
+    0-1 steps, validated, and the sensor rejected and registered for it)."""
+    from calibrate.run_directory import RunState
+
+    config = dataclasses.replace(tiny_config(tmp_path), finetune_minutes=1.0, total_minutes=0.01)
+    monkeypatch.setattr(commission_config, "MIN_FINETUNE_STEP_S", 8.0)  # the deadline cuts the fine-tune
+    monkeypatch.setattr(commission_config, "MIN_TRAINING_SHARE", 1.1)  # so that its training is too short
+    with pytest.raises(HardwareFault) as err:
+        run_commissioning(config, lambda e: None)
+    assert err.value.kind == "host-too-slow" and "nothing judged, nothing registered" in str(err.value)
+    state = json.loads((config.run_dir / "state.json").read_text())
+    assert "collect" in state["steps"] and "finetune" not in state["steps"] and "verdict" not in state["steps"]
+    assert SensorRegistry(config.registry_dir).survey().profiles == []
+    monkeypatch.setattr(commission_config, "MIN_TRAINING_SHARE", 0.0)
+    assert run_commissioning(config, lambda e: None).accepted  # the same command, on a free computer
+
+
+def test_a_sensor_that_failed_a_gate_is_not_reconnected_when_its_run_is_run_again(tmp_path, monkeypatch):
+    """A leaking sensor, its run stopped at the verdict (or killed there): run again, it reaches its
+    verdict from state.json without the bench (was: the bench was reopened for the steps the failed gate
+    skips, and a sensor taken off it since was refused, or the bench's fault registered instead)."""
+    from calibrate.commissioning import _Flow
+    from calibrate.run_directory import RunState
+    from hw_mocks.sensor_spec import draw_sensor
+
+    spec = tmp_path / "spec.yaml"
+    draw_sensor(11, "leak").to_yaml(spec)
+    config = dataclasses.replace(tiny_config(tmp_path), sensor_spec=spec)
+    first = run_commissioning(config, lambda e: None)
+    assert not first.accepted and "leak_rate_hpa_per_min" in first.reason
+    state = RunState(config.run_dir / "state.json", json.loads((config.run_dir / "state.json").read_text()))
+    del state.data["steps"]["verdict"]  # as a stop at the verdict leaves it
+    state.data.pop("registration_id", None), state.data.pop("registered_in", None)
+    state.save()
+
+    def no_bench(self):
+        raise AssertionError("the bench was opened")
+
+    monkeypatch.setattr(_Flow, "open_bench", no_bench)
+    again = run_commissioning(dataclasses.replace(config, sim_faults=("serial-unplug@0.1",)), lambda e: None)
+    assert not again.accepted and again.fault is None and again.reason == first.reason
 
 
 def test_a_run_killed_after_it_registered_replaces_its_entry_when_run_again(faulted_then_resumed, tmp_path, monkeypatch):
@@ -704,7 +755,7 @@ def test_a_full_disk_outside_the_recorder_is_a_recorder_fault(tmp_path, capsys, 
     monkeypatch.setattr(commissioning, "save_npz", disk_full)
     config = tiny_config(tmp_path)
     argv = ["commission", "--sim", "--objects", "box", "--poses-per-object", "2", "--seed", "3", "--sim-speed", "2",
-            "--leak-hold-s", "1", "--thresholds", str(config.thresholds),
+            "--leak-hold-s", "2", "--thresholds", str(config.thresholds),
             "--out", str(config.run_dir), "--registry", str(config.registry_dir), "--quiet"]
     assert main(argv) == 3
     err = capsys.readouterr().err

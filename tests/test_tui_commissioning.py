@@ -26,7 +26,7 @@ SIZE = (120, 36)
 def tiny_config(tmp_path: Path, **overrides) -> CommissionConfig:
     """One object, three poses, a one-second leak hold, a few seconds of fine-tuning, real-time clock."""
     kwargs = dict(run_dir=tmp_path / "run", simulated=True, registry_dir=tmp_path / "registry", objects=("box",),
-                  poses_per_object=3, finetune_minutes=0.05, seed=3, leak_hold_s=1.0)
+                  poses_per_object=3, finetune_minutes=0.05, seed=3, leak_hold_s=2.0)
     kwargs.update(overrides)
     return CommissionConfig(**kwargs)
 
@@ -105,7 +105,7 @@ def test_sigterm_stops_the_run_and_gives_the_terminal_back(tmp_path):
     if pid == 0:  # the child: the real command line in the pty
         os.environ["TERM"] = "xterm-256color"
         os.execv(sys.executable, [sys.executable, "-m", "calibrate.cli", "tui", "--sim", "--objects", "box",
-                                  "--poses-per-object", "2", "--leak-hold-s", "1", "--out", str(run),
+                                  "--poses-per-object", "2", "--leak-hold-s", "2", "--out", str(run),
                                   "--registry", str(tmp_path / "registry")])
     screen = bytearray()
     exit_status: list[int] = []
