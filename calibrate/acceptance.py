@@ -74,6 +74,13 @@ CHECK_KEYS = ("min", "max", "unit", "gate", "describe")
 _FRACTION = (0.0, 1.0, "a fraction")
 #: Units not written after a value (a plain number reads as the fraction or ratio it is).
 SILENT_UNITS = ("fraction", "ratio")
+
+
+def unit_suffix(unit: str | None) -> str:
+    """What follows a value of a check in ``unit``: " mm", or "" for none and for ``SILENT_UNITS``."""
+    return f" {unit}" if unit and unit not in SILENT_UNITS else ""
+
+
 #: The values the metric of each check can take: ``(lo, hi, what it is)``, inclusive, ``hi`` None
 #: when unbounded. A limit outside them (``heldout_a1: {min: 5}``, ``leak_rate_hpa_per_min:
 #: {max: -1}``) would reject every sensor, or means a unit mix-up, so the file is refused.
@@ -222,7 +229,7 @@ def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str =
     """
     th = thresholds[name]
     op, limit = th.limit()
-    unit = f" {th.unit}" if th.unit and th.unit not in SILENT_UNITS else ""
+    unit = unit_suffix(th.unit)
     measured = value is not None and math.isfinite(float(value))
     if not measured:
         passed, reason = False, f"{name} was not measured"
@@ -277,7 +284,7 @@ def _short(check: dict) -> str:
         return f"{check['name']} not measured"
     thr = check["threshold"]
     limit = f"{thr[0]:g}..{thr[1]:g}" if check["op"] == "in" else f"{check['op']} {thr:g}"
-    unit = f" {check['unit']}" if check.get("unit") and check["unit"] not in SILENT_UNITS else ""
+    unit = unit_suffix(check.get("unit"))
     return f"{check['name']} {check_value_text(check)}{unit} (needs {limit}{unit})"
 
 

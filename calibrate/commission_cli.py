@@ -62,7 +62,8 @@ def add_run_options(p) -> None:
                    help="wall-time budget of the whole run; the fine-tune is shortened to fit it (default %(default)s)")
     p.add_argument("--leak-hold-s", type=float, default=CommissionConfig.leak_hold_s, metavar="S",
                    help=f"leak-test hold, s of bench time (default {CommissionConfig.leak_hold_s:g})")
-    p.add_argument("--objects", help=f"comma-separated objects to press (default: those of bubble commission's --bench file, else "
+    p.add_argument("--objects", help="comma-separated objects to press (default: those of bubble commission's --bench "
+                                     "file, else "
                                      f"{DEFAULT_OBJECTS_ARG})")
     p.add_argument("--poses-per-object", type=int, default=CommissionConfig.poses_per_object, metavar="K",
                    help="contact poses per object (default %(default)s)")

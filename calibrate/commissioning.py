@@ -725,7 +725,8 @@ class _Flow:
         except HardwareFault as fault:
             self.emit(FaultRaised(fault.kind, str(fault)))
             self.close_bench(safe_stop=True)
-            if fault.kind in HOST_FAULTS:  # the host's disk or CPU, not the sensor: no verdict (was: rejected, registered)
+            if fault.kind in HOST_FAULTS:  # the host's disk or CPU, not the sensor: no verdict (was: rejected,
+                # registered)
                 raise
             return self.finish(fault=f"{fault.kind}: {fault}")
         except StopRequested:

@@ -328,19 +328,14 @@ class Arm:
         over_limit = False  # within the last excursion over the force limit (until re-armed)
         controller_t, controller_t_since = None, self.clock()  # the controller's clock, and since when (bench clock)
         while not self._monitor_loop.stop_event.is_set():
-            if not self._rcv.isConnected():
-                self._set_fault(HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot"))
-                self.stop()  # most likely unsent: then the controller's watchdog stops the robot
-                return
+            if not self._rcv.isConnected():  # _monitor records it and stops the arm
+                raise HardwareFault("arm-disconnected", "arm: lost the RTDE connection to the robot")
             now_t = self._rcv.getTimestamp()
             if now_t != controller_t:
                 controller_t, controller_t_since = now_t, self.clock()
             elif self.clock() - controller_t_since > STALE_STATE_S:
-                self._set_fault(HardwareFault(
-                    "arm-disconnected", f"arm: the robot's state has not changed for {STALE_STATE_S:g} s (its "
-                                        "clock stopped): the link is dead"))
-                self.stop()
-                return
+                raise HardwareFault("arm-disconnected", f"arm: the robot's state has not changed for {STALE_STATE_S:g} "
+                                                        "s (its clock stopped): the link is dead")
             with self._ctl_lock:
                 self._ctl.getStepTime()  # the watchdog's kick (module docstring)
             sample = self._read()
@@ -371,11 +366,14 @@ class Arm:
             else:
                 next_t = time.monotonic()
 
-    def _set_fault(self, fault: HardwareFault) -> None:
+    def _set_fault(self, fault: HardwareFault, latest: bool = True) -> None:
+        """Record ``fault``: the first one is sticky (``fault``); ``latest``: also the arm's own latest,
+        which ends a retract (not another device's, ``abort``)."""
         with self._cond:
             if self._fault is None:
                 self._fault = fault
-            self._latest_fault = fault
+            if latest:
+                self._latest_fault = fault
             self._cond.notify_all()
 
     def _next_sample(self, timeout_s: float = 1.0) -> ArmState:
@@ -403,12 +401,10 @@ class Arm:
         running motion raises it at its next sample (within 1/state_hz). A retract under way goes on
         (was: stopped, leaving the bubble pressed on its object for a camera that went silent): only
         the arm's own faults end it."""
-        with self._cond:
-            if self._fault is None:
-                self._fault = fault
-            retracting = self._retracting
-        if not retracting:
-            self.stop()
+        with self._cond:  # the stop under the lock: a retract cannot start between the check and the stopL
+            self._set_fault(fault, latest=False)
+            if not self._retracting:
+                self.stop()
 
     def check(self) -> None:
         """Raise the recorded fault, if any, then ``StopRequested`` if the operator's stop is set."""
@@ -456,14 +452,14 @@ class Arm:
             raise HardwareFault("arm-refused", f"arm: robot refused moveL to {np.round(target, 4).tolist()}")
 
     def _run_move(self, target, speed: float, accel: float, *, guard: Callable[[ArmState], bool] | None = None,
-                  ignore_faults: bool = False) -> tuple[ArmState, bool]:
+                  ignore_faults: bool = False, on_sent: Callable[[], None] | None = None) -> tuple[ArmState, bool]:
         """Validate, send and supervise one linear move.
 
         ``guard(sample) -> True`` stops the move early (guarded move). Returns the final sample and
         whether the guard fired. Raises the monitor's fault, and ``HardwareFault('arm-timeout')``
         when the move takes far longer than planned. ``ignore_faults`` (the retract): the fault
         recorded before the move (and the operator's stop) do not end it; a protective stop or a new
-        fault on the way (a collision) do.
+        fault on the way (a collision) do. ``on_sent()`` runs once the robot has accepted the move.
         """
         target = self.limits.check_move(target, speed, accel)
         self.start()
@@ -472,6 +468,8 @@ class Arm:
         budget = move_duration_s(linear_path_m(start.tcp_pose, target), speed, accel) + MOVE_TIMEOUT_MARGIN_S
         known_fault = self._latest_fault
         self._send_move(target, speed, accel, check_faults=not ignore_faults)
+        if on_sent is not None:
+            on_sent()
         try:
             return self._supervise(target, guard, ignore_faults, known_fault, budget)
         except BaseException:  # whatever ends the move (was: a lost sample left it running unwatched)
@@ -627,16 +625,17 @@ class Arm:
         the force limit (after a force fault, where the monitor waits for the force to fall before
         it watches again) stops with ``HardwareFault('force-limit')`` when the force rises
         ``RETRACT_FORCE_RISE_FRACTION`` of the limit above where it started. Other devices' faults
-        (``abort``) do not stop it. The remembered pose is used once: a retract that a fault ended
-        is not sent along the same path again (was: the safe stop's retract drove on into the
-        collision, the force unwatched in the monitor's hysteresis); the next one backs off along
-        the force.
+        (``abort``) do not stop it. The remembered pose is used once the robot accepted the move: a
+        retract that a fault ended is not sent along the same path again (was: the safe stop's
+        retract drove on into the collision, the force unwatched in the monitor's hysteresis); the
+        next one backs off along the force.
         """
         if safety_stops(bits := self._rcv.getSafetyStatusBits()):
             raise safety_stop_fault(bits, "arm: cannot retract, robot is in")
         now = self.state()
-        if self._retract_pose is not None:
-            target, self._retract_pose = self._retract_pose, None
+        remembered = self._retract_pose is not None
+        if remembered:
+            target = self._retract_pose
         else:
             away = backoff_direction(now.tcp_wrench, self.settings.max_preload_n)
             if away is None:
@@ -657,8 +656,9 @@ class Arm:
         with self._cond:
             self._retracting = True
         try:
+            forget = (lambda: setattr(self, "_retract_pose", None)) if remembered else None
             sample, rose = self._run_move(target, speed or retract_speed(self.settings), self.settings.accel,
-                                          guard=force_rose, ignore_faults=True)
+                                          guard=force_rose, ignore_faults=True, on_sent=forget)
         finally:
             with self._cond:
                 self._retracting = False

@@ -583,3 +583,36 @@ def test_no_motion_is_sent_once_the_monitor_has_ended():
         assert control.moves == moves
     finally:
         arm.close()
+
+
+class _RefusingControl(_CountingControl):
+    """Refuses the next ``refuse`` moveL calls (the controller's answer False), then moves."""
+
+    refuse = 0
+
+    def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
+        if self.refuse:
+            self.refuse -= 1
+            return False
+        return super().moveL(pose, speed, acceleration, asynchronous)
+
+
+def test_a_retract_the_robot_refused_keeps_its_pose_for_the_next():
+    """Was: the remembered pose was given up before the move was sent, so after a refused retract
+    the safe stop backed off along the force instead of going back where the approach began."""
+    scene = _Pressed()
+    controller = SimURController(scene, [0.4, 0.0, 0.27, *DOWN])
+    control = _RefusingControl(controller)
+    arm = Arm(control, FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        assert arm.move_until_contact(force_threshold_n=0.5) is not None
+        arm.press(depth_m=0.002)
+        control.refuse = 1
+        with pytest.raises(HardwareFault) as err:
+            arm.retract()
+        assert err.value.kind == "arm-refused"
+        back = arm.retract()
+        np.testing.assert_allclose(back.tcp_pose[:3], [0.4, 0.0, 0.27], atol=5e-4)  # where the approach began
+    finally:
+        arm.close()

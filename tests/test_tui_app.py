@@ -205,10 +205,12 @@ def flood_until_stopped(config, on_event, stop_event):
 
 def deaf_to_its_stop(config, on_event, stop_event):
     """A flow for the child process that writes its pid to ``run_dir/flow.pid`` and ignores its stop
-    for 30 s (a device call that hangs)."""
+    for 30 s while it goes on sending events, ten a second (a stop that does not reach its loop)."""
     Path(config.run_dir).mkdir(parents=True, exist_ok=True)
     (Path(config.run_dir) / "flow.pid").write_text(str(os.getpid()))
-    time.sleep(30.0)
+    for i in range(300):
+        on_event(StepProgress(Step.LEAK_TEST, i / 300))
+        time.sleep(0.1)
 
 
 def raise_in_the_flow(config, on_event, stop_event):

@@ -349,7 +349,9 @@ def train_model(
     torch.set_num_threads(config.threads or ctx.cpu_threads())
     torch.manual_seed(config.seed)
     if ctx.device != "cpu":  # CUDA's default kernels do not repeat a run bit for bit (was: a seeded training, or a
-        # resumed one against its uninterrupted twin, 0.01-0.09 apart in its weights on an H200); the CPU's do
+        # resumed one against its uninterrupted twin, 0.01-0.09 apart in its weights on an H200); the CPU's do.
+        # For the whole process, as the thread count above; the workspace setting counts only before cuBLAS
+        # starts (a process that used it before gets torch's warning, not a wrong result)
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True, warn_only=True)
     out_dir = Path(config.out)

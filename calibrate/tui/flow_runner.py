@@ -181,11 +181,11 @@ class ProcessFlowRunner(FlowRunner):
         _start_niced(child, self.bench_nice)
         try:
             while True:
+                if self._abandoned.is_set():  # every pass: a flow that keeps sending never leaves the queue empty
+                    raise FlowError(f"left the commissioning process to stop by itself; see {log}")
                 try:
                     kind, payload = messages.get(timeout=POLL_S)
                 except queue.Empty:
-                    if self._abandoned.is_set():
-                        raise FlowError(f"left the commissioning process to stop by itself; see {log}") from None
                     if child.is_alive():
                         continue
                     try:  # it may have sent its last message just before exiting
@@ -307,6 +307,8 @@ def _send_last(messages, message: tuple, parent_pid: int) -> None:
     flushing.start()
     while flushing.is_alive() and os.getppid() == parent_pid:
         flushing.join(POLL_S)
+    if os.getppid() != parent_pid:  # the exit must not join the feeder either, whoever reaches it first
+        messages.cancel_join_thread()
 
 
 def _child_main(flow: Flow, config, messages, stop_event, bench_nice: int, compute_nice: int, parent_pid: int) -> None:

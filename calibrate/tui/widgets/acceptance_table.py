@@ -9,12 +9,12 @@ from rich.text import Text
 from textual.containers import Vertical, VerticalScroll
 from textual.widgets import Static
 
-from calibrate.acceptance import SILENT_UNITS, check_value_text
+from calibrate.acceptance import check_value_text, unit_suffix
 from calibrate.tui.widgets.formatting import number
 
 
 def _with_unit(text: str, unit: str | None) -> str:
-    return f"{text} {unit}" if unit and unit not in SILENT_UNITS and text != "-" else text  # was: "ratio" written
+    return text + unit_suffix(unit) if text != "-" else text  # was: "ratio" written
 
 
 def threshold_text(check: dict) -> str:
