@@ -677,8 +677,9 @@ class _Flow:
             return self._finished_before()
         # a gate failure skips the steps after it: they are not pending (was: a run stopped at its verdict
         # after a failed leak test reopened the bench when run again, and refused a sensor taken off it)
-        gate_failed = any(_gate_failure(self.state.get(s)) for s in STEPS if self.state.done(s))
-        pending_bench = [] if gate_failed else [s for s in BENCH_STEPS if not self.state.done(s)]
+        done = [self.state.get(s) for s in STEPS if self.state.done(s)]
+        gate_failure = next(filter(None, map(_gate_failure, done)), None)
+        pending_bench = [] if gate_failure else [s for s in BENCH_STEPS if not self.state.done(s)]
         try:
             if pending_bench and self.state.done(Step.CONNECT):
                 self.open_bench()  # resuming a bench step: reconnect and re-identify
@@ -688,12 +689,10 @@ class _Flow:
                         f"{self.run_dir} was started for sensor {self.state.data.get('serial')}, "
                         f"the bench holds {serial}; use a new --out"
                     )
-            gate_failure = None
             for step in STEPS[:-1]:
                 if self.state.done(step):
                     rec = self.state.get(step)
                     self.emit(StepFinished(step, rec["ok"], rec["summary"], resumed=True, skipped=bool(rec.get("skipped"))))
-                    gate_failure = gate_failure or _gate_failure(rec)
                     continue
                 if gate_failure is not None:
                     self.emit(StepFinished(step, False, f"not run: {gate_failure}", skipped=True))
