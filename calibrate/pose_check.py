@@ -110,6 +110,9 @@ class PoseCheckResult:
     depth_metrics: dict[str, float]
     frames: list[FramePoses]
     settings: dict
+    #: the session's sensor serial when the model's training sessions were recorded with other sensors
+    #: (``ModelMetadata.sensors_not_trained_on``; empty for an estimator without metadata)
+    sensors_not_trained_on: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The ``--json`` document: every field, with the depth metric keys at top level."""
@@ -198,6 +201,7 @@ def pooled_result(results: list[PoseCheckResult]) -> PoseCheckResult:
         shape=results[0].shape, n_hold_frames=sum(r.n_hold_frames for r in results), n_used=len(frames),
         skipped={k: sum(r.skipped[k] for r in results) for k in results[0].skipped},
         hz=_pooled_hz(results), n_fits=sum(r.n_fits for r in results), frames=frames, settings=results[0].settings,
+        sensors_not_trained_on=sorted({s for r in results for s in r.sensors_not_trained_on}),
         **_frame_stats(frames),
     )
 
@@ -281,6 +285,8 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         camera_in_tcp = session.camera_in_tcp
         intrinsics = session.intrinsics
         session_name = str(session.path)
+        metadata = getattr(estimator, "metadata", None)
+        untrained = [] if metadata is None else metadata.sensors_not_trained_on([session.sensor_serial])
         simulated = session.simulated
 
     skipped = {SKIP_NO_CONTACT: 0, SKIP_TOO_FEW_POINTS: 0, SKIP_NON_FINITE: 0, SKIP_FIT_FAILED: 0}
@@ -345,6 +351,7 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         hz=n_fits / fit_seconds if fit_seconds > 0 else 0.0, n_fits=n_fits,
         depth_metrics=metrics,
         frames=frames,
+        sensors_not_trained_on=untrained,
         **_frame_stats(frames),
         settings={"threshold_m": threshold_m, "n_points": n_points, "prior_error_mm": prior_error_mm,
                   "prior_error_deg": prior_error_deg, "seed": seed,

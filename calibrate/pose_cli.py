@@ -35,7 +35,7 @@ def _run(args) -> int:
     from calibrate.pose_check import PLOT_FILES, run_pose_check
     from calibrate.pose_estimation import MIN_POINTS
     from collect.errors import InputError
-    from trainer.cli import check_model_arg
+    from trainer.cli import check_model_arg, print_sensor_note
 
     if not 0 < args.threshold_mm <= MAX_THRESHOLD_MM:
         raise InputError(f"--threshold-mm must be within (0, {MAX_THRESHOLD_MM:g}], got {args.threshold_mm:g}")
@@ -63,5 +63,6 @@ def _run(args) -> int:
                             n_points=args.points, seed=args.seed, plots_dir=args.plots)
     if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)
         write_json_result(args.json, "bubble pose", result.to_dict())
+    print_sensor_note(args.model, result.sensors_not_trained_on)
     print(result.summary())
     return 0

@@ -68,6 +68,28 @@ def test_the_json_result_is_written_though_the_reader_of_stdout_went_away(tmp_pa
     assert code == 141 and json.loads(out.read_text())["n_used"] == 2
 
 
+def test_a_model_not_trained_on_the_sessions_sensor_is_noted(tmp_path, monkeypatch, capsys):
+    """Was: no word of it (on the simulated bench a model fine-tuned on one sensor gives e_x 3.1 mm on
+    another's session, 0.39 mm on its own)."""
+    import dataclasses
+
+    import trainer.inference
+    from trainer.model_dir import load_metadata
+
+    session = write_cylinder_session(tmp_path / "s.h5", n_poses=1, hold_frames=2)  # sensor CYL-1
+    meta = load_metadata(_untrained_model(tmp_path / "m"))
+    for serials, note in ((["CYL-1"], []), (["CYL-2", "CYL-3"], ["CYL-1"])):
+        estimator = DecodingEstimator()
+        estimator.metadata = dataclasses.replace(meta, training={"sensor_serials": serials})
+        monkeypatch.setattr(trainer.inference.DepthEstimator, "load", classmethod(lambda cls, d: estimator))
+        out = tmp_path / "pose.json"
+        assert cli.main(["pose", "--model", "M", "--data", str(session), "--json", str(out)]) == 0
+        assert json.loads(out.read_text())["sensors_not_trained_on"] == note
+        err = capsys.readouterr().err
+        assert err == "".join(f"bubble: note: model M was not trained on sensor {s} (its depth there is that of a model "
+                              "that has not seen the sensor; one fine-tuned on it fits it better)\n" for s in note)
+
+
 def _untrained_model(model_dir):
     from trainer.model_dir import ModelMetadata, save_model
     from trainer.networks import build_network

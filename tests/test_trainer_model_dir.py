@@ -318,3 +318,27 @@ def test_ir_outside_the_uint16_range_is_refused_naming_the_frame(model_dir):
             estimator.predict_batch(bad)
     with pytest.raises(InputError, match=r"^IR frame 0 holds values -5 to -5: "):
         estimator.predict(np.full((48, 64), -5, np.int32))
+
+
+def test_evaluating_on_a_sensor_the_model_was_not_trained_on_prints_a_note(model_dir, make_synthetic_session,
+                                                                            tmp_path, capsys):
+    """Was: a model fine-tuned on one sensor evaluated on another's session without a word (on the
+    simulated bench its pose e_x there is 3.1 mm against 0.39 on its own sensor)."""
+    own = make_synthetic_session(tmp_path / "own.h5", height=48, width=64)
+    other = make_synthetic_session(tmp_path / "other.h5", height=48, width=64, sensor_serial="SYN-0002")
+    assert main(["evaluate", "--model", str(model_dir), "--data", str(own)]) == 0
+    assert capsys.readouterr().err == ""
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--model", str(model_dir), "--data", str(own), str(other), "--json", str(out)]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        f"bubble: note: model {model_dir} was not trained on sensor SYN-0002 (its depth there is that of a model "
+        "that has not seen the sensor; one fine-tuned on it fits it better)"]
+    assert json.loads(out.read_text())["sensors_not_trained_on"] == ["SYN-0002"]
+
+
+def test_sensors_not_trained_on_reads_the_training_serials():
+    meta = _metadata()
+    assert meta.sensors_not_trained_on(["SYN-0001"]) == []
+    assert meta.sensors_not_trained_on(["SYN-0003", "SYN-0001", "SYN-0002", "SYN-0003"]) == ["SYN-0002", "SYN-0003"]
+    meta.training = {}  # a model whose metadata does not list its sensors: nothing to say
+    assert meta.sensors_not_trained_on(["SYN-0002"]) == []

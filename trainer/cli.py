@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import errno
 import math
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext, suppress
 from pathlib import Path
@@ -125,6 +126,14 @@ def check_model_arg(value: str | None, option: str) -> None:
     if value is not None and value != "base" and Path(value).is_file():
         raise InputError(f"{option} {value} is a file, not a model directory (give the directory that holds "
                          f"metadata.json)")
+
+
+def print_sensor_note(model: str, serials: list[str]) -> None:
+    """A ``bubble: note:`` line on stderr when ``serials`` (the data's sensors that the model's training
+    sessions were not recorded with; ``ModelMetadata.sensors_not_trained_on``) is not empty."""
+    if serials:
+        print(f"bubble: note: model {model} was not trained on sensor {', '.join(serials)} (its depth there is that "
+              f"of a model that has not seen the sensor; one fine-tuned on it fits it better)", file=sys.stderr)
 
 
 def metrics_table(title: str, rows: dict[str, dict]):
@@ -265,6 +274,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.json is not None:
         check_json_output(args.json, "bubble evaluate")
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
+    print_sensor_note(args.model, result["sensors_not_trained_on"])
     if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)
         write_json_result(args.json, "bubble evaluate", result)
 

@@ -74,7 +74,8 @@ def evaluate_model(
     """Metrics of ``model_dir`` on the contact frames of ``paths`` (dict, JSON-serializable).
 
     Top level: the ``trainer.metrics`` keys vs the ToF, ``latency_ms`` (median batch-1 latency
-    of ``predict`` on this machine), ``runtime``, ``per_object`` metrics, and ``vs_true`` on
+    of ``predict`` on this machine), ``runtime``, ``per_object`` metrics, ``sensors_not_trained_on``
+    (the data's sensor serials that no training session of the model came from), and ``vs_true`` on
     simulated data. Raises ``InputError`` for bad files or frames of another size than the model's.
     """
     check_each_session_once({"--data": paths})  # a session twice would count its frames twice
@@ -98,6 +99,7 @@ def evaluate_model(
     result["model"] = str(model_dir)
     result["arch"] = meta.arch
     result["data"] = [s.to_dict() for s in frames.sources]
+    result["sensors_not_trained_on"] = meta.sensors_not_trained_on(s.sensor_serial for s in frames.sources)
     result["per_object"] = per_object_metrics(pred, frames.depth, frames.object_name, meta.min_depth, meta.max_depth)
     if frames.true_depth is not None:
         result["vs_true"] = compare_with_truth(pred, frames.depth, frames.true_depth, meta.min_depth, meta.max_depth)

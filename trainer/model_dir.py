@@ -78,6 +78,14 @@ class ModelMetadata:
         data["normalization"] = self.normalization.to_dict()
         return {"format": METADATA_FORMAT, "format_version": METADATA_VERSION, **data}
 
+    def sensors_not_trained_on(self, serials) -> list[str]:
+        """Those of ``serials`` (the sensor serials of the data the model is applied to) that none of
+        its training sessions was recorded with, sorted; empty when ``training`` does not list them."""
+        trained = self.training.get("sensor_serials")
+        if not isinstance(trained, list):
+            return []
+        return sorted({str(s) for s in serials} - {str(s) for s in trained})
+
     @classmethod
     def from_dict(cls, data: dict, model_dir: str | Path) -> "ModelMetadata":
         """The metadata in ``data`` (the parsed ``metadata.json`` of ``model_dir``), checked by
