@@ -480,6 +480,18 @@ def test_the_simulated_camera_makes_room_in_a_full_queue_instead_of_letting_dept
     assert queue.tryGet() is None
 
 
+class SteppedClock:
+    """A simulated clock that the test moves by hand (``SimBench.clock``'s interface)."""
+
+    def __init__(self, t: float):
+        self.t, self.speed, self.limit = t, 1.0, None
+
+    def now(self) -> float:
+        return self.t
+
+    __call__ = now
+
+
 def test_a_frame_at_rest_shows_the_membrane_where_the_arm_stopped():
     """A move stopped short of the pose the latest solution was made for (the look-ahead of a guarded
     press): the next frame is rendered from a solution at the rest pose (was: from the look-ahead
@@ -493,12 +505,13 @@ def test_a_frame_at_rest_shows_the_membrane_where_the_arm_stopped():
     top = objects[0].top_point()
     pressed = np.array([top[0], top[1], top[2] - 0.002, np.pi, 0.0, 0.0])  # 2 mm into the box
     scene = SimBench(draw_sensor(1), objects, seed=1, start_pose=pressed)  # no physics thread: the test solves
+    scene.clock = clock = SteppedClock(scene.now())  # was: real time, whose sleeps a loaded machine stretched
     assert scene.arm.move_linear(pressed - [0, 0, 0.004, 0, 0, 0], 0.02, 1.0)
-    time.sleep(0.05)
+    clock.t += 0.05
     scene._solve_now()  # the physics thread's solve, 30 ms ahead along the press
     ahead = scene.latest()
     scene.arm.stop_linear(100.0)  # the guard fires: the arm stops at once
-    time.sleep(0.05)
+    clock.t += 0.05
     rest = scene.arm.pose_at(scene.now())
     assert scene.arm.moving_until() <= scene.now() and not _same_pose(ahead.pose, rest)
     seq, t = 0, scene.now()
@@ -506,9 +519,9 @@ def test_a_frame_at_rest_shows_the_membrane_where_the_arm_stopped():
     frame = scene.latest()
     assert _same_pose(frame.pose, rest) and frame is not ahead
     np.testing.assert_array_equal(true_depth, np.asarray(frame.state.true_depth, dtype=np.float32))
-    # the stale solution's dent was deeper by the look-ahead (0.4 mm here)
+    # the stale solution's dent was deeper by the look-ahead (0.6 mm: 30 ms at 20 mm/s)
     lead = abs(ahead.pose[2] - rest[2])
-    assert lead > 2e-4 and np.nanmax(np.abs(ahead.state.true_depth - frame.state.true_depth)) == pytest.approx(lead, rel=0.2)
+    assert lead == pytest.approx(6e-4, abs=2e-5) and np.nanmax(np.abs(ahead.state.true_depth - frame.state.true_depth)) == pytest.approx(lead, rel=0.2)
 
 
 def test_a_robot_lost_before_its_first_sample_is_a_fault_not_a_traceback(tmp_path, capsys, monkeypatch):
@@ -522,3 +535,29 @@ def test_a_robot_lost_before_its_first_sample_is_a_fault_not_a_traceback(tmp_pat
     assert main(["collect", "--sim", "--objects", "box", "--poses-per-object", "1", "--quiet", "--out", str(out)]) == 3
     err = capsys.readouterr().err
     assert "lost the RTDE connection" in err and "Traceback" not in err and "AttributeError" not in err
+
+
+def test_a_frame_during_a_move_shows_the_solution_made_for_its_time():
+    """Was: the latest solution, made for the pose the arm reaches 30 ms later: a 20 mm/s press was
+    rendered up to 0.6 mm deeper than the arm pressed at the frame's time."""
+    from collect.bench import _placed_objects
+    from hw_mocks.fake_camera import SimCameraDevice
+    from hw_mocks.sensor_spec import draw_sensor
+    from hw_mocks.sim_bench import SimBench
+
+    objects = _placed_objects(("box",))
+    top = objects[0].top_point()
+    above = np.array([top[0], top[1], top[2] + 0.002, np.pi, 0.0, 0.0])
+    scene = SimBench(draw_sensor(1), objects, seed=1, start_pose=above)  # no physics thread: the test solves
+    scene.clock = clock = SteppedClock(scene.now())
+    assert scene.arm.move_linear(above - [0, 0, 0.008, 0, 0, 0], 0.02, 1.0)
+    clock.t += 0.2
+    scene._solve_now()  # the physics thread's solves, 30 ms ahead, a camera period (22 ms) apart
+    clock.t += 0.022
+    scene._solve_now()
+    clock.t += 0.005  # a frame 3 ms short of the first solution's time, 25 ms short of the latest's
+    frame, latest = scene.frame_solution(), scene.latest()
+    arm_z = scene.arm.pose_at(clock.t)[2]
+    assert frame is not latest and abs(frame.pose[2] - arm_z) < 1e-4 < abs(latest.pose[2] - arm_z)
+    _, _, true_depth = SimCameraDevice(scene).render(0, clock.t)
+    np.testing.assert_array_equal(true_depth, np.asarray(frame.state.true_depth, dtype=np.float32))
