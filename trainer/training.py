@@ -344,6 +344,17 @@ def train_model(
     call_start = time.perf_counter()
     _check_config(config)
     ctx = DistContext.from_env()
+    try:
+        return _train(config, ctx, call_start, progress_callback, stop_event)
+    finally:  # on every way out, an error's too (was: the process group left to the process's exit)
+        ctx.close()
+
+
+def _train(config: TrainConfig, ctx: DistContext, call_start: float,
+           progress_callback: Callable[[TrainProgress], None] | None,
+           stop_event: threading.Event | None) -> TrainResult | None:
+    """``train_model``'s work in the process group ``ctx`` (closed by the caller); ``call_start``: when
+    the call began (``time.perf_counter()``, s), which ``config.deadline_s`` counts from."""
     if ctx.enabled and config.deadline_s is not None:  # rank 0 alone times the validations
         raise InputError("a wall-time deadline is for single-process training, not under torchrun")
     torch.set_num_threads(config.threads or ctx.cpu_threads())
@@ -503,7 +514,6 @@ def train_model(
                 not math.isfinite(value),
             )
             if diverged:
-                ctx.close()
                 raise _diverged(config, step, f"the loss is {value}")
             if stop or over:
                 stopped = stop  # a stop request wins over a budget or deadline spent at the same step
@@ -528,7 +538,6 @@ def train_model(
     elif ctx.is_main:
         metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
         if not math.isfinite(metrics["abs_rel"]):
-            ctx.close()
             raise _diverged(config, step, "its depth on the validation frames is not finite")
         history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
                         **evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)})
@@ -576,6 +585,5 @@ def train_model(
         val_live = history[-1]
         report("done")
     ctx.barrier()
-    ctx.close()
     return result
 
