@@ -69,6 +69,10 @@ _MESH_LAYOUT = {
 }
 #: Largest depth unit accepted (m per count): 1 cm, 100 times the recorder's.
 MAX_DEPTH_UNIT_M = 0.01
+#: Size (bytes) under which an unreadable session file was cut off as it was created: the recorder's
+#: first flush, before any frame, writes its groups and empty datasets (tens of kB); HDF5's header
+#: alone, written as the file is created, is 48 bytes.
+UNFINISHED_CREATION_BYTES = 4096
 
 
 def open_h5(path, *, locking: bool = True) -> h5py.File:
@@ -78,11 +82,12 @@ def open_h5(path, *, locking: bool = True) -> h5py.File:
     the file's lock itself."""
     path = os.fspath(path)
     try:
-        mode = os.stat(path).st_mode
+        status = os.stat(path)
     except OSError as err:  # missing, or in a folder that cannot be entered
         if err.errno in (errno.ENOENT, errno.ENOTDIR):
             raise InputError(f"{path}: no such file") from None
         raise InputError(f"cannot read {path}: {err.strerror}") from None
+    mode, size = status.st_mode, status.st_size
     if stat.S_ISDIR(mode):
         raise InputError(f"{path} is a directory, not a session file")
     if not stat.S_ISREG(mode):
@@ -92,7 +97,11 @@ def open_h5(path, *, locking: bool = True) -> h5py.File:
     except BlockingIOError:
         raise in_use_error(path) from None
     except OSError as err:
-        raise InputError(f"{path}: not a readable HDF5 session ({h5_error_text(err)})") from None
+        hint = ""
+        if size < UNFINISHED_CREATION_BYTES:  # was: no hint, and `collect` refused the name ("use --resume")
+            hint = (f"; at {size} bytes it holds no recording (cut off as it was created: the command that created it "
+                    "was killed at once): delete it and record again")
+        raise InputError(f"{path}: not a readable HDF5 session ({h5_error_text(err)}){hint}") from None
 
 
 def in_use_error(path) -> InputError:
@@ -590,7 +599,7 @@ def _check_depth_marks(path: str, f: h5py.File) -> None:
         value = json.loads(_text(enum))
     except JSON_READ_ERRORS:
         value = enum
-    if value != sf.PHASES:
+    if not isinstance(value, dict) or value != sf.PHASES:  # (an array's != is elementwise: was a ValueError's text)
         raise _bad(path, f"{sf.FRAMES_PHASE} attr '{sf.ATTR_PHASE_ENUM}'", f"the format's phases {json.dumps(sf.PHASES)}", value)
 
 

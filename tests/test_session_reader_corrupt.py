@@ -157,6 +157,9 @@ CASES = {
     "phase-enum-swapped": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
                                {**sf.PHASES, "press": sf.PHASES["hold"], "hold": sf.PHASES["press"]})),
                            "frames/phase attr 'enum' must be the format's phases"),
+    # was: "corrupt or truncated session () or a.all()"
+    "phase-enum-an-array": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, np.array([1, 2])),
+                            "frames/phase attr 'enum' must be the format's phases"),
     "depth-invalid-65535": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_INVALID, 65535),
                             "frames/depth attr 'invalid' must be 0 (this software reads 0 as no depth), got 65535"),
 }
@@ -241,3 +244,20 @@ def test_an_unreadable_arm_or_pressure_stream_is_one_line(tmp_path, small_sessio
     err = capsys.readouterr().err
     assert err.startswith(f"bubble: error: {path}: corrupt or truncated session, cannot read {name} (") \
         and err.count("\n") == 1, err
+
+
+def test_a_file_cut_off_as_it_was_created_says_to_delete_it(tmp_path, small_session, capsys):
+    """A recording killed within its first tens of ms leaves HDF5's 48-byte header alone (was: "not a
+    readable HDF5 session (truncated file ...)" without more, and `collect` refused the name: "use
+    --resume", which failed the same way)."""
+    path = tmp_path / "cut.h5"
+    path.write_bytes(small_session.read_bytes()[:48])
+    for argv in (["info", str(path)], ["collect", "--sim", "--objects", "box", "--resume", "--out", str(path)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"bubble: error: {path}: not a readable HDF5 session (") and err.count("\n") == 1, err
+        assert err.endswith("; at 48 bytes it holds no recording (cut off as it was created: the command that created "
+                            "it was killed at once): delete it and record again\n"), err
+    assert path.stat().st_size == 48
+    path.write_bytes(small_session.read_bytes()[:-1000])  # a recording cut off later: no such hint
+    assert main(["info", str(path)]) == 2 and "holds no recording" not in capsys.readouterr().err
