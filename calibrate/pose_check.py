@@ -255,7 +255,10 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         if session.camera_in_tcp is None:
             raise InputError(f"{session.path}: root attr '{ATTR_CAMERA_IN_TCP}' is missing (the camera's pose in the "
                              "TCP frame, which places the contact patch in the base frame)")
-        shape = shape_from_object(obj.primitive, obj.vertices, obj.faces)
+        try:
+            shape = shape_from_object(obj.primitive, obj.vertices, obj.faces)
+        except InputError as err:  # was: the line named neither the file nor the object
+            raise InputError(f"{session.path}: object {object_name!r}: {err}") from None
         fitter = ProximityPoseEstimator(shape)
         ref_idx = session.reference_frames(object_name)
         if len(ref_idx) == 0:

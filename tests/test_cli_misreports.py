@@ -401,3 +401,15 @@ def test_commission_on_a_real_bench_presses_the_objects_its_file_lists(tmp_path)
     assert run_config(parse(["commission", "--bench", "b.yaml", "--objects", "mug", "--out", "r"]), "r",
                       bench).objects == ("mug",)
     assert run_config(parse(["commission", "--sim", "--out", "r"]), "r").objects == tuple(DEFAULT_OBJECTS)
+
+
+def test_training_on_frames_without_valid_depth_says_so(tmp_path, make_synthetic_session, capsys):
+    """A session whose ToF depth is all invalid (0): was "training diverged after 1 step (its depth on the
+    validation frames is not finite) at learning rate 0.0002; lower --lr", as if the settings were wrong."""
+    session = make_synthetic_session(tmp_path / "s.h5", height=48, width=64)
+    with h5py.File(session, "a") as f:
+        f[sf.FRAMES_DEPTH][...] = 0
+    _refused(capsys, ["train", "--data", session, "--epochs", "1", "--width", "0.125", "--no-onnx",
+                      "--out", tmp_path / "m"],
+             "no training frame has ToF depth within the model's range 0.04-0.12 m: nothing to train on")
+    assert not (tmp_path / "m" / "metadata.json").exists()

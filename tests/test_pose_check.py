@@ -237,3 +237,11 @@ def test_the_histograms_take_an_object_name_as_text(tmp_path):
     result = run_pose_check(DecodingEstimator(), write_cylinder_session(tmp_path / "c.h5"), "mug")
     written = write_histograms(dataclasses.replace(result, object_name="cup$^$"), tmp_path / "plots")
     assert [p.name for p in written] == ["pose_errors.png", "pose_vs_true.png"] and all(p.stat().st_size for p in written)
+
+
+def test_a_bad_primitive_is_refused_naming_the_file_and_the_object(tmp_path):
+    """Was: "bad cylinder primitive: {...}", naming neither."""
+    path = write_cylinder_session(tmp_path / "cyl.h5", n_poses=1, hold_frames=1, mug_primitive={**MUG, "radius": -1.0})
+    with pytest.raises(InputError) as refused:
+        run_pose_check(DecodingEstimator(), path, "mug")
+    assert str(refused.value).startswith(f"{path}: object 'mug': bad cylinder primitive: ")

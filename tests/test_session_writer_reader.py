@@ -308,6 +308,23 @@ def test_resume_adds_new_objects_and_checks_meshes(tmp_path):
         _writer(path, resume=True, objects=[dict(OBJECT, mesh_sha256="ef" * 32)])
 
 
+@pytest.mark.parametrize("stream", [sf.PRESSURE_HPA, sf.ARM_TCP_WRENCH])
+def test_resume_refuses_a_stream_the_readers_refuse(tmp_path, stream):
+    """Was: a NaN in pressure/hpa (a file damaged by other means: the drivers refuse NaN) was resumed
+    and extended, and bubble info still refused the longer file."""
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
+        w.append_arm(0.0, np.zeros(6), np.zeros(6))
+        w.append_pressure(0.0, 1013.0)
+    with h5py.File(path, "r+") as f:
+        f[stream][0] = np.nan
+    recorded = path.read_bytes()
+    with pytest.raises(InputError, match=f"corrupt session, NaN/inf in {stream} \\(row 0\\)"):
+        _writer(path, resume=True)
+    assert path.read_bytes() == recorded
+
+
 def _one_frame_session(path, closed: bool):
     """A session of one frame, closed cleanly or as a killed recording (or one still running) leaves it."""
     with _writer(path) as w:

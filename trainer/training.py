@@ -376,6 +376,11 @@ def _train(config: TrainConfig, ctx: DistContext, call_start: float,
     network, metadata, init_info = _build(config, train_frames)
     train_t = to_network_tensors(train_frames, metadata.geometry, metadata.normalization)
     val_t = to_network_tensors(val_frames, metadata.geometry, metadata.normalization)
+    for role, tensors in (("training", train_t), ("validation", val_t)):  # was: "training diverged ... lower --lr"
+        if not bool(((tensors.depth > metadata.min_depth) & (tensors.depth < metadata.max_depth)).any()):
+            raise InputError(f"no {role} frame has ToF depth within the model's range {metadata.min_depth:g}-"
+                             f"{metadata.max_depth:g} m: nothing to {'train on' if role == 'training' else 'validate with'} "
+                             f"(check the camera's depth stream: bubble info)")
     sources = [s.to_dict() for s in frames.sources]
     val_sources = [s.to_dict() for s in val_frames.sources] if config.val_data else []
     frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size, init_info)
