@@ -15,7 +15,10 @@ from collect.output_files import named_path
 
 #: Deepest press the preview accepts (mm), and no deeper than the sensor's dome is high (its travel: a
 #: deeper press pushes the object into the housing; was 30 mm on any sensor, 8.7 kN on a 5 mm dome).
-MAX_PREVIEW_PRESS_MM = 30.0
+#: The membrane model's range (docs/simulator.md): at 15 mm the box bulges the membrane out 4.4 mm,
+#: beyond the 4 mm the contact model looks out (``obstacle.REACH_OUT_M``), and at 30 mm the solver
+#: stopped unconverged (fingers: 2.6 kN, +3000 hPa; was accepted).
+MAX_PREVIEW_PRESS_MM = 12.0
 
 
 def register(subparsers) -> None:
@@ -63,7 +66,8 @@ def _preview(args: argparse.Namespace) -> int:
     from hw_mocks.sensor_spec import SensorSpec
 
     if not (0.0 <= args.press_mm <= MAX_PREVIEW_PRESS_MM):
-        raise InputError(f"--press-mm must be within [0, {MAX_PREVIEW_PRESS_MM:g}], got {args.press_mm:g}")
+        raise InputError(f"--press-mm must be within [0, {MAX_PREVIEW_PRESS_MM:g}] (the simulated membrane's range), "
+                         f"got {args.press_mm:g}")
     out = Path(args.out)
     _check_preview_output(out)
     if args.object not in BUILTIN_OBJECTS and os.path.isdir(args.object):  # not Path: Path("") is "."

@@ -47,15 +47,15 @@ def test_bad_input_exits_2(tmp_path, capsys):
     _fails_with_one_line(
         capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", str(tmp_path / "holey.stl"), "--out", png], "watertight"
     )
-    _fails_with_one_line(
-        capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "mug", "--press-mm", "80", "--out", png], "press-mm"
-    )
+    for deep in ("80", "12.5"):  # 12.5: beyond the membrane model's range (was: accepted up to 30 mm, 2.6 kN)
+        _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(spec_path), "--object", "mug", "--press-mm", deep,
+                                      "--out", png], f"--press-mm must be within [0, 12] (the simulated membrane's range), got {deep}")
     shallow = tmp_path / "shallow.yaml"  # a 5 mm dome: a 20 mm press went through it (was: 8.7 kN, exit 0)
     shallow.write_text(spec_path.read_text().replace(f"dome_height_m: {SensorSpec.from_yaml(spec_path).dome_height_m}",
                                                      "dome_height_m: 0.005"))
     assert SensorSpec.from_yaml(shallow).dome_height_m == 0.005
-    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(shallow), "--object", "mug", "--press-mm", "20",
-                                  "--out", png], "--press-mm 20 is deeper than the sensor's dome is high (5.0 mm, its travel)")
+    _fails_with_one_line(capsys, ["sim", "preview", "--sensor", str(shallow), "--object", "mug", "--press-mm", "8",
+                                  "--out", png], "--press-mm 8 is deeper than the sensor's dome is high (5.0 mm, its travel)")
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "-3", "--out", str(tmp_path / "n.yaml")], "seed")
     spec_text = spec_path.read_text()
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "2", "--out", str(spec_path)], "already exists")
