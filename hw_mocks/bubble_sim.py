@@ -33,6 +33,8 @@ PHYSICS_STEP = 2
 #: and image size pass their own checks may still spread the rim over millions of pixels, which the
 #: solver would take minutes per frame for.
 MAX_PHYSICS_CELLS = 250_000
+#: Least share of the image the membrane must cover at rest (the drawn sensors': 54-82 %).
+MIN_MEMBRANE_SHARE = 0.25
 
 
 @dataclass
@@ -98,6 +100,9 @@ class BubbleSim:
         # Full image grid.
         self.grid = RayGrid.build(spec, 0.0, 0.0, 1, (h, w))
         depth, mask = self.dome.rest_depth(self.grid)
+        if mask.mean() < MIN_MEMBRANE_SHARE:  # was: rendered, a preview of NaN statistics and numpy's warnings
+            raise InputError(f"sensor {spec.serial}: its camera sees the membrane over {100 * mask.mean():.0f} % of its "
+                             f"image (at least {100 * MIN_MEMBRANE_SHARE:g} %); check camera_in_tcp, fx, fy, cx and cy")
         self.membrane_mask = mask
         self.rest_depth = np.where(mask, depth, 0.0).astype(np.float32)
         self._rest_depth64 = depth

@@ -31,6 +31,8 @@ from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 DEFECTS = ("leak", "dead-pixels", "no-dots")
 #: Largest ``draw_sensor`` seed (its serial stays short).
 MAX_SEED = 2**32 - 1
+#: How far the camera must sit behind the bubble's rim plane (m): the drawn sensors' sit 55-70 mm behind it.
+CAMERA_BEHIND_RIM_MIN_M = 0.01
 #: How far the camera may sit off the bubble's axis (m) and turn away from it (rad) in a spec.
 CAMERA_OFFSET_MAX_M = 0.02
 CAMERA_TURN_MAX_RAD = math.radians(20.0)
@@ -206,6 +208,13 @@ class SensorSpec:
         x, y, z, *rotation = self.camera_in_tcp
         if not (-0.2 <= z <= -0.03):
             raise InputError(f"{source}: field 'camera_in_tcp' z = {z} m is outside [-0.2, -0.03]")
+        if -z - self.dome_height_m < CAMERA_BEHIND_RIM_MIN_M:  # was: a camera inside the dome accepted (5 % of the
+            # membrane with depth), one just behind the rim refused for its fx and fy (a physics grid too large)
+            behind = -z - self.dome_height_m
+            where = f"{1e3 * behind:.1f} mm behind" if behind >= 0 else f"{-1e3 * behind:.1f} mm in front of"
+            raise InputError(f"{source}: field 'camera_in_tcp' z = {z:g} m puts the camera {where} the bubble's rim "
+                             f"(dome_height_m {self.dome_height_m:g} m below the apex); it must sit at least "
+                             f"{1e3 * CAMERA_BEHIND_RIM_MIN_M:g} mm behind it")
         if max(abs(x), abs(y)) > CAMERA_OFFSET_MAX_M:
             raise InputError(f"{source}: field 'camera_in_tcp' x, y = {x}, {y} m: the camera is more than "
                              f"{CAMERA_OFFSET_MAX_M} m off the bubble's axis")

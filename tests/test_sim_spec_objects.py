@@ -69,6 +69,11 @@ def test_draw_sensor_is_deterministic_and_varied():
         (lambda d: d.update(camera_in_tcp=[0, 0, -0.093, 1e300, 0, 0]), "camera_in_tcp' rotation"),
         (lambda d: d.update(camera_in_tcp=[0, 0, -0.093, 3.1416, 0, 0]), "camera_in_tcp' rotation"),
         (lambda d: d.update(camera_in_tcp=[1.0, 0, -0.093, 0, 0, 0]), "camera_in_tcp' x, y"),
+        # was: refused for fx and fy (0.1 mm behind the rim), or accepted inside the dome (5 % of it with depth)
+        (lambda d: d.update(camera_in_tcp=[0, 0, -0.031, 0, 0, 0]), r"z = -0.031 m puts the camera 0.1 mm behind the "
+                                                                    r"bubble's rim .* at least 10 mm behind it"),
+        (lambda d: d.update(camera_in_tcp=[0, 0, -0.03, 0, 0, 0], dome_height_m=0.05),
+         r"puts the camera 20.0 mm in front of the bubble's rim \(dome_height_m 0.05 m below the apex\)"),
         (lambda d: d.update(serial="SB-1\nX"), "serial"),
         (lambda d: d.update(serial="SB-é"), "serial"),
         (lambda d: d.update(serial="S" * 65), "serial"),
@@ -113,6 +118,15 @@ def test_a_camera_that_spreads_the_rim_over_millions_of_pixels_is_refused():
     spec.validate()
     with pytest.raises(InputError, match=r"its camera \(fx 1500, fy 1500 px\) sees the bubble's rim over .* a physics "
                                          r"grid of \d+ cells \(at most 250000\); check fx and fy"):
+        BubbleSim(spec, [])
+
+
+def test_a_camera_that_sees_little_of_the_membrane_is_refused():
+    """200 mm behind the apex the camera sees the membrane over 9 % of its image (was: rendered, and the
+    preview of a camera that saw none of it printed numpy's warnings and "valid depth nan%")."""
+    spec = dataclasses.replace(draw_sensor(1), camera_in_tcp=[0.0, 0.0, -0.2, 0.0, 0.0, 0.0])
+    spec.validate()
+    with pytest.raises(InputError, match=r"its camera sees the membrane over 9 % of its image \(at least 25 %\)"):
         BubbleSim(spec, [])
 
 
