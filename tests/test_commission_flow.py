@@ -15,7 +15,6 @@ import os
 import shutil
 import signal
 import threading
-import time
 from datetime import datetime
 
 import numpy as np
@@ -243,9 +242,7 @@ def test_registry_records_both_commissionings_and_lists_them(faulted_then_resume
 def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
     config = faulted_then_resumed["config"]
     events: list = []
-    start = time.monotonic()
-    result = run_commissioning(config, events.append)
-    assert time.monotonic() - start < 10.0
+    result = run_commissioning(config, events.append)  # nothing runs again (no step started: below)
     assert result.accepted
     assert all(e.resumed for e in events if isinstance(e, StepFinished))
     assert not [e for e in events if isinstance(e, StepStarted)]
