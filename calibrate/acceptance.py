@@ -83,10 +83,14 @@ def unit_suffix(unit: str | None) -> str:
 
 #: The values the metric of each check can take: ``(lo, hi, what it is)``, inclusive, ``hi`` None
 #: when unbounded. A limit outside them (``heldout_a1: {min: 5}``, ``leak_rate_hpa_per_min:
-#: {max: -1}``) would reject every sensor, or means a unit mix-up, so the file is refused.
+#: {max: -1}``) would reject every sensor, so the file is refused. Of the unit mix-ups these catch
+#: a fraction given in percent and an absolute pressure given in Pa or kPa; a length in m for mm
+#: is a valid (and strict) limit, which only the unit in the file's own text can warn of.
 METRIC_RANGES: dict[str, tuple[float, float | None, str]] = {
     "leak_rate_hpa_per_min": (0.0, None, "a rate of pressure loss"),
-    "inflation_pressure_hpa": (0.0, None, "an absolute pressure"),
+    # hPa, absolute: 700 at 3000 m of altitude, plus the bubble's few tens of hPa of gauge pressure (was:
+    # >= 0, and a range written in Pa or kPa, which rejects every sensor, accepted)
+    "inflation_pressure_hpa": (500.0, 2000.0, "an absolute pressure in hPa"),
     "dead_pixels": (0.0, None, "a count of pixels"),
     "stuck_pixels": (0.0, None, "a count of pixels"),
     "valid_depth_coverage": _FRACTION,

@@ -55,7 +55,12 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
         ("version: 1\nchecks:\n  pose_e_theta_median: {max: 2}\n", "max must be in 0..1"),
         ("version: 1\nchecks:\n  dead_pixels: {max: -3}\n", "max must be >= 0"),
         ("version: 1\nchecks:\n  heldout_rmse_mm: {max: -0.5}\n", "max must be >= 0"),
-        ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: -5, max: 1000}\n", "min must be >= 0"),
+        ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: -5, max: 1000}\n", "min must be in 500..2000"),
+        # a range in Pa or kPa (was: accepted, and every sensor rejected)
+        ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: 103000, max: 111000}\n",
+         r"check 'inflation_pressure_hpa': min must be in 500\.\.2000 \(inflation_pressure_hpa is an absolute "
+         r"pressure in hPa\), got 103000$"),
+        ("version: 1\nchecks:\n  inflation_pressure_hpa: {min: 103, max: 111}\n", "min must be in 500..2000"),
         # was: the packaged limit dropped, a gate's included (a leaking sensor passed its leak test)
         ("version: 1\nchecks:\n  leak_rate_hpa_per_min: {max: null, min: 0}\n",
          "check 'leak_rate_hpa_per_min': max must be a finite number, got None"),

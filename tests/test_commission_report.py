@@ -98,3 +98,12 @@ def test_the_pose_and_run_tables_read_as_text_not_json(tmp_path):
     assert "<td>0.1992 / 0.2214 / 0.01764</td>" in text and "<td>2: 0.082; 4: 0.38</td>" in text
     assert "<td>simulated: yes; objects: mug / box; registry: none</td>" in text
     assert "Sq.Rel (m)" in text and "[0." not in text
+
+
+def test_the_heading_writes_a_failed_a1_as_its_check_does(tmp_path):
+    """Was: 3 decimals in the heading, a rejected 0.94996 (limit 0.95) shown as 0.950."""
+    data = _full_report_data(False)
+    data.checks = [evaluate(load_thresholds(), "heldout_a1", 0.94996)]
+    data.heldout_metrics = {**data.heldout_metrics, "a1": 0.94996}
+    text = write_report(data, tmp_path / "report.html").read_text()
+    assert "held-out &delta;&lt;1.05 = 0.94996</p>" in text and "= 0.950<" not in text
