@@ -372,7 +372,8 @@ def assemble(runs: dict) -> str:
         "`--only NAME,...` reruns a subset, `--assemble-only` rebuilds the page). Runs, exit codes and wall "
         "times: [benchmarks.json](benchmarks.json); logs in `runs/bench_logs/`.",
         "",
-        (f"The runs listed below took {total:.0f} min in total, from {dates[0]} to {dates[-1]}; each one's machine, "
+        (f"The runs listed below took {total:.0f} min in total; the first started {dates[0]}, the last {dates[-1]}; "
+         "each one's machine, "
          "load and the CPU other processes used are in its section and in benchmarks.json." if dates else
          "No benchmark has run through `run_all.py` yet: the sections below are the scripts' own pages."),
         "",
