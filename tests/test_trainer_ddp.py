@@ -45,27 +45,3 @@ def test_more_processes_than_gpus_is_bad_input(monkeypatch):
         DistContext.from_env()
     assert not torch.distributed.is_initialized()
 
-
-def test_the_process_group_is_closed_when_training_fails(tmp_path, monkeypatch):
-    """Was: closed on success and on a diverged loss only; a rank that failed otherwise (a bad session,
-    a refused resume) left the group to the process's exit, beside a peer still in it."""
-    import trainer.training
-    from collect.errors import InputError
-    from trainer.distributed import DistContext
-    from trainer.training import TrainConfig, train_model
-
-    closed = []
-
-    class RecordedContext(DistContext):
-        def close(self) -> None:
-            closed.append(True)
-
-    def unreadable(*args, **kwargs):
-        raise InputError("the session cannot be read")
-
-    session = make_synthetic_session(tmp_path / "s.h5", height=48, width=64, poses_per_object=2)
-    monkeypatch.setattr(DistContext, "from_env", classmethod(lambda cls, prefer_cuda=True: RecordedContext()))
-    monkeypatch.setattr(trainer.training, "load_frames", unreadable)
-    with pytest.raises(InputError, match="cannot be read"):
-        train_model(TrainConfig(data=[str(session)], out=str(tmp_path / "model"), epochs=1))
-    assert closed == [True]

@@ -344,17 +344,6 @@ def train_model(
     call_start = time.perf_counter()
     _check_config(config)
     ctx = DistContext.from_env()
-    try:
-        return _train(config, ctx, call_start, progress_callback, stop_event)
-    finally:  # on every way out, an error's too (was: the process group left to the process's exit)
-        ctx.close()
-
-
-def _train(config: TrainConfig, ctx: DistContext, call_start: float,
-           progress_callback: Callable[[TrainProgress], None] | None,
-           stop_event: threading.Event | None) -> TrainResult | None:
-    """``train_model``'s work in the process group ``ctx`` (closed by the caller); ``call_start``: when
-    the call began (``time.perf_counter()``, s), which ``config.deadline_s`` counts from."""
     if ctx.enabled and config.deadline_s is not None:  # rank 0 alone times the validations
         raise InputError("a wall-time deadline is for single-process training, not under torchrun")
     torch.set_num_threads(config.threads or ctx.cpu_threads())
@@ -518,7 +507,8 @@ def _train(config: TrainConfig, ctx: DistContext, call_start: float,
                 time.perf_counter() - last_eval >= config.eval_interval_s,
                 not math.isfinite(value),
             )
-            if diverged:
+            if diverged:  # on every rank (any_flags): the group is closed at once
+                ctx.close()
                 raise _diverged(config, step, f"the loss is {value}")
             if stop or over:
                 stopped = stop  # a stop request wins over a budget or deadline spent at the same step
@@ -542,7 +532,9 @@ def _train(config: TrainConfig, ctx: DistContext, call_start: float,
         result = TrainResult(out_dir, {}, history, epoch_f, step, train_s, True, _peak_rss_mb())
     elif ctx.is_main:
         metrics = evaluate_tensors(network, val_t, ctx.device, metadata.min_depth, metadata.max_depth)
-        if not math.isfinite(metrics["abs_rel"]):
+        if not math.isfinite(metrics["abs_rel"]):  # on rank 0 alone: the group is left to the process's exit, so
+            # that torchrun stops the peers waiting in the barrier below (was: closed under them; torchrun's report
+            # then named a peer's "connection closed" instead of this error, and with NCCL the close can hang)
             raise _diverged(config, step, "its depth on the validation frames is not finite")
         history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
                         **evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)})
@@ -590,5 +582,6 @@ def _train(config: TrainConfig, ctx: DistContext, call_start: float,
         val_live = history[-1]
         report("done")
     ctx.barrier()
+    ctx.close()
     return result
 
