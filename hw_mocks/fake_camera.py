@@ -86,7 +86,7 @@ class SimCameraDevice:
 
     def render(self, seq: int, t: float) -> tuple:
         """Depth and amplitude messages of frame ``seq`` at simulated time ``t``, and its true depth."""
-        state = self.scene.frame_solution().state
+        state = self.scene.frame_solution(t).state
         ir, depth = self.scene.sim.render(state, self._rng)
         t_device = t + self.boot_offset_s
         return (img_frame(depth, seq, t_device, t), img_frame(ir, seq, t_device, t),

@@ -15,11 +15,11 @@ membrane at most ``spec.fps`` times a second (real time) when the pose moved, or
 reaches ``LOOKAHEAD_S`` later. Lock-step: while the arm moves, simulated time may not run more than
 ``LOOKAHEAD_S`` past the latest solution; on a slow or loaded machine the simulated clock slows
 down instead of the physics falling behind the arm. Readers never block on a solve but one:
-* the camera twin renders each frame from the stored solution made for the time nearest the
-  frame's (of the latest two: while the arm moves the latest is made for up to ``LOOKAHEAD_S``
-  ahead), except where the arm has come to rest short of the pose that solution was made for (a
-  guarded move or a stop ended the move early): it first solves at the rest pose
-  (``frame_solution``);
+* the camera twin renders each frame, while the arm moves, from the stored solution made for the
+  time nearest the frame's (of the latest two: the latest is made for up to ``LOOKAHEAD_S``
+  ahead), and at rest from the latest, except where the arm has come to rest short of the pose
+  that solution was made for (a guarded move or a stop ended the move early): it first solves at
+  the rest pose (``frame_solution``);
 * the arm's wrench and the board's pressure are the latest two solutions interpolated to the
   current pose along the direction of motion (extrapolated at most ``EXTRAPOLATE_MAX`` solve steps
   beyond), so a press ramps smoothly between solves and a stop short of the look-ahead pose
@@ -291,19 +291,22 @@ class SimBench:
         with self._lock:
             return self._solved[-1]
 
-    def frame_solution(self) -> _Solved:
-        """The membrane solution a camera frame taken now shows: of the latest two, the one made for the
-        time nearest now (was: the latest, made for up to ``LOOKAHEAD_S`` ahead: during a 20 mm/s press
-        the frames showed the membrane 0.17 mm deeper than the arm's pose at their time, median, up
-        to 0.45), or, when the arm has come to rest short of the pose that solution was made for (a
+    def frame_solution(self, t: float | None = None) -> _Solved:
+        """The membrane solution a camera frame taken at simulated time ``t`` (s; default now) shows.
+
+        While the arm moves: of the latest two, the one made for the time nearest ``t`` (was: the
+        latest, made for up to ``LOOKAHEAD_S`` ahead: during a 20 mm/s press the frames showed the
+        membrane 0.17 mm deeper than the arm's pose at their time, median, up to 0.45). At rest: the
+        latest, or, when the arm has come to rest short of the pose that solution was made for (a
         guarded move or a stop ended the move early), one solved at the rest pose first. Was: the
         first one or two frames of such a hold showed the membrane pressed up to the look-ahead
         deeper than the arm was (a dent of 677 pixels where the arm's pose gives 474), and the pose
         check's errors against the true pose were 0.6-0.75 mm there instead of 0.1 mm."""
-        t = self.now()
-        with self._lock:
-            solved = min(self._solved, key=lambda s: abs(s.t - t))
-        if not self.physics_failed and self.arm.moving_until() <= t and not _same_pose(solved.pose, self.arm.pose_at(t)):
+        t = self.now() if t is None else t
+        at_rest = self.arm.moving_until() <= t
+        with self._lock:  # (at rest the nearest could be one from before the stop: a solve more per stop)
+            solved = self._solved[-1] if at_rest else min(self._solved, key=lambda s: abs(s.t - t))
+        if not self.physics_failed and at_rest and not _same_pose(solved.pose, self.arm.pose_at(t)):
             try:
                 self._solve_now()
             except Exception:  # as in the physics thread: the frame shows the latest solution

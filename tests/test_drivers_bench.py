@@ -584,3 +584,28 @@ def test_a_frame_during_a_move_shows_the_solution_made_for_its_time():
     assert frame is not latest and abs(frame.pose[2] - arm_z) < 1e-4 < abs(latest.pose[2] - arm_z)
     _, _, true_depth = SimCameraDevice(scene).render(0, clock.t)
     np.testing.assert_array_equal(true_depth, np.asarray(frame.state.true_depth, dtype=np.float32))
+
+
+def test_a_frame_at_rest_shows_the_latest_solution_without_solving_again():
+    """Once the arm has stopped, a solution the physics made at the rest pose is shown as it is (in
+    e4e2053: the one nearest in time, often from before the stop, so the camera solved again, once or
+    twice per guarded stop, and consecutive frames went back and forth between two solutions)."""
+    from collect.bench import _placed_objects
+    from hw_mocks.sensor_spec import draw_sensor
+    from hw_mocks.sim_bench import SimBench, _same_pose
+
+    objects = _placed_objects(("box",))
+    top = objects[0].top_point()
+    above = np.array([top[0], top[1], top[2] + 0.002, np.pi, 0.0, 0.0])
+    scene = SimBench(draw_sensor(1), objects, seed=1, start_pose=above)  # no physics thread: the test solves
+    scene.clock = clock = SteppedClock(scene.now())
+    assert scene.arm.move_linear(above - [0, 0, 0.008, 0, 0, 0], 0.02, 1.0)
+    clock.t += 0.2
+    scene._solve_now()  # made for 30 ms ahead, along the press
+    scene.arm.stop_linear(100.0)  # the guard fires
+    clock.t += 0.01
+    scene._solve_now()  # the physics thread's next solve, at the rest pose
+    at_rest, solves = scene.latest(), scene.solves
+    clock.t += 0.001  # nearer in time to the solve before the stop than to this one
+    assert scene.arm.moving_until() <= clock.t and _same_pose(at_rest.pose, scene.arm.pose_at(clock.t))
+    assert scene.frame_solution() is at_rest and scene.solves == solves
