@@ -69,10 +69,12 @@ _MESH_LAYOUT = {
 }
 #: Largest depth unit accepted (m per count): 1 cm, 100 times the recorder's.
 MAX_DEPTH_UNIT_M = 0.01
-#: Size (bytes) under which an unreadable session file was cut off as it was created: the recorder's
+#: Size (bytes) under which an unreadable HDF5 file was cut off as it was created: the recorder's
 #: first flush, before any frame, writes its groups and empty datasets (tens of kB); HDF5's header
 #: alone, written as the file is created, is 48 bytes.
 UNFINISHED_CREATION_BYTES = 4096
+#: The first bytes of every HDF5 file.
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 def open_h5(path, *, locking: bool = True) -> h5py.File:
@@ -98,10 +100,25 @@ def open_h5(path, *, locking: bool = True) -> h5py.File:
         raise in_use_error(path) from None
     except OSError as err:
         hint = ""
-        if size < UNFINISHED_CREATION_BYTES:  # was: no hint, and `collect` refused the name ("use --resume")
+        if _cut_off_at_creation(path, size):  # was: no hint, and `collect` refused the name ("use --resume")
             hint = (f"; at {size} bytes it holds no recording (cut off as it was created: the command that created it "
                     "was killed at once): delete it and record again")
         raise InputError(f"{path}: not a readable HDF5 session ({h5_error_text(err)}){hint}") from None
+
+
+def _cut_off_at_creation(path: str, size: int) -> bool:
+    """Whether the unreadable file ``path`` of ``size`` bytes is an HDF5 file cut off as it was created:
+    empty, or HDF5's signature and under ``UNFINISHED_CREATION_BYTES`` (not a small file of another
+    kind, which is no recording of this tool's at all)."""
+    if size == 0:
+        return True
+    if size >= UNFINISHED_CREATION_BYTES:
+        return False
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(HDF5_SIGNATURE)) == HDF5_SIGNATURE
+    except OSError:
+        return False
 
 
 def in_use_error(path) -> InputError:

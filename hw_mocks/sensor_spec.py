@@ -31,7 +31,7 @@ from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 DEFECTS = ("leak", "dead-pixels", "no-dots")
 #: Largest ``draw_sensor`` seed (its serial stays short).
 MAX_SEED = 2**32 - 1
-#: How far the camera must sit behind the bubble's rim plane (m): the drawn sensors' sit 55-70 mm behind it.
+#: How far the camera must sit behind the bubble's rim plane (m): the drawn sensors' sit 55-72 mm behind it.
 CAMERA_BEHIND_RIM_MIN_M = 0.01
 #: How far the camera may sit off the bubble's axis (m) and turn away from it (rad) in a spec.
 CAMERA_OFFSET_MAX_M = 0.02

@@ -261,3 +261,7 @@ def test_a_file_cut_off_as_it_was_created_says_to_delete_it(tmp_path, small_sess
     assert path.stat().st_size == 48
     path.write_bytes(small_session.read_bytes()[:-1000])  # a recording cut off later: no such hint
     assert main(["info", str(path)]) == 2 and "holds no recording" not in capsys.readouterr().err
+    path.write_text("x = 1\n")  # a small file of another kind (was, in b18db75: told to delete it)
+    assert main(["info", str(path)]) == 2 and "holds no recording" not in capsys.readouterr().err
+    path.write_bytes(b"")  # empty: no recording either way
+    assert main(["info", str(path)]) == 2 and "at 0 bytes it holds no recording" in capsys.readouterr().err
