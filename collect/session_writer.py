@@ -832,8 +832,7 @@ def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simu
                          f"(camera_in_tcp); record into a new file")
     # streams that the readers refuse are not extended (was: NaN in pressure/hpa resumed, and the longer
     # file still refused by bubble info)
-    session.arm()
-    session.pressure()
+    session.check_streams()
     stored = session.collection_plan()
     if plan_text is not None and stored is None and bool(np.any(session.pose_id >= 0)):
         raise InputError(f"cannot resume {path}: it holds contact poses but no collection plan to check this run's "

@@ -309,18 +309,22 @@ def test_resume_adds_new_objects_and_checks_meshes(tmp_path):
 
 
 @pytest.mark.parametrize("stream", [sf.PRESSURE_HPA, sf.ARM_TCP_WRENCH])
-def test_resume_refuses_a_stream_the_readers_refuse(tmp_path, stream):
+def test_resume_refuses_a_stream_the_readers_refuse(tmp_path, stream, monkeypatch):
     """Was: a NaN in pressure/hpa (a file damaged by other means: the drivers refuse NaN) was resumed
-    and extended, and bubble info still refused the longer file."""
+    and extended, and bubble info still refused the longer file. The streams are read in blocks."""
+    import collect.session_reader
+
     path = tmp_path / "s.h5"
     with _writer(path) as w:
         w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
-        w.append_arm(0.0, np.zeros(6), np.zeros(6))
-        w.append_pressure(0.0, 1013.0)
+        for k in range(5):
+            w.append_arm(0.01 * k, np.zeros(6), np.zeros(6))
+            w.append_pressure(0.01 * k, 1013.0)
     with h5py.File(path, "r+") as f:
-        f[stream][0] = np.nan
+        f[stream][3] = np.nan
     recorded = path.read_bytes()
-    with pytest.raises(InputError, match=f"corrupt session, NaN/inf in {stream} \\(row 0\\)"):
+    monkeypatch.setattr(collect.session_reader, "STREAM_CHECK_ROWS", 2)
+    with pytest.raises(InputError, match=f"corrupt session, NaN/inf in {stream} \\(row 3\\)"):
         _writer(path, resume=True)
     assert path.read_bytes() == recorded
 
