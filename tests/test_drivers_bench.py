@@ -560,11 +560,10 @@ def test_a_robot_lost_before_its_first_sample_is_a_fault_not_a_traceback(tmp_pat
     assert "lost the RTDE connection" in err and "Traceback" not in err and "AttributeError" not in err
 
 
-def test_a_frame_during_a_move_shows_the_solution_made_for_its_time():
-    """Was: the latest solution, made for the pose the arm reaches 30 ms later: a 20 mm/s press was
-    rendered up to 0.6 mm deeper than the arm pressed at the frame's time."""
+def _pressing_on_a_stepped_clock():
+    """A simulated bench without its physics thread (the test solves) on a ``SteppedClock``, its arm
+    starting a 20 mm/s press 2 mm above the box: ``(scene, clock)``."""
     from collect.bench import _placed_objects
-    from hw_mocks.fake_camera import SimCameraDevice
     from hw_mocks.sensor_spec import draw_sensor
     from hw_mocks.sim_bench import SimBench
 
@@ -574,6 +573,15 @@ def test_a_frame_during_a_move_shows_the_solution_made_for_its_time():
     scene = SimBench(draw_sensor(1), objects, seed=1, start_pose=above)  # no physics thread: the test solves
     scene.clock = clock = SteppedClock(scene.now())
     assert scene.arm.move_linear(above - [0, 0, 0.008, 0, 0, 0], 0.02, 1.0)
+    return scene, clock
+
+
+def test_a_frame_during_a_move_shows_the_solution_made_for_its_time():
+    """Was: the latest solution, made for the pose the arm reaches 30 ms later: a 20 mm/s press was
+    rendered up to 0.6 mm deeper than the arm pressed at the frame's time."""
+    from hw_mocks.fake_camera import SimCameraDevice
+
+    scene, clock = _pressing_on_a_stepped_clock()
     clock.t += 0.2
     scene._solve_now()  # the physics thread's solves, 30 ms ahead, a camera period (22 ms) apart
     clock.t += 0.022
@@ -590,16 +598,9 @@ def test_a_frame_at_rest_shows_the_latest_solution_without_solving_again():
     """Once the arm has stopped, a solution the physics made at the rest pose is shown as it is (in
     e4e2053: the one nearest in time, often from before the stop, so the camera solved again, once or
     twice per guarded stop, and consecutive frames went back and forth between two solutions)."""
-    from collect.bench import _placed_objects
-    from hw_mocks.sensor_spec import draw_sensor
-    from hw_mocks.sim_bench import SimBench, _same_pose
+    from hw_mocks.sim_bench import _same_pose
 
-    objects = _placed_objects(("box",))
-    top = objects[0].top_point()
-    above = np.array([top[0], top[1], top[2] + 0.002, np.pi, 0.0, 0.0])
-    scene = SimBench(draw_sensor(1), objects, seed=1, start_pose=above)  # no physics thread: the test solves
-    scene.clock = clock = SteppedClock(scene.now())
-    assert scene.arm.move_linear(above - [0, 0, 0.008, 0, 0, 0], 0.02, 1.0)
+    scene, clock = _pressing_on_a_stepped_clock()
     clock.t += 0.2
     scene._solve_now()  # made for 30 ms ahead, along the press
     scene.arm.stop_linear(100.0)  # the guard fires
