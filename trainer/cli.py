@@ -274,9 +274,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.json is not None:
         check_json_output(args.json, "bubble evaluate")
     result = evaluate_model(args.model, args.data, objects=_objects(args.objects), runtime=args.runtime)
-    print_sensor_note(args.model, result["sensors_not_trained_on"])
     if args.json is not None:  # before the console, which may be a pipe its reader closed (`| head`)
         write_json_result(args.json, "bubble evaluate", result)
+    print_sensor_note(args.model, result["sensors_not_trained_on"])
 
     class StdoutConsole(Console):
         def on_broken_pipe(self) -> None:  # the command line's exit code for it (rich's own: exit 1, "rejected")
