@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import threading
+from contextlib import ExitStack
 
 from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
@@ -106,6 +107,7 @@ def run_collect(args: argparse.Namespace) -> int:
                                     session_metadata)
     from collect.pose_planner import PlanSettings
     from collect.session_writer import check_free_space, check_output_path, resume_progress
+    from collect.stop_signals import INTERRUPTS, raise_interrupt, stop_signals_deferred, stop_signals_handled
 
     check_output_path(args.out, args.resume)
     check_free_space(args.out)  # before the bench opens, like every check of the output
@@ -126,9 +128,22 @@ def run_collect(args: argparse.Namespace) -> int:
                 print(f"{args.out}: the plan is already complete ({_count(len(plan.poses), 'pose')} on "
                       f"{_count(len(plan.objects), 'object')}); nothing to record{closed}")
                 return 0
-        with open_collection_writer(args.out, bench, plan, resume=args.resume) as writer:
-            with display:
-                result = run_collection(bench, plan, writer, display.update, threading.Event())
+        stop, signalled = threading.Event(), []
+
+        def on_signal(signum: int) -> None:
+            signalled.append(signum)
+            stop.set()  # the arm halts within a state sample even where the exception is lost (below)
+            raise_interrupt(signum)
+
+        with ExitStack() as files:
+            with stop_signals_deferred():  # until the file is made (was: a Ctrl-C inside h5py's first writes
+                # came out as a TypeError traceback, exit 1); delivered then, and the file closed
+                writer = files.enter_context(open_collection_writer(args.out, bench, plan, resume=args.resume))
+            with display, stop_signals_handled(on_signal, INTERRUPTS):
+                result = run_collection(bench, plan, writer, display.update, stop)
+            if signalled:  # its KeyboardInterrupt was lost: raised while a weakref callback ran, which Python
+                # only prints ("Exception ignored in"; was: the Ctrl-C lost, the whole plan recorded, exit 0)
+                raise_interrupt(signalled[0])
             frames = writer.n_frames
     skipped = f", {len(result.poses_without_contact)} without contact" if result.poses_without_contact else ""
     print(f"recorded {result.frames} frames ({len(result.poses_done)} poses{skipped}, {result.dropped} dropped) "

@@ -204,8 +204,10 @@ def test_pretrain_collect_stops_at_ctrl_c_and_keeps_the_sessions_recorded(tmp_pa
     work.mkdir()
     recorded = work / "sensor_01000.h5"  # recorded by an earlier run: skipped, and kept
     recorded.write_bytes(b"a session")
+    # a recording of ~6 s, which the Ctrl-C lands in (was: one pose at 100x, which could end between
+    # its file's appearance and the Ctrl-C: the test then failed on a complete sensor_01001.h5)
     proc = subprocess.Popen([sys.executable, "-m", "trainer.pretrain", "collect", "--work", str(work), "--sensors", "3",
-                             "--jobs", "1", "--objects", "box", "--poses-per-object", "1", "--sim-speed", "100"],
+                             "--jobs", "1", "--objects", "box", "--poses-per-object", "3", "--sim-speed", "1"],
                             cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     recording = work / "sensor_01001.partial.h5"  # the next sensor's session, being recorded by bubble collect
