@@ -33,7 +33,7 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 
 from collect.atomic_files import replacing
@@ -56,6 +56,8 @@ TRAIN_DIR = "model"
 
 #: Longest a single ``bubble`` command may run before it counts as hung (s).
 COMMAND_TIMEOUT_S = 1800.0
+#: How often ``collect``'s main thread looks for a stop whose ``KeyboardInterrupt`` was lost (s).
+STOP_POLL_S = 0.2
 #: Longest a ``bubble`` command that ``collect`` stopped (its Ctrl-C) may take to close its files before
 #: it is killed (s).
 STOP_TIMEOUT_S = 60.0
@@ -151,6 +153,16 @@ def check_collect_options(seeds: range, objects: str | None, sim_speed: float) -
         load_object(name)
 
 
+def result_unless_stopped(future: Future, signalled: list[int]) -> Path:
+    """``future.result()``, or the stop in ``signalled`` (the signals received, in order) raised again
+    within ``STOP_POLL_S``: Python only prints a ``KeyboardInterrupt`` raised while a weakref callback
+    runs ("Exception ignored in"), and such a lost Ctrl-C let every queued sensor be recorded."""
+    while not wait([future], timeout=STOP_POLL_S).done:
+        if signalled:
+            raise_interrupt(signalled[0])
+    return future.result()
+
+
 def run_collect(args: argparse.Namespace) -> int:
     """Record the sessions of ``--sensors`` sensors, ``--jobs`` at a time. A stop (Ctrl-C, SIGTERM,
     SIGHUP) starts no further sensor and stops the ``bubble`` commands that run (``BubbleCommands.stop``):
@@ -169,17 +181,25 @@ def run_collect(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     commands = BubbleCommands()
     failed = 0
-    with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True), \
+    signalled: list[int] = []
+
+    def on_signal(signum: int) -> None:
+        signalled.append(signum)
+        raise_interrupt(signum)
+
+    with stop_signals_handled(on_signal, INTERRUPTS, process_ends=True), \
             ThreadPoolExecutor(max_workers=args.jobs) as pool:
         try:
             futures = {seed: pool.submit(collect_one, work, seed, args.objects, args.poses_per_object,
                                          args.sim_speed, commands) for seed in seeds}
             for seed, future in futures.items():
                 try:
-                    print(f"sensor seed {seed}: {future.result()}", flush=True)
+                    print(f"sensor seed {seed}: {result_unless_stopped(future, signalled)}", flush=True)
                 except RuntimeError as err:  # one bad simulated sensor does not stop the others
                     failed += 1
                     print(f"sensor seed {seed}: {err}", file=sys.stderr, flush=True)
+            if signalled:  # after the last sensor's result; its KeyboardInterrupt was lost
+                raise_interrupt(signalled[0])
         except KeyboardInterrupt:  # and Terminated; was: the with-block waited for every queued sensor
             pool.shutdown(wait=False, cancel_futures=True)
             commands.stop()
