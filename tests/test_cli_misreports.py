@@ -413,3 +413,13 @@ def test_training_on_frames_without_valid_depth_says_so(tmp_path, make_synthetic
                       "--out", tmp_path / "m"],
              "no training frame has ToF depth within the model's range 0.04-0.12 m: nothing to train on")
     assert not (tmp_path / "m" / "metadata.json").exists()
+
+
+def test_evaluation_on_frames_without_valid_depth_says_so(tmp_path, make_synthetic_session, capsys):
+    """The same check as the training's, with the same hint (the two were written twice)."""
+    session = make_synthetic_session(tmp_path / "s.h5")
+    with h5py.File(session, "a") as f:
+        f[sf.FRAMES_DEPTH][...] = 0
+    _refused(capsys, ["evaluate", "--model", "base", "--data", session],
+             f"no contact frame of {session} has ToF depth within the model's range 0.04-0.12 m: nothing to compare "
+             "the model with (check the camera's depth stream: bubble info)")

@@ -16,7 +16,7 @@ import numpy as np
 from collect.errors import InputError
 from trainer.dataset import CONTACT_PHASES, check_each_recording_once, check_each_session_once, load_frames
 from trainer.inference import DepthEstimator
-from trainer.metrics import depth_metrics
+from trainer.metrics import depth_metrics, in_depth_range, no_depth_in_range
 
 PREDICT_BATCH = 16
 
@@ -37,8 +37,8 @@ def compare_with_truth(pred: np.ndarray, tof: np.ndarray, truth: np.ndarray, min
     * ``model_on_tof_dropout``: model vs truth where the ToF gave nothing;
     * ``tof_coverage``: share of the in-range true pixels where the ToF is valid.
     """
-    in_range = (truth > min_depth) & (truth < max_depth)
-    tof_valid = (tof > min_depth) & (tof < max_depth)
+    in_range = in_depth_range(truth, min_depth, max_depth)
+    tof_valid = in_depth_range(tof, min_depth, max_depth)
     kw = {"min_depth": min_depth, "max_depth": max_depth}
     return {
         "tof": depth_metrics(tof, truth, mask=tof_valid, **kw),
@@ -92,8 +92,8 @@ def evaluate_model(
     kw = {"min_depth": meta.min_depth, "max_depth": meta.max_depth}
     result: dict = dict(depth_metrics(pred, frames.depth, **kw))
     if result["n_images"] == 0:
-        raise InputError(f"no contact frame of {', '.join(map(str, paths))} has ToF depth within the model's range "
-                         f"{meta.min_depth:g}-{meta.max_depth:g} m: nothing to compare the model with")
+        raise no_depth_in_range(f"no contact frame of {', '.join(map(str, paths))}", meta.min_depth, meta.max_depth,
+                                "compare the model with")
     result["latency_ms"] = estimator.latency_ms(ir=frames.ir[0], repeats=latency_repeats)
     result["runtime"] = estimator.runtime
     result["model"] = str(model_dir)

@@ -50,6 +50,20 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     }
 
 
+def in_depth_range(depth, min_depth: float, max_depth: float):
+    """Where ``depth`` (any shape, m; a numpy array or a torch tensor) lies strictly inside
+    ``(min_depth, max_depth)``: the pixels that train a model and that its metrics count (0, an
+    invalid ToF pixel, lies outside). A bool array or tensor of ``depth``'s shape."""
+    return (depth > min_depth) & (depth < max_depth)
+
+
+def no_depth_in_range(frames: str, min_depth: float, max_depth: float, purpose: str) -> InputError:
+    """The one-line error for ``frames`` (e.g. ``no training frame``) without a ToF pixel in
+    ``(min_depth, max_depth)`` m, which leaves nothing to ``purpose`` (e.g. ``train on``)."""
+    return InputError(f"{frames} has ToF depth within the model's range {min_depth:g}-{max_depth:g} m: nothing to "
+                      f"{purpose} (check the camera's depth stream: bubble info)")
+
+
 def depth_metrics(
     pred: np.ndarray,
     gt: np.ndarray,
@@ -82,7 +96,7 @@ def depth_metrics(
     per_image = []
     n_pixels = 0
     for i in range(gt.shape[0]):
-        valid = (gt[i] > min_depth) & (gt[i] < max_depth)
+        valid = in_depth_range(gt[i], min_depth, max_depth)
         if mask is not None:
             valid &= np.asarray(mask[i], dtype=bool)
         if not valid.any():

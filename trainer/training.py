@@ -44,7 +44,7 @@ from trainer.dataset import (
 )
 from trainer.distributed import DistContext
 from trainer.losses import contact_weights, masked_l1
-from trainer.metrics import depth_metrics
+from trainer.metrics import depth_metrics, in_depth_range, no_depth_in_range
 from trainer.model_dir import ModelMetadata, load_metadata, load_network, resolve_model_dir, save_model, weights_sha256
 from trainer.networks import ARCHITECTURES, INPUT_MULTIPLE, build_network, check_width, set_initial_depth
 from trainer.preprocessing import DEFAULT_INPUT_SIZE, InputGeometry, IRNormalization
@@ -308,7 +308,7 @@ def _build(config: TrainConfig, frames: FrameSet) -> tuple[nn.Module, ModelMetad
         width = config.width if config.width is not None else DEFAULT_WIDTHS[arch]
         min_depth, max_depth, input_size = config.min_depth, config.max_depth, tuple(config.input_size)
         network = build_network(arch, width, min_depth, max_depth)
-        valid = frames.depth[(frames.depth > min_depth) & (frames.depth < max_depth)]
+        valid = frames.depth[in_depth_range(frames.depth, min_depth, max_depth)]
         if valid.size:
             set_initial_depth(network, float(np.median(valid)))
     h, w = frames.size
@@ -366,10 +366,9 @@ def train_model(
     train_t = to_network_tensors(train_frames, metadata.geometry, metadata.normalization)
     val_t = to_network_tensors(val_frames, metadata.geometry, metadata.normalization)
     for role, tensors in (("training", train_t), ("validation", val_t)):  # was: "training diverged ... lower --lr"
-        if not bool(((tensors.depth > metadata.min_depth) & (tensors.depth < metadata.max_depth)).any()):
-            raise InputError(f"no {role} frame has ToF depth within the model's range {metadata.min_depth:g}-"
-                             f"{metadata.max_depth:g} m: nothing to {'train on' if role == 'training' else 'validate with'} "
-                             f"(check the camera's depth stream: bubble info)")
+        if not bool(in_depth_range(tensors.depth, metadata.min_depth, metadata.max_depth).any()):
+            raise no_depth_in_range(f"no {role} frame", metadata.min_depth, metadata.max_depth,
+                                    "train on" if role == "training" else "validate with")
     sources = [s.to_dict() for s in frames.sources]
     val_sources = [s.to_dict() for s in val_frames.sources] if config.val_data else []
     frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size, init_info)
@@ -487,7 +486,7 @@ def train_model(
                 gen.manual_seed(((config.seed * 7919 + ctx.rank) * 1_000_003 + step) % (1 << 63))
                 x = augment_ir(x, train_t.content, metadata.normalization.std, gen, config.ir_noise_std)
             target = train_t.depth[idx].to(ctx.device)
-            valid = (target > metadata.min_depth) & (target < metadata.max_depth)
+            valid = in_depth_range(target, metadata.min_depth, metadata.max_depth)
             weight = contact_weights(train_t.contact[idx], config.contact_weight).to(ctx.device) \
                 if config.contact_weight > 0 else None
             loss = masked_l1(model(x.to(ctx.device)), target, valid, inverse=config.inverse_depth_loss, weight=weight)
