@@ -602,6 +602,8 @@ class _Flow:
             reason = "stopped by the operator before a verdict"
         elif not accepted and not reason:
             reason = "not every step completed"
+        elif not accepted and fault is None:
+            reason += self._short_finetune_note()
         doc = self.write_outcome(accepted, reason, fault, stopped)
         if fault is None and not stopped and self.stop_event.is_set():
             # a stop while the verdict's report was written: no registration, the run ends stopped and
@@ -622,6 +624,20 @@ class _Flow:
             self.state.save()
         self.emit(Verdict(accepted, checks, str(report_path)))
         return CommissionResult(accepted, checks, self.run_dir, report_path, stopped=stopped, fault=fault, reason=reason)
+
+    def _short_finetune_note(self) -> str:
+        """What a rejection's reason adds (``; ...``, else '') when a check of the fine-tuned model failed
+        after a fine-tune budget below the default: a healthy sensor fine-tuned a few seconds falls short
+        of the thresholds, and the registry would hold its rejection without saying why (was: a 1 s
+        fine-tune registered a healthy sensor as rejected on heldout_a1 0.77 alone)."""
+        default = CommissionConfig.finetune_minutes
+        model_failed = any(acceptance.failed(self.state.get(step).get("checks", []))
+                           for step in (Step.VALIDATE, Step.POSE_CHECK))
+        if not model_failed or self.config.finetune_minutes >= default:
+            return ""
+        trained = self.state.get(Step.FINETUNE).get("train_s", float("nan"))
+        return (f"; the model fine-tuned {trained:.0f} s (--finetune-minutes {self.config.finetune_minutes:g}, "
+                f"under the default {default:g}): commission it again with the default budget before judging the sensor")
 
     def _register(self, accepted: bool, doc: dict, reason: str, when: datetime | None = None) -> None:
         """Register the run's outcome (``doc``: the ``acceptance.json`` content) in ``config.registry_dir``

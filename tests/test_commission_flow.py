@@ -12,6 +12,7 @@ import fcntl
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import threading
@@ -520,6 +521,24 @@ def test_a_fine_tune_that_could_hardly_train_is_the_computers_fault_not_the_sens
     assert run_commissioning(config, lambda e: None).accepted  # the same command, on a free computer
 
 
+def test_a_rejection_after_a_short_fine_tune_says_so(tmp_path, monkeypatch):
+    """A check of the fine-tuned model failed after a budget under the default: the reason, printed and
+    registered, names the budget (was: a healthy sensor fine-tuned 1 s was registered as rejected on
+    heldout_a1 0.77, its record silent on why)."""
+    config = tiny_config(tmp_path)
+    config.thresholds.write_text(LENIENT_MODEL_CHECKS.replace("heldout_rmse_mm: {max: 1000.0}",
+                                                              "heldout_rmse_mm: {max: 0.001}"))
+    monkeypatch.setattr(commission_config, "MIN_TRAINING_SHARE", 0.0)  # a loaded machine is not what this tests
+    result = run_commissioning(config, lambda e: None)
+    assert not result.accepted and result.fault is None
+    failed, note = result.reason.split("; ")
+    assert failed.startswith("heldout_rmse_mm ")
+    assert re.fullmatch(r"the model fine-tuned \d+ s \(--finetune-minutes 0\.05, under the default 2\.5\): "
+                        r"commission it again with the default budget before judging the sensor", note), note
+    (profile,) = SensorRegistry(config.registry_dir).survey().profiles
+    assert profile.history[-1]["reason"] == result.reason
+
+
 def test_a_sensor_that_failed_a_gate_is_not_reconnected_when_its_run_is_run_again(tmp_path, monkeypatch):
     """A leaking sensor, its run stopped at the verdict (or killed there): run again, it reaches its
     verdict from state.json without the bench (was: the bench was reopened for the steps the failed gate
@@ -533,6 +552,7 @@ def test_a_sensor_that_failed_a_gate_is_not_reconnected_when_its_run_is_run_agai
     config = dataclasses.replace(tiny_config(tmp_path), sensor_spec=spec)
     first = run_commissioning(config, lambda e: None)
     assert not first.accepted and "leak_rate_hpa_per_min" in first.reason
+    assert "fine-tuned" not in first.reason  # no model judged: the budget is not the reason
     state = RunState(config.run_dir / "state.json", json.loads((config.run_dir / "state.json").read_text()))
     del state.data["steps"]["verdict"]  # as a stop at the verdict leaves it
     state.data.pop("registration_id", None), state.data.pop("registered_in", None)
