@@ -151,6 +151,13 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
             raise InputError(f"{where}: check {name!r} needs min and/or max")
         if lo is not None and hi is not None and lo > hi:
             raise InputError(f"{where}: check {name!r}: min {lo} is above max {hi}")
+        for key in ("unit", "describe"):
+            if key in entry and not isinstance(entry[key], str):  # (was: a list's repr as the unit)
+                raise InputError(f"{where}: check {name!r}: {key} must be text, got {entry[key]!r}")
+        if prior is not None and entry.get("unit", prior.unit) != prior.unit:
+            # the value is computed in the packaged unit: another would relabel it (0.149 mm shown as 0.149 m)
+            raise InputError(f"{where}: check {name!r} is measured in {prior.unit or 'no unit'}; its unit cannot "
+                             f"be changed (got {entry['unit']!r}): give its limits in {prior.unit or 'no unit'}")
         gate = entry.get("gate", prior.gate if prior else False)
         if not isinstance(gate, bool):  # text such as "false" would count as true
             raise InputError(f"{where}: check {name!r}: gate must be true or false, got {gate!r}")

@@ -76,6 +76,11 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
          "check 'leak_rate_hpa_per_min' is a maximum check; a min alone would add a second limit"),
         ("version: 1\nchecks:\n  heldout_a1: {max: 0.99}\n",
          "check 'heldout_a1' is a minimum check; a max alone would add a second limit: give min"),
+        # was: the value, computed in mm, printed and judged as 0.149 m (and a list's repr as a unit)
+        ("version: 1\nchecks:\n  heldout_rmse_mm: {max: 0.0015, unit: m}\n",
+         r"check 'heldout_rmse_mm' is measured in mm; its unit cannot be changed \(got 'm'\): give its limits in mm$"),
+        ("version: 1\nchecks:\n  heldout_rmse_mm: {unit: [mm]}\n", r"unit must be text, got \['mm'\]"),
+        ("version: 1\nchecks:\n  heldout_a1: {min: 0.9, describe: 3}\n", "describe must be text, got 3"),
     ],
 )
 def test_bad_threshold_files_are_one_line_input_errors(tmp_path, text, fragment):
@@ -234,3 +239,10 @@ def test_the_housing_at_the_image_edges_is_no_dot(seed):
     frames = [sim.render(state, rng) for _ in range(4)]
     health = assess_camera(np.array([f[0] for f in frames]), np.array([f[1] for f in frames]))
     assert health.dot_count == 0 and health.dot_contrast == 0.0
+
+
+def test_a_thresholds_file_may_restate_a_checks_unit(tmp_path):
+    path = tmp_path / "lab.yaml"
+    path.write_text("version: 1\nchecks:\n  heldout_rmse_mm: {max: 0.3, unit: mm}\n  heldout_abs_rel: {max: 0.02, unit: ''}\n")
+    th = load_thresholds(path)
+    assert (th["heldout_rmse_mm"].hi, th["heldout_rmse_mm"].unit, th["heldout_abs_rel"].unit) == (0.3, "mm", "")
