@@ -12,9 +12,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from calibrate import acceptance
 from collect.bench import DEFAULT_OBJECTS
 from collect.errors import InputError
+from collect.numbers import is_number
 from trainer.training_defaults import MAX_MINUTES, MAX_SEED
 
 if TYPE_CHECKING:
@@ -122,6 +125,16 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     # InputError for an unknown object, a bad mesh, or one named twice (the run would reach the
     # collection step, after the arm's first moves, before the planner said so)
     check_unique_names([load_object(name).name for name in config.objects])
+    # the Python API's settings, which no argparse typed (was: NaN a ValueError traceback, 3.9 poses accepted
+    # and refused by the planner once the bench had opened, "5" minutes a TypeError)
+    for name in ("poses_per_object", "seed"):
+        value = getattr(config, name)
+        if not (is_number(value) and isinstance(value, (int, np.integer))):
+            raise InputError(f"{name.replace('_', ' ')} must be a whole number, got {value!r}")
+    for name in ("finetune_minutes", "leak_hold_s", "sim_speed", "total_minutes"):
+        value = getattr(config, name)  # its range is checked below (NaN and inf there)
+        if not (is_number(value) or name == "total_minutes" and value is None):
+            raise InputError(f"{name.replace('_', ' ')} must be a number, got {value!r}")
     if not 2 <= int(config.poses_per_object) <= MAX_POSES_PER_OBJECT:  # the validation holds out a share of each
         # object's poses
         raise InputError(f"poses per object must be 2..{MAX_POSES_PER_OBJECT} (one or more is held out), got "

@@ -11,10 +11,15 @@ import math
 import numpy as np
 
 
+def is_number(value) -> bool:
+    """Whether ``value`` is an int or a float (numpy's too), not a bool; NaN and inf included."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
 def real_number(value) -> bool:
     """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf,
     nor an int beyond float's range (JSON and YAML read a 400-digit number as an exact int)."""
-    if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, (bool, np.bool_)):
+    if not is_number(value):
         return False
     try:
         return math.isfinite(value)

@@ -416,6 +416,23 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
     assert not (tmp_path / "registry").exists() and not (tmp_path / "run").exists()  # refused before the bench opens
 
 
+@pytest.mark.parametrize("change, message", [
+    ({"poses_per_object": float("nan")}, "poses per object must be a whole number, got nan"),  # was: a ValueError
+    ({"poses_per_object": 3.9}, "poses per object must be a whole number, got 3.9"),  # was: the planner's, later
+    ({"seed": 1.5}, "seed must be a whole number, got 1.5"),
+    ({"seed": True}, "seed must be a whole number, got True"),
+    ({"total_minutes": "5"}, "total minutes must be a number, got '5'"),  # was: a TypeError
+    ({"finetune_minutes": None}, "finetune minutes must be a number, got None"),
+])
+def test_the_python_apis_settings_of_the_wrong_type_are_input_errors(tmp_path, change, message):
+    """``CommissionConfig`` from Python, where no argparse typed the numbers (docs/commissioning.md)."""
+    from calibrate.commission_config import validate_config
+
+    with pytest.raises(InputError) as info:
+        validate_config(tiny_config(tmp_path, **change))
+    assert str(info.value) == message and not (tmp_path / "run").exists()
+
+
 def test_a_disk_too_full_to_record_on_is_refused_before_the_bench_opens(tmp_path, capsys, monkeypatch):
     """The recorder will not start with less than ``MIN_FREE_BYTES`` free; commissioning says so
     before the bench opens, not at the collection step after the leak test has moved the arm."""
