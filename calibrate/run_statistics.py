@@ -18,7 +18,7 @@ import numpy as np
 
 from trainer.contact import contact_mask, reference_depth
 
-#: Held-out frames shown in the report (one per object, the most deformed).
+#: Held-out frames shown in the report (distinct poses, the objects in turn: ``pick_examples``).
 EXAMPLE_FRAMES = 4
 
 
@@ -48,7 +48,8 @@ def nocontact_maps(estimator, reference_path: Path) -> dict:
     """Per-pixel statistics over the no-contact reference frames (the paper's Fig. 5).
 
     ``valid_count (H,W) int32`` frames with valid ToF depth; ``err_mean``/``err_var`` ``(H,W) float32``
-    m / m^2 of predicted - measured depth over those frames (NaN where never valid);
+    m / m^2 of predicted - measured depth over those frames (NaN where never valid, or where a prediction
+    on a valid pixel is not finite);
     ``reference_depth (H,W) float32 m`` median valid ToF depth (0 = never valid); ``reference_ir (H,W)
     float32`` mean IR.
     """
@@ -62,10 +63,12 @@ def nocontact_maps(estimator, reference_path: Path) -> dict:
     pred = predict_frames(estimator, ir)
     valid = depth > 0
     count = valid.sum(axis=0)
-    err = np.where(valid, pred - depth, np.nan)
-    with np.errstate(invalid="ignore"):
-        err_mean = np.where(count > 0, np.nansum(err, axis=0) / np.maximum(count, 1), np.nan)
-        err_var = np.where(count > 0, np.nansum((err - err_mean) ** 2, axis=0) / np.maximum(count, 1), np.nan)
+    # a NaN prediction on a valid pixel makes its pixel NaN (was: left out of the sum but counted, which
+    # pulled the pixel's mean and variance toward 0)
+    err = np.where(valid, pred - depth, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err_mean = np.where(count > 0, err.sum(axis=0) / count, np.nan)
+        err_var = np.where(count > 0, np.where(valid, (err - err_mean) ** 2, 0.0).sum(axis=0) / count, np.nan)
     return {
         "valid_count": count.astype(np.int32),
         "err_mean": err_mean.astype(np.float32),

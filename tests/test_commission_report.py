@@ -107,3 +107,36 @@ def test_the_heading_writes_a_failed_a1_as_its_check_does(tmp_path):
     data.heldout_metrics = {**data.heldout_metrics, "a1": 0.94996}
     text = write_report(data, tmp_path / "report.html").read_text()
     assert "held-out &delta;&lt;1.05 = 0.94996</p>" in text and "= 0.950<" not in text
+
+
+def test_nocontact_maps_of_a_prediction_off_by_a_known_error(tmp_path, make_synthetic_session):
+    """The Fig. 5 maps: mean and variance of predicted - measured depth per pixel over the frames where
+    the ToF is valid; NaN where it never is, and where a prediction on a valid pixel is not finite
+    (was: such a pixel's mean and variance pulled toward 0)."""
+    from calibrate.run_statistics import nocontact_maps
+    from collect.session_reader import Session
+
+    session = make_synthetic_session(tmp_path / "s.h5", objects=("box",), poses_per_object=0, n_reference=4,
+                                     height=48, width=64)  # free frames alone, as reference.h5
+    with Session.open(session) as s:
+        idx = np.arange(s.n_frames)
+        depth = s.depth_m(idx)
+    offsets = np.array([1.0, 2.0, 3.0, 6.0]) * 1e-3  # per frame, m: mean 3 mm, variance 3.5 mm^2
+
+    class Offset:
+        def predict_batch(self, ir):
+            n = len(ir)
+            pred = depth[:n] + offsets[:n, None, None].astype(np.float32)
+            pred[2, 10, 20] = np.nan
+            return pred
+
+    maps = nocontact_maps(Offset(), session)
+    valid = (depth[:4] > 0).all(axis=0)
+    assert valid[10, 20] and valid.sum() > 1000 and (~(depth[:4] > 0).any(axis=0)).any()
+    ok = valid.copy()
+    ok[10, 20] = False
+    np.testing.assert_allclose(maps["err_mean"][ok], 3e-3, atol=1e-6)
+    np.testing.assert_allclose(maps["err_var"][ok], 3.5e-6, rtol=1e-3)
+    assert np.isnan(maps["err_mean"][10, 20]) and np.isnan(maps["err_var"][10, 20])
+    never = maps["valid_count"] == 0
+    assert never.any() and np.isnan(maps["err_mean"][never]).all()
