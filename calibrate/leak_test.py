@@ -28,6 +28,11 @@ class LeakTestResult:
     mean_hpa: float
     drop_hpa: float  # fitted pressure at the start minus at the end of the hold
     residual_hpa: float  # RMS of the residuals around the fitted line (sensor noise)
+    start_hpa: float  # the fitted line at t = 0
+
+    def fitted_hpa(self) -> np.ndarray:
+        """The fitted line at ``t``: ``(P,) float64 hPa``."""
+        return self.start_hpa - self.rate_hpa_per_min / 60.0 * self.t
 
     def summary(self) -> str:
         return f"{self.rate_hpa_per_min:.3f} hPa/min over {self.t[-1] - self.t[0]:.0f} s at {self.mean_hpa:.1f} hPa"
@@ -67,4 +72,5 @@ def analyse_leak(t: np.ndarray, hpa: np.ndarray) -> LeakTestResult:
         mean_hpa=float(hpa.mean()),
         drop_hpa=float(fit[0] - fit[-1]),
         residual_hpa=float(np.sqrt(np.mean((hpa - fit) ** 2))),
+        start_hpa=float(intercept),
     )

@@ -52,7 +52,6 @@ class ReportData:
     contact_metrics: dict | None = None  # the same on the held-out contact patches only
     leak_t: np.ndarray | None = None  # (P,) s
     leak_hpa: np.ndarray | None = None  # (P,) hPa
-    leak_rate_hpa_per_min: float | None = None
     camera_ir_mean: np.ndarray | None = None  # (H,W) float32
     camera_dead_mask: np.ndarray | None = None  # (H,W) bool
     camera_stuck_mask: np.ndarray | None = None  # (H,W) bool
@@ -120,13 +119,16 @@ def _checks_table(checks: list[dict]) -> str:
     )
 
 
-def _leak_plot(t, hpa, rate) -> str:
+def _leak_plot(t, hpa) -> str:
+    """The hold's pressure trace (``t (P,) s``, ``hpa (P,) hPa``) and the line the leak check judged."""
     import matplotlib.pyplot as plt
 
+    from calibrate.leak_test import analyse_leak
+
+    leak = analyse_leak(t, hpa)
     fig, ax = plt.subplots(figsize=(6, 2.6))
-    ax.plot(t, hpa, ".", ms=2, color="tab:blue", label="pressure")
-    slope, icpt = np.polyfit(t, hpa, 1)
-    ax.plot(t, slope * t + icpt, color="tab:red", label=f"fit: {rate:.3f} hPa/min loss")
+    ax.plot(leak.t, leak.hpa, ".", ms=2, color="tab:blue", label="pressure")
+    ax.plot(leak.t, leak.fitted_hpa(), color="tab:red", label=f"fit: {leak.rate_hpa_per_min:.3f} hPa/min loss")
     ax.set_xlabel("hold time (s)")
     ax.set_ylabel("pressure (hPa abs)")
     ax.ticklabel_format(axis="y", useOffset=False)
@@ -337,7 +339,7 @@ def render_html(data: ReportData) -> str:
     )
     leak = None
     if data.leak_t is not None and data.leak_hpa is not None and len(data.leak_t) >= 3:
-        leak = _img(_leak_plot(data.leak_t, data.leak_hpa, data.leak_rate_hpa_per_min or 0.0), "leak-test pressure trace")
+        leak = _img(_leak_plot(data.leak_t, data.leak_hpa), "leak-test pressure trace")
     section("Leak test: pressure over the hold", leak, "leak")
     cam = None
     if data.camera_ir_mean is not None:

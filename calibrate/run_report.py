@@ -49,7 +49,6 @@ def write_run_report(run_dir: Path, state: RunState, doc: dict) -> Path:
     if (run_dir / LEAK_FILE).is_file() and state.done(Step.LEAK_TEST):
         with np.load(run_dir / LEAK_FILE) as z:
             data.leak_t, data.leak_hpa = z["t"], z["hpa"]
-        data.leak_rate_hpa_per_min = state.get(Step.LEAK_TEST)["leak"]["rate_hpa_per_min"]
     if (run_dir / CAMERA_FILE).is_file() and state.done(Step.CAMERA_HEALTH):
         with np.load(run_dir / CAMERA_FILE) as z:
             data.camera_ir_mean, data.camera_dead_mask = z["ir_mean"], z["dead_mask"]

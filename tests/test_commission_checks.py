@@ -147,6 +147,8 @@ def test_leak_rate_from_a_decaying_trace():
     assert res.rate_hpa_per_min == pytest.approx(3.0, abs=0.05)
     assert res.drop_hpa == pytest.approx(1.0, abs=0.02)
     assert res.residual_hpa == pytest.approx(0.08, rel=0.1)
+    line = res.fitted_hpa()  # the report's plotted line, the one judged
+    assert line[0] == pytest.approx(1065.0, abs=0.02) and line[0] - line[-1] == pytest.approx(res.drop_hpa)
     tight = analyse_leak(t, 1065.0 + rng.normal(0, 0.08, t.size))
     assert abs(tight.rate_hpa_per_min) < 0.05 and tight.mean_hpa == pytest.approx(1065.0, abs=0.01)
     with_glitch = leaking.copy()

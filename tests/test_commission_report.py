@@ -50,7 +50,7 @@ def _full_report_data(accepted: bool) -> ReportData:
     return ReportData(
         serial="SB-REPORT-1", accepted=accepted, checks=checks, simulated=True,
         reason="" if accepted else "heldout_a1 below minimum",
-        heldout_metrics=metrics, leak_t=leak.t, leak_hpa=leak.hpa, leak_rate_hpa_per_min=leak.rate_hpa_per_min,
+        heldout_metrics=metrics, leak_t=leak.t, leak_hpa=leak.hpa,
         camera_ir_mean=rng.uniform(1000, 2000, (h, w)).astype(np.float32),
         camera_dead_mask=np.zeros((h, w), bool), camera_stuck_mask=np.zeros((h, w), bool),
         camera_dot_mask=rng.random((h, w)) < 0.1,
