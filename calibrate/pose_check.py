@@ -280,9 +280,10 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         ref_pred = predict_frames(estimator, session.ir(ref_idx))
         references = {"predicted": reference_depth(np.where(np.isfinite(ref_pred), ref_pred, 0.0)),
                       "measured": reference_depth(session.depth_m(ref_idx))}
-        if session.simulated:
-            depth["true"] = session.true_depth(hold_idx)
-            references["true"] = reference_depth(session.true_depth(ref_idx))
+        if session.simulated:  # NaN/inf pixels are invalid ones: they cost a frame its vs-true row of the
+            # true depth at most (was: the whole session refused)
+            depth["true"] = session.true_depth(hold_idx, finite=False)
+            references["true"] = reference_depth(session.true_depth(ref_idx, finite=False))
         tcp = session.tcp_pose(hold_idx)
         pose_ids = session.pose_id[hold_idx]
         camera_in_tcp = session.camera_in_tcp

@@ -389,12 +389,15 @@ class Session:
         """``(n,H,W) bool``: True where the ToF depth is valid (non-zero)."""
         return self.depth_raw(idx) > 0
 
-    def true_depth(self, idx) -> np.ndarray:
-        """True membrane depth ``(n,H,W) float32`` m along the optical axis (simulated sessions only)."""
+    def true_depth(self, idx, *, finite: bool = True) -> np.ndarray:
+        """True membrane depth ``(n,H,W) float32`` m along the optical axis (simulated sessions only).
+        ``finite``: refuse NaN/inf (``InputError`` naming the row); False hands them on, for a caller
+        that reads them as invalid pixels (the pose check)."""
         if not self.simulated:
             raise InputError(f"{self.path}: not a simulated session, it holds no true depth")
         values = self._load(sf.SIM_TRUE_DEPTH, idx)
-        _check_finite(self.path, sf.SIM_TRUE_DEPTH, values, rows=np.arange(self.n_frames)[idx])
+        if finite:
+            _check_finite(self.path, sf.SIM_TRUE_DEPTH, values, rows=np.arange(self.n_frames)[idx])
         return values
 
     def tcp_pose(self, idx) -> np.ndarray:

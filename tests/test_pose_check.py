@@ -3,6 +3,7 @@
 import dataclasses
 import json
 
+import h5py
 import numpy as np
 import pytest
 
@@ -11,6 +12,7 @@ from calibrate.pose_check import (SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, 
 from calibrate.pose_estimation import Pose, align_symmetry, position_error, quat_to_matrix, shape_from_object
 from collect import session_format as sf
 from collect.errors import InputError
+from collect.session_reader import Session
 from collect.session_writer import SessionWriter
 
 H, W = 120, 160
@@ -245,3 +247,20 @@ def test_a_bad_primitive_is_refused_naming_the_file_and_the_object(tmp_path):
     with pytest.raises(InputError) as refused:
         run_pose_check(DecodingEstimator(), path, "mug")
     assert str(refused.value).startswith(f"{path}: object 'mug': bad cylinder primitive: ")
+
+
+def test_non_finite_true_depth_costs_a_frame_its_vs_true_row_of_the_true_depth_alone(tmp_path):
+    """The simulator's depth, NaN over a whole hold frame and over a few pixels of another: both frames
+    count, the first without the true depth's vs-true row (was: the whole session refused)."""
+    path = write_cylinder_session(tmp_path / "cyl.h5", n_poses=2, hold_frames=2)
+    with Session.open(path) as s:
+        hold = s.select(object="mug", phase="hold")
+    with h5py.File(path, "a") as f:
+        true = f[sf.SIM_TRUE_DEPTH]
+        true[hold[0]] = np.nan
+        true[hold[1], :5, :5] = np.inf
+    result = run_pose_check(DecodingEstimator(), path, "mug")
+    assert result.n_used == 4 and sum(result.skipped.values()) == 0
+    by_frame = {f.frame: f for f in result.frames}
+    assert "true" not in by_frame[int(hold[0])].vs_true
+    assert all("true" in by_frame[int(k)].vs_true for k in hold[1:])
