@@ -5,9 +5,9 @@ Runs the network through ONNX Runtime when the model directory says so (``metada
 and is faster), else through torch. Frames go in and come out at the sensor's native size.
 
 An ONNX file is run only when it is this model's export (``onnx_session``): the SHA-256 of
-``model.onnx`` and of ``model.safetensors`` that the export recorded (``inference.onnx_sha256``,
-``inference.weights_sha256``; folders exported before they were recorded are not checked for
-them) and the input size of ``metadata.json``.
+``model.onnx`` that the export recorded (``inference.onnx_sha256``; folders exported before it was
+recorded are not checked for it) and the input size of ``metadata.json``. The weights it was
+exported from are the ones ``load_network`` loads and checks (``inference.weights_sha256``).
 """
 
 from __future__ import annotations
@@ -19,8 +19,7 @@ import numpy as np
 import torch
 
 from collect.errors import InputError
-from trainer.model_dir import EXPORT_HASH_KEYS, ONNX_FILE, WEIGHTS_FILE, ModelMetadata, export_hashes, load_network, \
-    resolve_model_dir
+from trainer.model_dir import ONNX_FILE, ModelMetadata, export_hashes, load_network, resolve_model_dir
 from trainer.preprocessing import MAX_IR
 
 RUNTIMES = ("onnx", "torch")
@@ -41,18 +40,13 @@ def ort_session(onnx_path: str | Path):
 
 def onnx_session(model_dir: Path, metadata: ModelMetadata):
     """An ``ort_session`` of ``model_dir``'s ``model.onnx``, refused with ``InputError`` (naming the file
-    and the way out) unless it is the export of this model: the SHA-256 of ``model.onnx`` and of
-    ``model.safetensors`` equal the ones ``metadata.inference`` records (each checked when recorded),
-    and its one input is ``ir`` ``(batch, 1, input_height, input_width)`` with a free batch size."""
+    and the way out) unless it is the export of this model: the SHA-256 of ``model.onnx`` equals the one
+    ``metadata.inference`` records (when recorded; the weights': ``load_network``), and its one input is ``ir`` ``(batch, 1, input_height, input_width)`` with a free batch size."""
     path = model_dir / ONNX_FILE
     way_out = "delete it to run the model in torch, or export it again (trainer.onnx_export.export_and_select_runtime)"
-    recorded = {key: metadata.inference[key] for key in EXPORT_HASH_KEYS if key in metadata.inference}
-    if recorded:
-        actual = export_hashes(model_dir)
-        if "onnx_sha256" in recorded and actual["onnx_sha256"] != recorded["onnx_sha256"]:
-            raise InputError(f"{path} is not the ONNX export that {model_dir} records (another SHA-256): {way_out}")
-        if "weights_sha256" in recorded and actual["weights_sha256"] != recorded["weights_sha256"]:
-            raise InputError(f"{path} was exported from other weights than {model_dir / WEIGHTS_FILE}: {way_out}")
+    recorded = metadata.inference.get("onnx_sha256")
+    if recorded is not None and export_hashes(model_dir)["onnx_sha256"] != recorded:
+        raise InputError(f"{path} is not the ONNX export that {model_dir} records (another SHA-256): {way_out}")
     session = ort_session(path)
     g = metadata.geometry
     inputs = session.get_inputs()

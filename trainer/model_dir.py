@@ -180,11 +180,13 @@ def write_safetensors(tensors: dict[str, torch.Tensor], path: Path, metadata: di
 
 
 def save_model(model_dir: str | Path, network: nn.Module, metadata: ModelMetadata) -> Path:
-    """Write ``network``'s weights and ``metadata`` into ``model_dir`` (created if needed)."""
+    """Write ``network``'s weights and ``metadata`` into ``model_dir`` (created if needed); the weights'
+    SHA-256 goes into ``metadata.inference["weights_sha256"]``, which ``load_network`` checks."""
     model_dir = Path(model_dir)
     model_dir.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().to("cpu").contiguous() for k, v in network.state_dict().items()}
     write_safetensors(state, model_dir / WEIGHTS_FILE, metadata={"arch": metadata.arch})
+    metadata.inference = {**metadata.inference, "weights_sha256": weights_sha256(model_dir)}
     write_metadata(model_dir, metadata)
     return model_dir
 
@@ -314,5 +316,10 @@ def load_network(model_dir: str | Path) -> tuple[nn.Module, ModelMetadata]:
                              f"the network holds {str(expected[key].dtype).removeprefix('torch.')} there")
         if tensor.is_floating_point() and not torch.isfinite(tensor).all():
             raise InputError(f"weight {key} in {resolve_model_dir(model_dir)} holds NaN or inf")
+    recorded = metadata.inference.get("weights_sha256")  # (folders saved before it was recorded: not checked)
+    if recorded is not None and weights_sha256(model_dir) != recorded:  # was: loaded, its depth up to 16 mm off
+        path = resolve_model_dir(model_dir) / WEIGHTS_FILE
+        raise InputError(f"{path} is not the weights file that {METADATA_FILE} records (another SHA-256): the "
+                         "folder mixes two models; copy a model folder whole, or train it again")
     network.load_state_dict(state)
     return network.eval(), metadata
