@@ -132,3 +132,14 @@ def test_contact_patches_follow_the_dents_and_weight_the_loss(synthetic_session)
     target = torch.tensor([[[[0.1, 0.2]]]])
     weight = contact_weights(torch.tensor([[[[False, True]]]]), 9.0)  # the second pixel counts 10x
     assert float(masked_l1(pred, target, target > 0, weight=weight)) == pytest.approx((0.1 + 10 * 0.2) / 11)
+
+
+def test_the_ir_normalization_samples_every_column():
+    """Was every k-th pixel, k = pixels // max_samples: where k was the frame's width, all in one column
+    (here: mean 2.40 against 6.34)."""
+    ir = np.full((100, 4, 8), 1000, np.uint16)
+    ir[:, :, 0] = 10  # the housing's dark edge
+    norm = IRNormalization.fit(ir, max_samples=400)  # 3200 pixels: k = 8, the width
+    whole = np.log1p(ir.astype(np.float64))
+    assert norm.mean == pytest.approx(whole.mean(), abs=0.2) and norm.std == pytest.approx(whole.std(), rel=0.15)
+    assert IRNormalization.fit(ir, max_samples=400) == norm  # seeded

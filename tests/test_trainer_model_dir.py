@@ -347,3 +347,22 @@ def test_sensors_not_trained_on_reads_the_training_serials():
     assert meta.sensors_not_trained_on(["SYN-0003", "SYN-0001", "SYN-0002", "SYN-0003"]) == ["SYN-0002", "SYN-0003"]
     meta.training = {}  # a model whose metadata does not list its sensors: nothing to say
     assert meta.sensors_not_trained_on(["SYN-0002"]) == []
+
+
+def test_an_onnx_export_that_gives_nan_does_not_match(model_dir, monkeypatch):
+    """Was: ``max(0.0, nan)`` kept 0.0, and an export whose output was NaN counted as matching torch."""
+    import trainer.onnx_export
+
+    real = trainer.onnx_export.onnx_session
+
+    class NaNSession:
+        def __init__(self, session):
+            self.session = session
+
+        def run(self, names, feeds):
+            return [np.full_like(out, np.nan) for out in self.session.run(names, feeds)]
+
+    monkeypatch.setattr(trainer.onnx_export, "onnx_session", lambda *a: NaNSession(real(*a)))
+    info = export_and_select_runtime(model_dir, repeats=1)
+    assert not info["onnx_matches_torch"] and info["runtime"] == "torch"
+    assert json.loads((model_dir / METADATA_FILE).read_text())["inference"]["onnx_max_abs_diff_m"] is None  # NaN

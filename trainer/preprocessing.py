@@ -42,11 +42,15 @@ class IRNormalization:
     std: float
 
     @classmethod
-    def fit(cls, ir: np.ndarray) -> "IRNormalization":
-        """Statistics of ``ir`` ``(N,H,W) uint16`` (a subsample of pixels is enough)."""
+    def fit(cls, ir: np.ndarray, max_samples: int = 2_000_000) -> "IRNormalization":
+        """Statistics of ``ir`` ``(N,H,W) uint16``: of every pixel, or of ``max_samples`` drawn at random
+        (seeded) where there are more. Was every k-th pixel: where k shared a factor with the frame's
+        width, those lay in a few columns (at 11650 frames of 224 px width, all in column 0, the
+        housing's edge: mean 6.85 / std 0.99 instead of 8.70 / 1.51)."""
         flat = np.asarray(ir).reshape(-1)
-        step = max(1, flat.size // 2_000_000)
-        logs = np.log1p(flat[::step].astype(np.float64))
+        if flat.size > max_samples:
+            flat = flat[np.random.default_rng(0).integers(0, flat.size, max_samples)]
+        logs = np.log1p(flat.astype(np.float64))
         return cls(mean=float(logs.mean()), std=float(max(logs.std(), MIN_IR_STD)))
 
     def apply(self, ir: np.ndarray) -> np.ndarray:
