@@ -228,6 +228,11 @@ def package_base_model(model_dir: Path, out: Path) -> Path:
     return out
 
 
+def _number_or_nan(value) -> float:
+    """``value`` as a float; NaN for None (JSON's null for NaN; absent without an ONNX export)."""
+    return float("nan") if value is None else float(value)
+
+
 def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
     """Record the pretraining run of ``model_dir`` (data, budget, metrics) in the model card."""
     meta = load_metadata(model_dir)
@@ -250,7 +255,7 @@ def write_model_card_section(model_dir: Path, card: Path, command: str) -> None:
         f"* held-out sensors (vs ToF): a1 {m['a1']:.3f}, abs_rel {m['abs_rel']:.4f}, rmse {m['rmse'] * 1e3:.2f} mm, "
         f"rmse_log {m['rmse_log']:.4f}, silog {m['silog']:.3f}",
         f"* inference: {meta.inference.get('runtime', 'torch')}, ONNX max |ORT - torch| "
-        f"{meta.inference.get('onnx_max_abs_diff_m') or float('nan'):.1e} m",  # null: NaN, not exported: absent
+        f"{_number_or_nan(meta.inference.get('onnx_max_abs_diff_m')):.1e} m",
     ]
     card.parent.mkdir(parents=True, exist_ok=True)  # checked before the training (check_model_card)
     update_section(card, "pretraining", "Pretraining run (written by `python -m trainer.pretrain train`)", lines)
