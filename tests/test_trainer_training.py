@@ -564,3 +564,11 @@ def test_ctrl_c_while_the_model_is_written_is_reported(bubble, session, tmp_path
     assert capsys.readouterr().err.splitlines()[-1] == (f"bubble: interrupted after the training's last step: the "
                                                         f"model in {out} is complete")
     assert load_metadata(out).training["steps"] > 0
+
+
+def test_the_progress_bars_a1_of_a_validation_without_a_number():
+    """A resumed run's checkpoint keeps a NaN a1 as None: was a TypeError traceback at its first step."""
+    from trainer.cli import a1_text
+
+    assert [a1_text(v) for v in (None, {}, {"a1": None}, {"a1": float("nan")}, {"a1": 0.97123})] == [
+        "-", "-", "-", "-", "0.971"]

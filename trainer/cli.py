@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext, suppress
 from pathlib import Path
 
+from collect.numbers import real_number
 from collect.output_files import (check_json_output, check_parent_dirs, output_folder_lock, named_path,
                                   write_json_result)
 from trainer.training_defaults import (
@@ -172,6 +173,14 @@ def _model_dir_held(out: Path) -> Iterator[None]:
                 out.rmdir()
 
 
+def a1_text(val: dict | None) -> str:
+    """The live validation's a1 (``val``: ``TrainProgress.val``) as ``train`` and ``pretrain train`` show
+    it: ``-`` before the first validation and where it is not a finite number (a resumed run's
+    checkpoint keeps a NaN as None: was a TypeError traceback at its first step)."""
+    a1 = (val or {}).get("a1")
+    return f"{a1:.3f}" if real_number(a1) else "-"
+
+
 def run_train(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -233,7 +242,7 @@ def run_train(args: argparse.Namespace) -> int:
             bar.start()
             task = bar.add_task("train", total=1.0, epoch=0.0, loss="-", a1="-")
             stop.begin()
-        a1 = "-" if not p.val else f"{p.val['a1']:.3f}"
+        a1 = a1_text(p.val)
         if not math.isfinite(p.loss):
             loss = "-"
         else:

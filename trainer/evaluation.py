@@ -88,12 +88,12 @@ def evaluate_model(
             f"sessions hold {frames.size[1]}x{frames.size[0]} frames, the model was trained on "
             f"{estimator.native_size[1]}x{estimator.native_size[0]} frames"
         )
+    if not in_depth_range(frames.depth, meta.min_depth, meta.max_depth).any():  # (before the prediction's time)
+        raise no_depth_in_range(f"no contact frame of {', '.join(map(str, paths))}", meta.min_depth, meta.max_depth,
+                                "compare the model with")
     pred = predict_frames(estimator, frames.ir)
     kw = {"min_depth": meta.min_depth, "max_depth": meta.max_depth}
     result: dict = dict(depth_metrics(pred, frames.depth, **kw))
-    if result["n_images"] == 0:
-        raise no_depth_in_range(f"no contact frame of {', '.join(map(str, paths))}", meta.min_depth, meta.max_depth,
-                                "compare the model with")
     result["latency_ms"] = estimator.latency_ms(ir=frames.ir[0], repeats=latency_repeats)
     result["runtime"] = estimator.runtime
     result["model"] = str(model_dir)

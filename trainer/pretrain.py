@@ -42,7 +42,7 @@ from collect.output_files import check_parent_dirs, named_path
 from collect.stop_signals import INTERRUPTS, Terminated, raise_interrupt, stop_signals_handled
 from hw_mocks.sensor_spec import MAX_SEED as MAX_SENSOR_SEED
 from trainer.augmentation import PRETRAIN_NOISE_STD
-from trainer.cli import add_training_options, training_options
+from trainer.cli import a1_text, add_training_options, training_options
 from trainer.doc_sections import update_section
 from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, ONNX_FILE, WEIGHTS_FILE, load_metadata
 
@@ -340,7 +340,7 @@ def run_train(args: argparse.Namespace) -> int:
     def show(p) -> None:
         stop.begin()
         if p.event != "step":
-            a1 = f"{p.val['a1']:.3f}" if p.val else "-"
+            a1 = a1_text(p.val)
             loss = f"{p.loss * 1e3:.3f} mm" if math.isfinite(p.loss) else "-"  # was: "nan mm" before the first step
             print(f"[{p.event}] epoch {p.epoch:.2f} step {p.step} loss {loss} val a1 {a1} ({p.fraction * 100:.0f} %)",
                   flush=True)
