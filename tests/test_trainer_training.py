@@ -506,6 +506,18 @@ def test_a_diverged_training_writes_no_model(session, tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"training diverged after 1 step \(the loss is nan\)"):
         train_model(_config([session], tmp_path / "n", export_onnx=False))
     assert not (tmp_path / "n" / WEIGHTS_FILE).exists()
+    calls = []
+
+    def nan_from_the_third_step(*a, **k):
+        calls.append(1)
+        return nan_loss(*a, **k) * (float("nan") if len(calls) >= 3 else 1.0)
+
+    monkeypatch.setattr(trainer.training, "masked_l1", nan_from_the_third_step)
+    with pytest.raises(InputError, match=r"training diverged after 3 steps \(the loss is nan\)"):
+        train_model(_config([session], tmp_path / "o", export_onnx=False))  # checkpoints after steps 1 and 2
+    assert not has_checkpoint(tmp_path / "o")  # was: left, and a rerun with a lower --lr refused for it
+    monkeypatch.setattr(trainer.training, "masked_l1", nan_loss)
+    assert train_model(_config([session], tmp_path / "o", epochs=0.2, export_onnx=False, lr=1e-3)).steps > 0
 
 
 def test_ctrl_c_during_training_checkpoints_the_step_reached(bubble, session, tmp_path, monkeypatch, capsys,

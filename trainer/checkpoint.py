@@ -57,6 +57,13 @@ def check_checkpoint_use(model_dir: str | Path, resume: bool, resume_instead: st
                          f"it, or {fresh_instead}")
 
 
+def remove_checkpoint(model_dir: str | Path) -> None:
+    """Delete ``model_dir``'s checkpoint files (where they exist): once the training has finished, or
+    diverged (its checkpoint could only be resumed with the learning rate that diverged)."""
+    for name in (CHECKPOINT_WEIGHTS, CHECKPOINT_STATE):
+        (Path(model_dir) / name).unlink(missing_ok=True)
+
+
 def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer, progress: dict) -> None:
     """Write network + optimizer state and the JSON-serializable ``progress`` (atomically, per file)."""
     model_dir = Path(model_dir)

@@ -33,7 +33,7 @@ from torch import nn
 from collect.errors import InputError
 from collect.json_files import plain_json
 from trainer.augmentation import augment_ir
-from trainer.checkpoint import CHECKPOINT_STATE, CHECKPOINT_WEIGHTS, has_checkpoint, load_checkpoint, save_checkpoint
+from trainer.checkpoint import has_checkpoint, load_checkpoint, remove_checkpoint, save_checkpoint
 from trainer.dataset import (
     FrameSet,
     NetworkTensors,
@@ -508,6 +508,8 @@ def train_model(
             )
             if diverged:  # on every rank (any_flags): the group is closed at once
                 ctx.close()
+                if ctx.is_main:  # (was: left; a rerun with a lower --lr was refused for it, resumed or not)
+                    remove_checkpoint(out_dir)
                 raise _diverged(config, step, f"the loss is {value}")
             if stop or over:
                 stopped = stop  # a stop request wins over a budget or deadline spent at the same step
@@ -534,6 +536,7 @@ def train_model(
         if not math.isfinite(metrics["abs_rel"]):  # on rank 0 alone: the group is left to the process's exit, so
             # that torchrun stops the peers waiting in the barrier below (was: closed under them; torchrun's report
             # then named a peer's "connection closed" instead of this error, and with NCCL the close can hang)
+            remove_checkpoint(out_dir)
             raise _diverged(config, step, "its depth on the validation frames is not finite")
         history.append({"train_s": train_s, "epoch": epoch_f, "step": step, "loss": running,
                         **evaluate_tensors(network, live_val, ctx.device, metadata.min_depth, metadata.max_depth)})
@@ -575,8 +578,7 @@ def train_model(
             from trainer.onnx_export import export_and_select_runtime
 
             export_and_select_runtime(out_dir)
-        for name in (CHECKPOINT_WEIGHTS, CHECKPOINT_STATE):
-            (out_dir / name).unlink(missing_ok=True)
+        remove_checkpoint(out_dir)
         result = TrainResult(out_dir, metadata.metrics, history, epoch_f, step, train_s, stopped, peak, at_deadline)
         val_live = history[-1]
         report("done")
