@@ -55,7 +55,8 @@ def first_time_at(history: list[dict], a1: float) -> float | None:
 def zero_shot(config: TrainConfig) -> dict:
     """Metrics of ``config.init`` on the frames ``train_model(config)`` holds out and validates on at its end (its
     loader and split), with ``n_val_frames``."""
-    frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
+    frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride,
+                         with_truth=False)
     _, held, _ = split_frames(config, frames)
     estimator = DepthEstimator.load(config.init)
     meta = estimator.metadata

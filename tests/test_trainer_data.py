@@ -143,3 +143,9 @@ def test_the_ir_normalization_samples_every_column():
     whole = np.log1p(ir.astype(np.float64))
     assert norm.mean == pytest.approx(whole.mean(), abs=0.2) and norm.std == pytest.approx(whole.std(), rel=0.15)
     assert IRNormalization.fit(ir, max_samples=400) == norm  # seeded
+
+
+def test_frames_for_training_leave_the_true_depth(synthetic_session):
+    """The training never reads it (was: loaded and copied by every split, 40 % of the frames' memory)."""
+    assert load_frames([synthetic_session]).true_depth is not None
+    assert load_frames([synthetic_session], with_truth=False).true_depth is None

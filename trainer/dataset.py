@@ -59,7 +59,7 @@ class FrameSet:
 
     ir: np.ndarray  # (N,H,W) uint16 amplitude
     depth: np.ndarray  # (N,H,W) float32 m ToF depth, 0 = invalid
-    true_depth: np.ndarray | None  # (N,H,W) float32 m, only when every session is simulated
+    true_depth: np.ndarray | None  # (N,H,W) float32 m, only when every session is simulated (and with_truth)
     session: np.ndarray  # (N,) int index into sources
     object_name: np.ndarray  # (N,) str object pressed ("" for none)
     pose_id: np.ndarray  # (N,) int32 contact pose within its session (-1 = none)
@@ -169,11 +169,14 @@ def load_frames(
     free_fraction: float = FREE_FRAME_FRACTION,
     seed: int = 0,
     stride: int = 1,
+    with_truth: bool = True,
 ) -> FrameSet:
     """Frames of ``paths`` in ``phases`` (plus ``free_fraction`` free frames) of ``objects`` (None = all).
 
     ``stride`` keeps every stride-th matching frame of a session (consecutive frames of a press
-    are nearly alike; pretraining on many sessions uses it to bound memory).
+    are nearly alike; pretraining on many sessions uses it to bound memory). ``with_truth``: read the
+    simulator's true depth too (``FrameSet.true_depth``; the training, which never uses it, leaves it:
+    it is 40 % of the frames' memory).
 
     A session without any matching frame adds nothing (and is not among the sources). Raises
     ``InputError`` for unreadable sessions, sessions of different frame sizes, unknown objects
@@ -203,7 +206,7 @@ def load_frames(
             depth = s.depth_m(idx)
             parts["ir"].append(s.ir(idx))
             parts["depth"].append(depth)
-            parts["true"].append(s.true_depth(idx) if s.simulated else None)
+            parts["true"].append(s.true_depth(idx) if s.simulated and with_truth else None)
             parts["session"].append(np.full(len(idx), len(sources), dtype=np.int64))
             names = np.array(s.object_names + [""], dtype=object)
             parts["object"].append(names[s.object_index[idx]])

@@ -178,7 +178,8 @@ def split_frames(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, Frame
     object or the in-class split. InputError for a split that leaves either side empty, or validates on
     no contact frame."""
     if config.val_data:
-        val = load_frames(config.val_data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
+        val = load_frames(config.val_data, objects=config.objects, seed=config.seed, stride=config.frame_stride,
+                          with_truth=False)
         return frames, val, {"kind": "sessions", "val_data": [str(p) for p in config.val_data]}
     if config.holdout_object:
         train_idx, val_idx = split_holdout_object(frames, config.holdout_object)
@@ -356,7 +357,8 @@ def train_model(
         torch.use_deterministic_algorithms(True, warn_only=True)
     out_dir = Path(config.out)
 
-    frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride)
+    frames = load_frames(config.data, objects=config.objects, seed=config.seed, stride=config.frame_stride,
+                         with_truth=False)
     train_frames, val_frames, split_info = split_frames(config, frames)
     check_each_recording_once({"--data": frames.sources, "--val-data": val_frames.sources if config.val_data else []})
     if val_frames.size != train_frames.size:
