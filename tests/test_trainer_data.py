@@ -149,3 +149,17 @@ def test_frames_for_training_leave_the_true_depth(synthetic_session):
     """The training never reads it (was: loaded and copied by every split, 40 % of the frames' memory)."""
     assert load_frames([synthetic_session]).true_depth is not None
     assert load_frames([synthetic_session], with_truth=False).true_depth is None
+
+
+def test_the_free_frames_of_a_session_do_not_depend_on_the_sessions_before_it(tmp_path, make_synthetic_session):
+    """Was: one generator drew every session's free frames, so a session's share changed with the list."""
+    a = make_synthetic_session(tmp_path / "a.h5", seed=1, n_reference=12)
+    b = make_synthetic_session(tmp_path / "b.h5", seed=2, n_reference=12)
+
+    def free_of_b(paths):
+        frames = load_frames(paths, free_fraction=0.25)
+        of_b = (frames.session == len(paths) - 1) & (frames.phase == "free")
+        return frames.ir[of_b]
+
+    alone, after_a = free_of_b([b]), free_of_b([a, b])
+    assert len(alone) > 0 and np.array_equal(alone, after_a)

@@ -186,7 +186,6 @@ def load_frames(
         raise InputError("no session files given")
     if stride < 1:
         raise InputError(f"frame stride must be at least 1, got {stride}")
-    rng = np.random.default_rng(seed)
     parts: dict[str, list] = {k: [] for k in ("ir", "depth", "true", "session", "object", "pose", "phase", "ref_index")}
     references: list[np.ndarray] = []
     sources: list[SessionSource] = []
@@ -200,6 +199,10 @@ def load_frames(
                 )
             size = (s.height, s.width)
             known_objects.update(s.object_names)
+            sha256 = file_sha256(path)
+            # the free frames a session gives depend on it and the seed alone (was: one generator for all,
+            # so on the sessions listed before it)
+            rng = np.random.default_rng([seed, int(sha256[:16], 16)])
             idx = _select_frames(s, objects, phases, free_fraction, stride, rng)
             if len(idx) == 0:
                 continue
@@ -217,7 +220,7 @@ def load_frames(
             parts["ref_index"].append(ref_index)
             parts["pose"].append(s.pose_id[idx])
             parts["phase"].append(np.asarray(s.phase_name(idx), dtype=object))
-            sources.append(SessionSource(str(path), file_sha256(path), s.sensor_serial, s.simulated, len(idx)))
+            sources.append(SessionSource(str(path), sha256, s.sensor_serial, s.simulated, len(idx)))
     if objects is not None:
         unknown = sorted(set(objects) - known_objects)
         if unknown:
