@@ -245,6 +245,7 @@ def test_the_housing_at_the_image_edges_is_no_dot(seed):
 
 def test_a_thresholds_file_may_restate_a_checks_unit(tmp_path):
     path = tmp_path / "lab.yaml"
-    path.write_text("version: 1\nchecks:\n  heldout_rmse_mm: {max: 0.3, unit: mm}\n  heldout_abs_rel: {max: 0.02, unit: ''}\n")
+    path.write_text("version: 1\nchecks:\n  heldout_rmse_mm: {max: 0.3, unit: mm}\n"
+                    "  heldout_abs_rel: {max: 0.02, unit: ''}\n")
     th = load_thresholds(path)
     assert (th["heldout_rmse_mm"].hi, th["heldout_rmse_mm"].unit, th["heldout_abs_rel"].unit) == (0.3, "mm", "")

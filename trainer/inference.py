@@ -41,7 +41,8 @@ def ort_session(onnx_path: str | Path):
 def onnx_session(model_dir: Path, metadata: ModelMetadata):
     """An ``ort_session`` of ``model_dir``'s ``model.onnx``, refused with ``InputError`` (naming the file
     and the way out) unless it is the export of this model: the SHA-256 of ``model.onnx`` equals the one
-    ``metadata.inference`` records (when recorded; the weights': ``load_network``), and its one input is ``ir`` ``(batch, 1, input_height, input_width)`` with a free batch size."""
+    ``metadata.inference`` records (when recorded; the weights': ``load_network``), and its one input
+    is ``ir`` ``(batch, 1, input_height, input_width)`` with a free batch size."""
     path = model_dir / ONNX_FILE
     way_out = "delete it to run the model in torch, or export it again (trainer.onnx_export.export_and_select_runtime)"
     recorded = metadata.inference.get("onnx_sha256")
