@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +165,47 @@ def interrupt_handlers_restored():
     yield
     for sig, handler in before.items():
         signal.signal(sig, handler)
+
+
+def losing_the_first_interrupt(monkeypatch, *modules) -> list[int]:
+    """Put in ``modules``' ``raise_interrupt`` (``collect.stop_signals``') one whose first call raises
+    nothing, as when Python loses the KeyboardInterrupt that a signal handler raised while a weakref
+    callback ran (it only prints "Exception ignored in"); later calls raise. Returns the signal numbers
+    it was called with, in order."""
+    from collect import stop_signals
+
+    real, calls = stop_signals.raise_interrupt, []
+
+    def lost_the_first_time(signum):
+        calls.append(signum)
+        if len(calls) > 1:
+            real(signum)
+
+    for module in modules:
+        monkeypatch.setattr(module, "raise_interrupt", lost_the_first_time)
+    return calls
+
+
+@contextmanager
+def ctrl_c_once_it_exists(path: Path, delay_s: float = 0.0):
+    """During the with-block, send this process one SIGINT (a Ctrl-C) ``delay_s`` after ``path`` appears,
+    from a thread; none when the block ends first."""
+    import os
+    import threading
+
+    done = threading.Event()
+
+    def operator():
+        while not path.exists():
+            if done.wait(0.01):
+                return
+        if not done.wait(delay_s):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    thread = threading.Thread(target=operator)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()

@@ -21,7 +21,7 @@ from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
 from collect.stop_signals import INTERRUPTS, STILL_STOPPING
-from conftest import interrupt_once_recording
+from conftest import ctrl_c_once_it_exists, interrupt_once_recording, losing_the_first_interrupt
 
 
 def _collect(tmp_path, *extra, name="s.h5"):
@@ -401,33 +401,11 @@ def test_a_ctrl_c_whose_exception_python_loses_still_stops_the_run(tmp_path, mon
     import calibrate.cli
     import collect.stop_signals
 
-    real, calls = collect.stop_signals.raise_interrupt, []
-
-    def lost_the_first_time(signum):
-        calls.append(signum)
-        if len(calls) > 1:
-            real(signum)
-
-    monkeypatch.setattr(collect.stop_signals, "raise_interrupt", lost_the_first_time)
-    monkeypatch.setattr(calibrate.cli, "raise_interrupt", lost_the_first_time)
+    calls = losing_the_first_interrupt(monkeypatch, collect.stop_signals, calibrate.cli)
     out = tmp_path / "lost.h5"
-    sent = threading.Event()
-
-    def ctrl_c_once_recording():
-        while not out.exists():
-            if sent.wait(0.01):
-                return
-        sent.wait(1.0)  # into the plan (16 s of poses)
-        os.kill(os.getpid(), signal.SIGINT)
-
-    operator = threading.Thread(target=ctrl_c_once_recording)
-    operator.start()
-    try:
+    with ctrl_c_once_it_exists(out, delay_s=1.0):  # into the plan (16 s of poses)
         code = main(["collect", "--sim", "--objects", "box", "--poses-per-object", "8", "--seed", "3", "--quiet",
                      "--out", str(out)])
-    finally:
-        sent.set()
-        operator.join()
     assert code == 130 and calls == [signal.SIGINT, signal.SIGINT]  # the lost one, then raised again
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 0 and len(set(s.pose_id[s.phase == sf.PHASE_HOLD].tolist())) < 8

@@ -6,12 +6,11 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
-from conftest import make_synthetic_session
+from conftest import ctrl_c_once_it_exists, losing_the_first_interrupt, make_synthetic_session
 
 import trainer.pretrain
 import trainer.training
@@ -231,32 +230,11 @@ def test_pretrain_collect_stops_at_a_ctrl_c_whose_exception_python_loses(tmp_pat
     """A KeyboardInterrupt raised while a weakref callback runs is only printed by Python ("Exception
     ignored in"): was every queued sensor recorded, exit 0. Now the main thread, which waits on the
     sensors' results, raises the stop again within ``STOP_POLL_S``."""
-    real, calls = trainer.pretrain.raise_interrupt, []
-
-    def lost_the_first_time(signum):
-        calls.append(signum)
-        if len(calls) > 1:
-            real(signum)
-
-    monkeypatch.setattr(trainer.pretrain, "raise_interrupt", lost_the_first_time)
+    calls = losing_the_first_interrupt(monkeypatch, trainer.pretrain)
     work = tmp_path / "w"
-    recording = work / "sensor_01000.partial.h5"
-    sent = threading.Event()
-
-    def ctrl_c_once_recording():
-        while not recording.exists():
-            if sent.wait(0.05):
-                return
-        os.kill(os.getpid(), signal.SIGINT)
-
-    operator = threading.Thread(target=ctrl_c_once_recording)
-    operator.start()
-    try:
+    with ctrl_c_once_it_exists(work / "sensor_01000.partial.h5"):
         code = main(["collect", "--work", str(work), "--sensors", "2", "--jobs", "1", "--objects", "box",
                      "--poses-per-object", "3", "--sim-speed", "1"])
-    finally:
-        sent.set()
-        operator.join()
     assert code == 130 and calls == [signal.SIGINT, signal.SIGINT], (code, calls)  # the lost one, then again
     assert capsys.readouterr().err.splitlines() == ["pretrain: interrupted"]
     assert sorted(p.name for p in work.glob("sensor_*")) == [  # kept, as a later run records it anew; 1001 not started
