@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from collect.errors import InputError
-from trainer.model_dir import ONNX_FILE, ModelMetadata, export_hashes, load_network, resolve_model_dir
+from trainer.model_dir import ONNX_FILE, ModelMetadata, load_network, model_file_sha256, resolve_model_dir
 from trainer.preprocessing import MAX_IR
 
 RUNTIMES = ("onnx", "torch")
@@ -46,7 +46,7 @@ def onnx_session(model_dir: Path, metadata: ModelMetadata):
     path = model_dir / ONNX_FILE
     way_out = "delete it to run the model in torch, or export it again (trainer.onnx_export.export_and_select_runtime)"
     recorded = metadata.inference.get("onnx_sha256")
-    if recorded is not None and export_hashes(model_dir)["onnx_sha256"] != recorded:
+    if recorded is not None and model_file_sha256(model_dir, ONNX_FILE) != recorded:  # (the weights: load_network's)
         raise InputError(f"{path} is not the ONNX export that {model_dir} records (another SHA-256): {way_out}")
     session = ort_session(path)
     g = metadata.geometry

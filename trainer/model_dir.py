@@ -221,17 +221,19 @@ def load_metadata(model_dir: str | Path) -> ModelMetadata:
     return ModelMetadata.from_dict(data, model_dir)
 
 
+def model_file_sha256(model_dir: str | Path, name: str) -> str:
+    """SHA-256 (hex) of the file ``name`` in ``model_dir``; ``InputError`` naming it when it cannot be read."""
+    path = Path(model_dir) / name
+    try:
+        return file_sha256(path)
+    except OSError as err:
+        raise _unreadable(path, err) from None
+
+
 def export_hashes(model_dir: str | Path) -> dict[str, str]:
     """SHA-256 (hex) of ``model.onnx`` and ``model.safetensors`` in ``model_dir``, under their
     ``EXPORT_HASH_KEYS``; ``InputError`` naming a file that cannot be read."""
-    model_dir = Path(model_dir)
-    hashes = {}
-    for key, name in EXPORT_HASH_KEYS.items():
-        try:
-            hashes[key] = file_sha256(model_dir / name)
-        except OSError as err:
-            raise _unreadable(model_dir / name, err) from None
-    return hashes
+    return {key: model_file_sha256(model_dir, name) for key, name in EXPORT_HASH_KEYS.items()}
 
 
 def weights_sha256(model_dir: str | Path) -> str:
