@@ -255,6 +255,18 @@ def test_pretrain_checks_the_model_card_before_training(tmp_path, capsys):
     assert main([*common, "--model-card", str(tmp_path / "afile" / "card.md")]) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "is a file, not a directory" in err[0]
+    meta = tmp_path / "metadata.json"  # was: a markdown section appended to it after the training, exit 0
+    meta.write_text('{"arch": "x"}')
+    assert main([*common, "--model-card", str(meta)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"pretrain: error: --model-card {meta} is not a markdown file (.md): refusing to write a model card "
+        "section into it"]
+    assert meta.read_text() == '{"arch": "x"}'
+    binary = tmp_path / "card.md"  # was: a UnicodeDecodeError traceback after the training
+    binary.write_bytes(b"\x89HDF\r\n\x1a\n\xff\xfe")
+    assert main([*common, "--model-card", str(binary)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"pretrain: error: --model-card {binary} is not UTF-8 text: refusing to write a model card section into it"]
     assert not (work / TRAIN_DIR).exists()  # refused before training
     card = tmp_path / "new" / "docs" / "card.md"  # missing folders are created, as for --out
     write_model_card_section(BASE_MODEL_DIR, card, "python -m trainer.pretrain train")

@@ -15,10 +15,10 @@ def update_section(path: Path, key: str, title: str, lines: list[str], header: s
     """
     begin, end = f"<!-- begin:{key} -->", f"<!-- end:{key} -->"
     block = "\n".join([begin, f"## {title}", "", *lines, end])
-    text = path.read_text() if path.exists() else header
+    text = path.read_text(encoding="utf-8") if path.exists() else header
     if begin in text and end in text:
         head, rest = text.split(begin, 1)
         text = head + block + rest.split(end, 1)[1]
     else:
         text = text.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(text)
+    path.write_text(text, encoding="utf-8")

@@ -297,12 +297,29 @@ def chosen_model_card(option: str | None, out: Path) -> Path | None:
     return MODEL_CARD if MODEL_CARD.parent.is_dir() and out.resolve() == BASE_MODEL_DIR.resolve() else None
 
 
+#: Suffixes of the files ``--model-card`` may name: markdown, as its section is.
+MODEL_CARD_SUFFIXES = (".md", ".markdown")
+
+
 def check_model_card(card: Path) -> None:
-    """Raise InputError unless the model card ``card`` can be written once the training is done: a file
-    (new or not) whose missing folders can be created (``check_parent_dirs``)."""
+    """Raise InputError unless the model card ``card`` can be written once the training is done: a
+    markdown file (``MODEL_CARD_SUFFIXES``), new or readable UTF-8 text, whose missing folders can be
+    created (``check_parent_dirs``). Was: any file, a metadata.json or a YAML file given a markdown
+    section appended, and an HDF5 file a UnicodeDecodeError traceback after the whole training."""
     if card.is_dir():
         raise InputError(f"--model-card {card} is a directory, not a markdown file")
+    if card.suffix.lower() not in MODEL_CARD_SUFFIXES:
+        raise InputError(f"--model-card {card} is not a markdown file (.md): refusing to write a model card "
+                         "section into it")
     check_parent_dirs(card)
+    if card.exists():
+        try:
+            card.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"--model-card {card} is not UTF-8 text: refusing to write a model card section "
+                             "into it") from None
+        except OSError as err:
+            raise InputError(f"cannot read --model-card {card}: {err.strerror}") from None
 
 
 def run_train(args: argparse.Namespace) -> int:
