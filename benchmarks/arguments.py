@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 from typing import Callable, NoReturn
 
 from collect.errors import EXIT_BAD_INPUT, InputError
@@ -55,6 +56,21 @@ def positive_float(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}")
     return value
+
+
+def markdown_out(text: str) -> Path:
+    """``argparse`` type: the markdown page a benchmark writes (``--out``): a ``.md`` file, new or an earlier
+    page, which is replaced, in an existing folder (was: any path, a YAML or HDF5 file overwritten with exit
+    0, a folder a traceback after the whole run)."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, not a markdown file")
+    if path.suffix.lower() != ".md":
+        raise argparse.ArgumentTypeError(f"{text} is not a markdown file (.md): refusing to replace it with a "
+                                         "benchmark page")
+    if not path.resolve().parent.is_dir():
+        raise argparse.ArgumentTypeError(f"the folder of {text} does not exist")
+    return path
 
 
 def model_dir(text: str) -> str:

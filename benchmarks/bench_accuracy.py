@@ -42,7 +42,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import int_list, model_dir, name_list, run_main  # noqa: E402
+from benchmarks.arguments import int_list, markdown_out, model_dir, name_list, run_main  # noqa: E402
 from benchmarks.machine import finish, machine_info, machine_line, provisional_note  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
 from collect.errors import EXIT_FAULT  # noqa: E402
@@ -314,7 +314,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, help="sessions and models (default: runs/bench_accuracy[_quick])")
     p.add_argument("--reuse-models", action="store_true",
                    help="keep models in --work trained on the same data, init and budget (rebuild the tables cheaply)")
-    p.add_argument("--out", type=Path, help="markdown, JSON next to it (default: docs/bench_accuracy.md; with --quick, "
+    p.add_argument("--out", type=markdown_out, help="markdown, JSON next to it (default: docs/bench_accuracy.md; with --quick, "
                                             "bench_accuracy.md in --work, so that a check leaves the committed page)")
     args = p.parse_args(argv)
     if args.quick:

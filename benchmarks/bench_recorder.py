@@ -42,7 +42,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import positive_float, positive_int, run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, positive_float, positive_int, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect import session_format as sf  # noqa: E402
 from collect.bench import BenchConfig  # noqa: E402
@@ -296,14 +296,14 @@ def report(compression, long, collection, args, info: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=positive_float, default=10.0, help="long-recording length (default 10)")
     parser.add_argument("--throughput-frames", type=positive_int, default=900, help="frames per compression run")
     parser.add_argument("--repeats", type=positive_int, default=3, help="runs per filter (median reported)")
     parser.add_argument("--no-collect", action="store_true", help="skip the bubble collect --sim run")
-    parser.add_argument("--out", default=str(ROOT / "docs" / "bench_recorder.md"))
-    args = parser.parse_args()
+    parser.add_argument("--out", type=markdown_out, default=str(ROOT / "docs" / "bench_recorder.md"))
+    args = parser.parse_args(argv)
     info = machine_info()
     frames, spec = render_frames(90)
     with tempfile.TemporaryDirectory() as tmp:

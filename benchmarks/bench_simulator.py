@@ -32,7 +32,7 @@ import trimesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.arguments import run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from hw_mocks.bubble_sim import BubbleSim  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS, BenchObject, fixture_plate, load_object  # noqa: E402
@@ -101,7 +101,7 @@ def bench_physics(seeds=(1, 2, 3, 4, 5)) -> list[dict]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "bench_simulator.md"))
+    parser.add_argument("--out", type=markdown_out, default=str(Path(__file__).resolve().parents[1] / "docs" / "bench_simulator.md"))
     args = parser.parse_args(argv)
     info = machine_info()
     cv2.setNumThreads(1)

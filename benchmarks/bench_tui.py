@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from textual import events  # noqa: E402
 
-from benchmarks.arguments import model_dir, run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, model_dir, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
@@ -248,7 +248,7 @@ def write_markdown(path: Path, stats: dict, args, info: dict) -> None:
     path.write_text("\n".join(lines))
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--finetune-minutes", type=float, default=1.0)
     parser.add_argument("--poses-per-object", type=int, default=2)
@@ -261,8 +261,8 @@ def main() -> int:
     parser.add_argument("--python-gc", action="store_true",
                         help="keep Python's default garbage collector settings (bubble tui tunes them)")
     parser.add_argument("--base-model", type=model_dir, help="model to fine-tune from (default: the packaged base model)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "bench_tui.md")
-    args = parser.parse_args()
+    parser.add_argument("--out", type=markdown_out, default=Path(__file__).resolve().parents[1] / "docs" / "bench_tui.md")
+    args = parser.parse_args(argv)
     info = machine_info()
     with tempfile.TemporaryDirectory() as tmp:
         config = CommissionConfig(run_dir=Path(tmp) / "run", simulated=True, registry_dir=Path(tmp) / "registry",

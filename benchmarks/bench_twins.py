@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.arguments import positive_float, run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, positive_float, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect.bench import BenchConfig, open_bench  # noqa: E402
 
@@ -79,7 +79,7 @@ def measure(seconds: float, idle: bool) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=positive_float, default=20.0, help="run length, half idle, half pressing")
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "bench_twins.md")
+    parser.add_argument("--out", type=markdown_out, default=Path(__file__).resolve().parents[1] / "docs" / "bench_twins.md")
     args = parser.parse_args(argv)
     info = machine_info()
     rows = [measure(args.seconds / 2, idle=True), measure(args.seconds / 2, idle=False)]

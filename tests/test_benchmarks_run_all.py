@@ -214,3 +214,25 @@ def test_the_cpu_of_other_processes_is_counted_and_not_this_ones(monkeypatch):
     unmeasured = machine.finish(info)
     assert unmeasured["others_cores"] is None and not machine.provisional(unmeasured)
     assert "not measured" in machine.provisional_note(unmeasured)
+
+
+@pytest.mark.parametrize("script", ["bench_accuracy", "bench_pose", "bench_recorder", "bench_simulator", "bench_tui",
+                                    "bench_twins"])
+def test_a_benchmark_page_is_a_markdown_file_in_an_existing_folder(script, tmp_path, capsys):
+    """Was: ``--out`` took any path: a YAML or HDF5 file was overwritten with exit 0, and a folder or a path
+    under a file gave a traceback after the whole run."""
+    import importlib
+
+    main = importlib.import_module(f"benchmarks.{script}").main
+    spec = tmp_path / "sensor.yaml"
+    spec.write_text("seed: 1\n")
+    (tmp_path / "afile").write_text("")
+    for out, says in ((tmp_path, "is a directory, not a markdown file"),
+                      (spec, "is not a markdown file (.md): refusing to replace it with a benchmark page"),
+                      (tmp_path / "afile" / "page.md", "the folder of"), (tmp_path / "missing" / "page.md", "the folder of")):
+        line = _refused(main, ["--out", str(out)], capsys)
+        assert says in line and str(out) in line
+    assert spec.read_text() == "seed: 1\n" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "sensor.yaml"]
+    from benchmarks.arguments import markdown_out
+
+    assert markdown_out(str(tmp_path / "page.md")) == tmp_path / "page.md"  # a new page
