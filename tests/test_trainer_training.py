@@ -557,6 +557,21 @@ def test_ctrl_c_during_training_checkpoints_the_step_reached(bubble, session, tm
     assert load_metadata(out).training["steps"] > 2 and not has_checkpoint(out)
 
 
+@pytest.mark.parametrize("name", ["model.safetensors", "metadata.json", "model.onnx", "checkpoint.json",
+                                  "checkpoint.safetensors"])
+def test_a_new_training_refuses_a_folder_holding_a_file_it_writes(bubble, session, tmp_path, capsys, name):
+    """Was: a foreign ``metadata.json`` or ``model.onnx`` in ``--out`` overwritten and a lone
+    ``checkpoint.json`` deleted, exit 0 (only ``model.safetensors`` was refused)."""
+    out = tmp_path / "m"
+    out.mkdir()
+    (out / name).write_text("someone else's file")
+    assert bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.2", "--no-onnx",
+                  "--threads", "1") == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"bubble: error: {out} already holds "), err
+    assert [p.name for p in out.iterdir()] == [name] and (out / name).read_text() == "someone else's file"
+
+
 def test_ctrl_c_while_the_model_is_written_is_reported(bubble, session, tmp_path, monkeypatch, capsys,
                                                        interrupt_handlers_restored):
     """Was: swallowed, "model written to", exit 0: the stop came after the last step, where nothing

@@ -22,10 +22,12 @@ from torch import nn
 
 from collect.errors import InputError
 from collect.json_files import JSON_READ_ERRORS, write_json
-from trainer.model_dir import WEIGHTS_FILE, write_safetensors
+from trainer.model_dir import METADATA_FILE, ONNX_FILE, WEIGHTS_FILE, write_safetensors
 
 CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
+#: Every file a training writes into its model directory (a new training refuses a folder holding one).
+TRAINING_FILES = (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE, CHECKPOINT_WEIGHTS, CHECKPOINT_STATE)
 #: What ``progress`` must hold for a resume (``trainer.training`` writes more).
 PROGRESS_KEYS = ("epoch", "step", "train_s", "history", "loss")
 

@@ -173,6 +173,19 @@ def _model_dir_held(out: Path) -> Iterator[None]:
                 out.rmdir()
 
 
+def _check_no_training_files(out: Path) -> None:
+    """Raise InputError when the folder ``out`` of a new training holds a file of the name that training
+    writes (``TRAINING_FILES``), which it would replace or delete (was: a foreign ``metadata.json`` or
+    ``model.onnx`` overwritten, a ``checkpoint.json`` deleted, exit 0); other files may stay there."""
+    from collect.errors import InputError
+    from trainer.checkpoint import TRAINING_FILES
+
+    found = [name for name in TRAINING_FILES if (out / name).exists()]
+    if found:
+        raise InputError(f"{out} already holds {found[0]}, which training writes; choose another --out "
+                         "(a new folder, or one without the files of a model)")
+
+
 def a1_text(val: dict | None) -> str:
     """The live validation's a1 (``val``: ``TrainProgress.val``) as ``train`` and ``pretrain train`` show
     it: ``-`` before the first validation and where it is not a finite number (a resumed run's
@@ -255,6 +268,8 @@ def run_train(args: argparse.Namespace) -> int:
                 raise InputError(f"{out} already holds a model; choose another --out (with --init {out} to train "
                                  "it further)")
             check_checkpoint_use(out, args.resume, "choose another --out, or drop --resume", "choose another --out")
+            if not args.resume:
+                _check_no_training_files(out)
             with stop.handled():
                 result = train_model(config, on_progress, stop.event)
     finally:
