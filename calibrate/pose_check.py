@@ -46,6 +46,7 @@ from calibrate.pose_estimation import (
 from collect.atomic_files import replacing
 from collect.errors import InputError
 from collect.json_files import write_json
+from collect.output_files import PNG_WRITER_KEY
 from collect.transforms import pose_to_matrix
 from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
 from trainer.metrics import METRIC_KEYS, depth_metrics
@@ -370,6 +371,9 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
 
 #: The histograms ``write_histograms`` writes: predicted vs measured, and each source vs the true pose.
 PLOT_FILES = ("pose_errors.png", "pose_vs_true.png")
+#: The writer marked in each histogram PNG: ``bubble pose --plots`` replaces only images that have it
+#: (``collect.output_files.check_png_output``).
+PLOTS_WRITER = "bubble pose"
 
 
 def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Path]:
@@ -415,11 +419,12 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
 
 
 def _save_figure(fig, path: Path) -> None:
-    """Write ``fig`` to the PNG file ``path`` atomically (``collect.atomic_files.replacing``) and close it."""
+    """Write ``fig`` to the PNG file ``path`` atomically (``collect.atomic_files.replacing``), marked as
+    ``PLOTS_WRITER``'s, and close it."""
     import matplotlib.pyplot as plt
 
     try:
         with replacing(path) as tmp:
-            fig.savefig(tmp, dpi=100, format="png")
+            fig.savefig(tmp, dpi=100, format="png", metadata={PNG_WRITER_KEY: PLOTS_WRITER})
     finally:
         plt.close(fig)

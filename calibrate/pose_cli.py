@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from collect.output_files import check_json_output, check_parent_dirs, named_path, write_json_result
+from collect.output_files import check_json_output, check_parent_dirs, check_png_output, named_path, write_json_result
 
 #: Largest contact threshold (mm): presses dent the bubble by about 10 mm at most.
 MAX_THRESHOLD_MM = 20.0
@@ -32,7 +32,7 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    from calibrate.pose_check import PLOT_FILES, run_pose_check
+    from calibrate.pose_check import PLOT_FILES, PLOTS_WRITER, run_pose_check
     from calibrate.pose_estimation import MIN_POINTS
     from collect.errors import InputError
     from trainer.cli import check_model_arg, print_sensor_note
@@ -54,6 +54,7 @@ def _run(args) -> int:
         for png in plots:
             if png.is_dir():
                 raise InputError(f"--plots {args.plots}: {png} is a directory; the histogram is written there")
+            check_png_output(png, PLOTS_WRITER)  # was: any file of that name replaced
         if args.json is not None:  # the JSON and the histograms must not land on one another
             json_path = Path(args.json).resolve()
             if json_path in [p.resolve() for p in plots] or Path(args.plots).resolve() in (json_path, *json_path.parents):

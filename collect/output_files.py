@@ -53,6 +53,31 @@ def check_json_output(path, command: str) -> None:
         raise InputError(f"{path} exists and is not an earlier `{command} --json` result; refusing to overwrite it")
 
 
+#: Key of the PNG text chunk that names the command that wrote an image (``savefig(metadata=...)``).
+PNG_WRITER_KEY = "Software"
+
+
+def check_png_output(path, command: str) -> None:
+    """Raise InputError when ``path`` exists and is not a PNG image that ``command`` wrote (its
+    ``PNG_WRITER_KEY`` text is ``command``): an earlier image of the same command is replaced, no
+    other file (images of versions that did not mark them neither)."""
+    path = Path(path)
+    if path.exists() and _png_written_by(path) != command:
+        raise InputError(f"{path} exists and is not an earlier `{command}` image; refusing to overwrite it")
+
+
+def _png_written_by(path: Path) -> str | None:
+    """The ``PNG_WRITER_KEY`` text of the PNG image ``path``; None for any other file, and for one that
+    cannot be read (nothing then tells what wrote it)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.text.get(PNG_WRITER_KEY) if image.format == "PNG" else None
+    except (UnidentifiedImageError, OSError):
+        return None
+
+
 def write_json_result(path, command: str, values: dict) -> None:
     """Write ``values`` (JSON data, see ``plain_json``) as ``command``'s ``--json`` result, marked
     with ``WRITTEN_BY`` first (``check_json_output`` checked ``path`` before the work)."""

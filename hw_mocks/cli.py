@@ -83,19 +83,13 @@ def _preview(args: argparse.Namespace) -> int:
 
 def _check_preview_output(out: Path) -> None:
     """Raise InputError unless ``out`` can take the preview: a .png path, new or an earlier preview
-    (``hw_mocks.preview.is_preview``)."""
-    from collect.output_files import check_parent_dirs
-    from hw_mocks.preview import is_preview
+    (``collect.output_files.check_png_output``)."""
+    from collect.output_files import check_parent_dirs, check_png_output
+    from hw_mocks.preview import PREVIEW_SOFTWARE
 
     if out.is_dir():
         raise InputError(f"--out {out} is a directory; name the PNG file to write, e.g. {out / 'preview.png'}")
     if out.suffix.lower() != ".png":
         raise InputError(f"--out {out}: the preview is a PNG image; name a .png file")
-    if out.exists():
-        try:
-            earlier = is_preview(out)
-        except OSError:  # unreadable: nothing tells that it is a preview
-            earlier = False
-        if not earlier:
-            raise InputError(f"{out} exists and is not an earlier `bubble sim preview` image; refusing to overwrite it")
+    check_png_output(out, PREVIEW_SOFTWARE)
     check_parent_dirs(out, replaced=True)

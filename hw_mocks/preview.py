@@ -14,6 +14,7 @@ import numpy as np
 
 from collect.atomic_files import replacing
 from collect.errors import InputError
+from collect.output_files import PNG_WRITER_KEY
 from collect.session_format import DEPTH_UNIT_M
 from hw_mocks.bubble_sim import BubbleSim
 from hw_mocks.objects import fixture_plate, load_object
@@ -21,20 +22,8 @@ from hw_mocks.sensor_spec import SensorSpec
 
 
 #: The ``Software`` text of every preview PNG: ``bubble sim preview --out`` replaces a PNG that has it
-#: (an earlier preview) and no other file.
+#: (an earlier preview) and no other file (``collect.output_files.check_png_output``).
 PREVIEW_SOFTWARE = "bubble sim preview"
-
-
-def is_preview(path: Path) -> bool:
-    """Whether the file ``path`` is a preview PNG (Pillow reads its ``Software`` text). Raises
-    ``OSError`` when it cannot be read."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            return image.format == "PNG" and image.text.get("Software") == PREVIEW_SOFTWARE
-    except UnidentifiedImageError:  # not an image at all
-        return False
 
 
 def press_pose(top_point: np.ndarray, press_m: float) -> np.ndarray:
@@ -43,7 +32,7 @@ def press_pose(top_point: np.ndarray, press_m: float) -> np.ndarray:
 
 
 def render_preview(spec: SensorSpec, object_name: str, press_m: float, out: Path, seed: int = 0) -> str:
-    """Write the preview PNG to ``out``, marked as one (``is_preview``); returns a one-line summary."""
+    """Write the preview PNG to ``out``, marked as one (``PREVIEW_SOFTWARE``); returns a one-line summary."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,7 +79,7 @@ def render_preview(spec: SensorSpec, object_name: str, press_m: float, out: Path
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         with replacing(out) as tmp:
-            fig.savefig(tmp, dpi=110, format="png", metadata={"Software": PREVIEW_SOFTWARE})
+            fig.savefig(tmp, dpi=110, format="png", metadata={PNG_WRITER_KEY: PREVIEW_SOFTWARE})
     except OSError as err:
         raise InputError(f"cannot write {out}: {err.strerror or err}") from None
     finally:

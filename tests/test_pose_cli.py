@@ -34,6 +34,32 @@ def test_pose_command_writes_json_and_plots(tmp_path, monkeypatch, capsys):
     assert set(METRIC_KEYS) <= set(doc) and doc["n_images"] == 4 and doc["a1"] > 0.99
     assert (tmp_path / "plots" / "pose_errors.png").is_file()
     assert "predicted vs measured depth: e_x median" in capsys.readouterr().out
+    assert cli.main(["pose", "--model", str(tmp_path / "m"), "--data", str(session), "--plots",
+                     str(tmp_path / "plots")]) == 0  # its earlier histograms are replaced
+
+
+def test_plots_over_other_files_are_refused_before_the_run(tmp_path, capsys):
+    """Was: any file named pose_errors.png or pose_vs_true.png in --plots replaced, an image of another
+    command too; an earlier ``bubble pose`` histogram is marked as one and is replaced."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    session = write_cylinder_session(tmp_path / "s.h5", n_poses=1, hold_frames=2)
+    model = _untrained_model(tmp_path / "m")
+    plots = tmp_path / "plots"
+    plots.mkdir()
+    plt.figure().savefig(plots / "pose_vs_true.png")  # someone's image
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "pose_errors.png").write_text("not an image")
+    for folder, name in ((plots, "pose_vs_true.png"), (tmp_path / "notes", "pose_errors.png")):
+        before = (folder / name).read_bytes()
+        assert cli.main(["pose", "--model", str(model), "--data", str(session), "--plots", str(folder)]) == 2
+        assert capsys.readouterr().err.splitlines() == [
+            f"bubble: error: {folder / name} exists and is not an earlier `bubble pose` image; refusing to overwrite it"]
+        assert (folder / name).read_bytes() == before
+    assert sorted(p.name for p in plots.iterdir()) == ["pose_vs_true.png"]
 
 
 def test_the_json_result_is_written_though_the_reader_of_stdout_went_away(tmp_path, monkeypatch):
