@@ -108,7 +108,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     from collect.session_writer import check_free_space
     from hw_mocks.objects import load_object
     from trainer.cli import check_model_arg
-    from trainer.model_dir import BASE_MODEL_DIR, load_weights, load_metadata
+    from trainer.model_dir import BASE_MODEL_DIR, load_network
 
     run_dir = Path(config.run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -153,8 +153,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         check_model_arg(str(config.base_model), "--base-model")
     elif not BASE_MODEL_DIR.is_dir():
         raise InputError(f"the packaged base model {BASE_MODEL_DIR} is missing; give --base-model MODEL_DIR")
-    load_metadata(base_model)
-    load_weights(base_model)  # InputError for missing, corrupt or pickled weights
+    load_network(base_model)  # InputError for missing, corrupt or pickled weights, NaN, other shapes or dtypes
+    # (was: metadata and weights read alone, those faults refused by the fine-tune, after the recording)
     # the registry of --registry, else of $BUBBLE_REGISTRY or the default (was: checked for --registry alone, and
     # an unwritable $BUBBLE_REGISTRY failed the run at its end with a traceback): InputError for one not a directory;
     # the run registers the sensor at its end, in a folder named as its serial (not known yet on the real bench):

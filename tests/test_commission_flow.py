@@ -416,6 +416,32 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
     assert not (tmp_path / "registry").exists() and not (tmp_path / "run").exists()  # refused before the bench opens
 
 
+def test_a_base_model_the_fine_tune_cannot_load_is_refused_before_the_bench_opens(tmp_path, capsys):
+    """Was: only its metadata and weights file were read up front; NaN weights (or tensors of another
+    shape or dtype) were refused by the fine-tune, after the whole recording."""
+    import json
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, WEIGHTS_FILE, weights_sha256
+
+    model = tmp_path / "nan_model"
+    shutil.copytree(BASE_MODEL_DIR, model)
+    weights = load_file(model / WEIGHTS_FILE)
+    key = next(k for k, v in weights.items() if v.is_floating_point())
+    weights[key][...] = float("nan")
+    save_file(weights, model / WEIGHTS_FILE)
+    meta = json.loads((model / METADATA_FILE).read_text())
+    meta["inference"]["weights_sha256"] = weights_sha256(model)  # a whole model, its weights NaN
+    (model / METADATA_FILE).write_text(json.dumps(meta))
+    argv = ["commission", "--sim", "--out", str(tmp_path / "run"), "--registry", str(tmp_path / "registry"),
+            "--base-model", str(model)]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.splitlines() == [f"bubble: error: weight {key} in {model} holds NaN or inf"]
+    assert not (tmp_path / "registry").exists() and not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("change, message", [
     ({"poses_per_object": float("nan")}, "poses per object must be a whole number, got nan"),  # was: a ValueError
     ({"poses_per_object": 3.9}, "poses per object must be a whole number, got 3.9"),  # was: the planner's, later
