@@ -38,6 +38,7 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.arguments import name_list  # noqa: E402
 from benchmarks.machine import finish, machine_info  # noqa: E402
 
 DOCS = ROOT / "docs"
@@ -411,17 +412,15 @@ def main(argv: list[str] | None = None) -> int:
         epilog="Arguments after -- go to the script(s). `--only accuracy -- --quick` checks bench_accuracy.py with tiny "
                "budgets: its page goes to runs/bench_accuracy_quick/, docs/ keep the last full run's (the accuracy "
                "target shows stale until the next full run).")
-    parser.add_argument("--only", help="comma-separated benchmarks to run: " + ",".join(BY_NAME))
+    parser.add_argument("--only", type=name_list(tuple(BY_NAME)),  # was: '' ran every benchmark
+                        help="comma-separated benchmarks to run: " + ",".join(BY_NAME))
     parser.add_argument("--assemble-only", action="store_true", help="run nothing, rebuild docs/benchmarks.md")
     argv = sys.argv[1:] if argv is None else argv
     extra = tuple(argv[argv.index("--") + 1:]) if "--" in argv else ()
     args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
     if args.assemble_only and (args.only is not None or extra):
         parser.error("--assemble-only runs no benchmark: give it without --only and without arguments after --")
-    names = list(BY_NAME) if not args.only else [n.strip() for n in args.only.split(",") if n.strip()]
-    unknown = [n for n in names if n not in BY_NAME]
-    if unknown:
-        parser.error(f"unknown benchmark(s) {', '.join(unknown)}; choose from {', '.join(BY_NAME)}")
+    names = args.only or list(BY_NAME)
     runs = load_runs()
     failed = []
     if not args.assemble_only:

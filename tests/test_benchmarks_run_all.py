@@ -167,6 +167,14 @@ def test_run_all_refuses_only_with_assemble_only(capsys):
     assert "--assemble-only" in line and "--only" in line
 
 
+@pytest.mark.parametrize("only", ["", " , ", "simulator,teapot", "simulator,simulator"])
+def test_run_all_refuses_an_empty_unknown_or_repeated_only(only, capsys, monkeypatch):
+    """Was: ``--only ""`` ran every benchmark (an hour), and a name twice ran it twice."""
+    monkeypatch.setattr(run_all, "run", lambda *a: pytest.fail("a benchmark ran"))
+    line = _refused(run_all.main, ["--only", only], capsys)
+    assert "--only" in line and "expected one or more of simulator," in line
+
+
 def test_a_quick_accuracy_run_writes_its_page_in_its_work_folder():
     """Was: ``run_all.py --only accuracy -- --quick`` overwrote the committed docs/bench_accuracy.md."""
     from benchmarks import bench_accuracy
