@@ -147,7 +147,10 @@ def test_pretrain_collect_refuses_bad_options_before_recording(tmp_path, capsys)
                        (["--objects", " , "], "--objects names no object"), (["--work", str(afile)], "is a file"),
                        (["--first-seed", "-1"], f"{seeds} -1..14"),
                        (["--first-seed", "4294967296", "--sensors", "1"], f"{seeds} 4294967296..4294967296"),
-                       (["--first-seed", "4294967295", "--sensors", "2"], f"{seeds} 4294967295..4294967296")):
+                       (["--first-seed", "4294967295", "--sensors", "2"], f"{seeds} 4294967295..4294967296"),
+                       # was: one error line per sensor from its bubble collect, its yaml left behind, exit 1
+                       (["--poses-per-object", "1001"], "--poses-per-object must be 1..1000, got 1001"),
+                       (["--jobs", str(os.cpu_count() + 1)], f"--jobs must be 1..{os.cpu_count()} (the CPUs")):
         assert main(["collect", "--work", str(tmp_path / "w"), *argv]) == 2
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and says in err[0], err
@@ -171,7 +174,7 @@ def test_pretrain_help_describes_every_option_with_its_default(capsys):
     collect = _help_by_option(["collect"], capsys)
     for option, default in (("--sensors", "(default 16)"), ("--first-seed", "(default 1000;"),
                             ("--poses-per-object", "(default 8)"), ("--sim-speed", "default 20)"),
-                            ("--jobs", "(default 2)"), ("--work", "directory of the sessions")):
+                            ("--jobs", f"(default {min(2, os.cpu_count())})"), ("--work", "directory of the sessions")):
         assert default in collect[option], collect[option]
     train = _help_by_option(["train"], capsys)
     for option, says in (("--work", "WORK/model"), ("--out", "trainer/base_model"), ("--seed", "(default 0)"),

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -39,6 +40,7 @@ from pathlib import Path
 from collect.atomic_files import replacing
 from collect.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, OneLineParser
 from collect.output_files import check_parent_dirs, named_path
+from collect.pose_planner import MAX_POSES_PER_OBJECT
 from collect.stop_signals import INTERRUPTS, Terminated, raise_interrupt, stop_signals_handled
 from hw_mocks.sensor_spec import MAX_SEED as MAX_SENSOR_SEED
 from trainer.augmentation import PRETRAIN_NOISE_STD
@@ -163,6 +165,11 @@ def result_unless_stopped(future: Future, signalled: list[int]) -> Path:
     return future.result()
 
 
+def max_jobs() -> int:
+    """Most sessions ``collect`` records at once: the CPUs of this machine (one simulated bench each)."""
+    return os.cpu_count() or 1
+
+
 def run_collect(args: argparse.Namespace) -> int:
     """Record the sessions of ``--sensors`` sensors, ``--jobs`` at a time. A stop (Ctrl-C, SIGTERM,
     SIGHUP) starts no further sensor and stops the ``bubble`` commands that run (``BubbleCommands.stop``):
@@ -170,6 +177,11 @@ def run_collect(args: argparse.Namespace) -> int:
     sensor was recorded before the command ended)."""
     if args.sensors < 1 or args.jobs < 1 or args.poses_per_object < 1:
         raise InputError("--sensors, --jobs and --poses-per-object must be at least 1")
+    if args.poses_per_object > MAX_POSES_PER_OBJECT:  # was: refused by each sensor's bubble collect, exit 1
+        raise InputError(f"--poses-per-object must be 1..{MAX_POSES_PER_OBJECT}, got {args.poses_per_object}")
+    if args.jobs > max_jobs():  # was: any number of simulated benches at once, each falling behind its clock
+        raise InputError(f"--jobs must be 1..{max_jobs()} (the CPUs of this machine: each job runs a simulated "
+                         f"bench), got {args.jobs}")
     if args.objects is not None and not args.objects.strip(" ,"):
         raise InputError("--objects names no object: name some, or drop the option for every object")
     seeds = range(args.first_seed, args.first_seed + args.sensors)
@@ -408,7 +420,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="contact poses per object in each session (default %(default)s)")
     c.add_argument("--sim-speed", type=float, default=20.0,
                    help="simulated clock speed factor (<= 100; lower on a busy machine; default %(default)g)")
-    c.add_argument("--jobs", type=int, default=2, help="sessions recorded in parallel (default %(default)s)")
+    c.add_argument("--jobs", type=int, default=min(2, max_jobs()),
+                   help="sessions recorded in parallel, at most the CPUs of this machine (default %(default)s)")
     c.add_argument("--work", type=named_path, required=True, help="directory of the sessions (created)")
     c.set_defaults(func=run_collect)
     t = sub.add_parser("train", help="train on the sessions of --work and package the base model")
