@@ -99,7 +99,10 @@ class RunState:
         holds a run with other settings. A run resumed with other budgets, faults or speed records
         them as its ``settings``, those of the attempts before in ``earlier_settings`` (oldest first;
         was: the first attempt's alone, which the report of the attempt that reached the verdict
-        showed as its own); a finished run keeps the settings of its verdict."""
+        showed as its own); a finished run keeps the settings of its verdict. Those settings are
+        written with the attempt's first record (``record``): an attempt refused before it records
+        anything leaves ``state.json`` as it was (was: rewritten here, the refused attempt's settings
+        then shown as the run's)."""
         path = run_dir / STATE_FILE
         if not path.exists():
             cls._check_no_other_files(run_dir)
@@ -110,7 +113,6 @@ class RunState:
         if not state.done(Step.VERDICT) and state.data["settings"] != settings:
             state.data.setdefault("earlier_settings", []).append(state.data["settings"])
             state.data["settings"] = settings
-            state.save()
         return state
 
     @classmethod

@@ -582,6 +582,30 @@ def test_a_rejection_after_a_short_fine_tune_says_so(tmp_path, monkeypatch):
     assert profile.history[-1]["reason"] == result.reason
 
 
+def test_a_refused_resume_leaves_the_runs_settings_as_they_were(tmp_path, monkeypatch):
+    """A run resumed with another budget and refused before it did anything (the bench holds another
+    sensor): its state.json is left as it was (was: this attempt's settings recorded as the run's, and
+    the first attempt's moved to earlier_settings, though nothing ran with them)."""
+    from calibrate import acceptance
+    from calibrate.commission_config import load_sensor_spec
+    from calibrate.commissioning import _Flow
+    from calibrate.run_directory import RunState, Step, run_settings
+
+    config = tiny_config(tmp_path)
+    settings = run_settings(config, load_sensor_spec(config).serial, acceptance.load_thresholds(config.thresholds))
+    config.run_dir.mkdir()
+    RunState.open(config.run_dir, settings).record(Step.CONNECT, {"ok": True, "summary": "connected"})
+    before = (config.run_dir / "state.json").read_bytes()
+
+    def another_sensor(flow) -> None:
+        raise InputError(f"{flow.run_dir} was started for sensor A, the bench holds B; use a new --out")
+
+    monkeypatch.setattr(_Flow, "open_bench", another_sensor)
+    with pytest.raises(InputError, match="the bench holds B"):
+        run_commissioning(dataclasses.replace(config, finetune_minutes=1.0), lambda e: None)
+    assert (config.run_dir / "state.json").read_bytes() == before
+
+
 def test_a_sensor_that_failed_a_gate_is_not_reconnected_when_its_run_is_run_again(tmp_path, monkeypatch):
     """A leaking sensor, its run stopped at the verdict (or killed there): run again, it reaches its
     verdict from state.json without the bench (was: the bench was reopened for the steps the failed gate
