@@ -159,7 +159,13 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     # an unwritable $BUBBLE_REGISTRY failed the run at its end with a traceback): InputError for one not a directory;
     # the run registers the sensor at its end, in a folder named as its serial (not known yet on the real bench):
     # the message names that file (was: <registry>/profile.json, a file never written)
-    check_parent_dirs(SensorRegistry(config.registry_dir).root / "<serial>" / PROFILE)
+    registry_root = SensorRegistry(config.registry_dir).root
+    check_parent_dirs(registry_root / "<serial>" / PROFILE)
+    run_abs, registry_abs = run_dir.resolve(), registry_root.resolve()
+    if run_abs.is_relative_to(registry_abs) or registry_abs.is_relative_to(run_abs):  # was: accepted, the
+        # registry's sensor folders written among the run's files (or the run among the sensors)
+        raise InputError(f"the run folder {run_dir} and the sensor registry {registry_root} overlap; give each "
+                         "its own folder (--out, --registry)")
     if not config.simulated:
         if config.sim_faults or config.sensor_spec is not None:
             raise InputError("sensor specs and simulated faults need the simulated bench (--sim)")

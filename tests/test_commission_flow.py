@@ -403,6 +403,10 @@ def test_defective_sensor_is_rejected_with_the_reason(tmp_path, capsys, defect, 
         (None, ["--finetune-minutes", "1e6"], "fine-tune minutes must be in (0, 10080] (a week), got 1000000.0"),
         # was: refused by the trainer after the whole recording, and so again on every resume
         (None, ["--seed", "4294967296"], "seed must be 0..4294967295, got 4294967296"),
+        # was: accepted, the sensor's registry folder written among the run's files
+        (None, ["--registry", "{tmp}/run"], "and the sensor registry"),
+        (None, ["--registry", "{tmp}/run/registry"], "overlap; give each its own folder (--out, --registry)"),
+        (None, ["--registry", "{tmp}"], "overlap; give each its own folder (--out, --registry)"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragment):
