@@ -291,6 +291,10 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         raise InputError(f"mesh {path} is not a regular file" if path.exists() else f"mesh file not found: {path}")
     if object_name(path) in _BUILDERS:
         raise InputError(f"mesh {path} would be named '{path.stem}', as the built-in object; rename the file")
+    try:  # the object's name goes into recordings, reports and plots as text
+        object_name(path).encode("utf-8")
+    except UnicodeEncodeError:  # bytes of another encoding in the name (was: trimesh's UnicodeEncodeError)
+        raise InputError(f"mesh {path}: its file name is not UTF-8 text, and names the object; rename the file") from None
     try:
         mesh = trimesh.load(path, force="mesh", process=False)  # merged below, once its vertices are checked
     except ImportError:  # a file that is no binary mesh is read as text, whose encoding needs an optional package
@@ -302,6 +306,9 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         raise InputError(f"mesh {path} holds no triangles")
     if not np.all(np.isfinite(mesh.vertices)):
         raise InputError(f"mesh {path} has non-finite vertices")
+    size = float(np.max(mesh.extents))  # before the merge, which overflows on 1e30 m (a warning line)
+    if not (MESH_SIZE_RANGE_M[0] <= size <= MESH_SIZE_RANGE_M[1]):
+        raise InputError(f"mesh {path} is {size:.3g} m across; expected metres (5 mm to 0.5 m)")
     mesh.process()  # merges the vertices that an STL repeats per triangle
     if not mesh.is_watertight:
         mesh.update_faces(mesh.nondegenerate_faces() & mesh.unique_faces())
@@ -310,9 +317,6 @@ def load_object(name_or_path: str | Path) -> BenchObject:
             raise InputError(f"mesh {path} is not watertight (it must be a closed surface)")
     if not mesh.is_winding_consistent or mesh.volume < 0:  # inside out, or some faces turned
         mesh.fix_normals()
-    size = float(np.max(mesh.extents))
-    if not (MESH_SIZE_RANGE_M[0] <= size <= MESH_SIZE_RANGE_M[1]):
-        raise InputError(f"mesh {path} is {size:.3g} m across; expected metres (5 mm to 0.5 m)")
     (x0, y0, z0), (x1, y1, _) = mesh.bounds
     tol = MESH_PLACEMENT_TOL_M
     if abs(z0) > tol or not (x0 - tol <= 0 <= x1 + tol and y0 - tol <= 0 <= y1 + tol):

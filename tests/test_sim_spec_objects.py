@@ -219,6 +219,22 @@ def test_mesh_files_that_are_repaired_or_named_wrong(tmp_path):
     os.mkfifo(tmp_path / "pipe.stl")
     with pytest.raises(InputError, match="pipe.stl is not a regular file"):  # was: "mesh file not found"
         load_object(tmp_path / "pipe.stl")
+    latin1 = _brick(tmp_path, os.fsdecode(b"caf\xe9.stl"))  # a name of Latin-1 bytes, as argv decodes it
+    with pytest.raises(InputError) as info:  # was: "UnicodeEncodeError: 'utf-8' codec can't encode character"
+        load_object(latin1)
+    assert str(info.value) == f"mesh {latin1}: its file name is not UTF-8 text, and names the object; rename the file"
+
+
+def test_a_mesh_in_kilometres_is_refused_by_its_size_without_a_warning(tmp_path):
+    """Was: 1e30 m coordinates passed to trimesh's vertex merge, which printed a RuntimeWarning (cast
+    overflow) above the error line, and that line said "not watertight"."""
+    import warnings
+
+    huge = _brick(tmp_path, "huge.stl", edit=lambda m: trimesh.Trimesh(m.vertices * 1e30, m.faces, process=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=r"huge.stl is 3e\+28 m across; expected metres \(5 mm to 0.5 m\)"):
+            load_object(huge)
 
 
 def test_objects_longer_than_the_plate_are_refused(tmp_path):
