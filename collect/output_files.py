@@ -44,6 +44,8 @@ def check_json_output(path, command: str) -> None:
     path = Path(path)
     _check_name_lengths(path, replaced=True)
     parent = path.parent.resolve()
+    if parent.exists() and not parent.is_dir():  # was: "directory … does not exist" of a file
+        raise InputError(f"cannot write {path}: {parent} is a file, not a directory")
     if not parent.is_dir():
         raise InputError(f"cannot write {path}: directory {parent} does not exist")
     _check_can_create_in(parent, path)

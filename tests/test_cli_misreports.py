@@ -53,6 +53,9 @@ def test_output_that_is_a_directory_or_under_a_file(tmp_path, places, capsys):
     _refused(capsys, preview + [folder], f"--out {folder} is a directory")
     assert list(tmp_path.glob("folder.*")) == []  # was: the preview written to folder.png, exit 0
     _refused(capsys, preview + [plain / "p.png"], f"{plain} is a file, not a directory")
+    # was: "directory … does not exist" of a file
+    _refused(capsys, ["evaluate", "--model", "base", "--data", spec, "--json", plain / "e.json"],
+             f"cannot write {plain / 'e.json'}: {plain} is a file, not a directory")
     assert list(folder.iterdir()) == [] and plain.read_text() == "x"
 
 
