@@ -58,6 +58,70 @@ def positive_float(text: str) -> float:
     return value
 
 
+def sensor_seed(text: str) -> int:
+    """``argparse`` type: a simulated sensor's seed, an integer within 0..``MAX_SEED``."""
+    from hw_mocks.sensor_spec import MAX_SEED
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected a sensor seed within 0..{MAX_SEED}, got {text!r}")
+    return value
+
+
+def sensor_seed_list(text: str) -> list[int]:
+    """``argparse`` type: comma-separated sensor seeds (``int_list``), each within 0..``MAX_SEED``."""
+    return [sensor_seed(str(value)) for value in int_list(text)]
+
+
+def sim_speed(text: str) -> float:
+    """``argparse`` type: the simulated clock's speed factor, within ``hw_mocks.sim_bench.SIM_SPEED_RANGE``."""
+    from hw_mocks.sim_bench import check_sim_speed
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    try:
+        check_sim_speed(value)
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return value
+
+
+def object_names(text: str) -> str:
+    """``argparse`` type: comma-separated objects of the bench (built-in names or mesh files), at least
+    one, each once, each loadable; returns them comma-separated, without blanks."""
+    from collect.pose_planner import check_unique_names
+    from hw_mocks.objects import load_object
+
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected one or more comma-separated objects, got {text!r}")
+    try:
+        check_unique_names([load_object(name).name for name in names])
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return ",".join(names)
+
+
+def work_dir(text: str) -> Path:
+    """``argparse`` type: a folder a benchmark keeps its files in: new (created with its missing parents)
+    or an existing folder, not a file, nor under one."""
+    from collect.output_files import check_parent_dirs
+
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder")
+    try:
+        check_parent_dirs(path / "file")
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return path
+
+
 def markdown_out(text: str) -> Path:
     """``argparse`` type: the markdown page a benchmark writes (``--out``): a ``.md`` file, new or an earlier
     page, which is replaced, in an existing folder (was: any path, a YAML or HDF5 file overwritten with exit

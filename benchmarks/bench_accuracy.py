@@ -42,7 +42,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import int_list, markdown_out, model_dir, name_list, run_main  # noqa: E402
+from benchmarks.arguments import (markdown_out, model_dir, name_list, object_names, positive_float, positive_int,  # noqa: E402
+                                 run_main, sensor_seed, sensor_seed_list, sim_speed, work_dir)
 from benchmarks.machine import finish, machine_info, machine_line, provisional_note  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
 from collect.errors import EXIT_FAULT  # noqa: E402
@@ -297,21 +298,21 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="tiny budgets (~5 min) to validate the script; overrides budgets")
     p.add_argument("--archs", type=name_list(ARCH_NAMES), default=",".join(ARCH_NAMES),
                    help=f"comma-separated architectures among {', '.join(ARCH_NAMES)} (default: all)")
-    p.add_argument("--minutes", type=float, default=1.0, help="CPU training minutes per from-scratch run (sections 1-2)")
+    p.add_argument("--minutes", type=positive_float, default=1.0, help="CPU training minutes per from-scratch run (sections 1-2)")
     p.add_argument("--splits", type=name_list(SPLITS), default="frames",
                    help="comma-separated in-class splits: frames (the paper's), poses, or frames,poses for both")
-    p.add_argument("--holdouts", default=",".join(BUILTIN_OBJECTS), help="objects to leave out, one run each")
-    p.add_argument("--objects", default=",".join(BUILTIN_OBJECTS))
-    p.add_argument("--sensor-seed", type=int, default=11, help="sensor A of sections 1-2")
-    p.add_argument("--poses-per-object", type=int, default=8, help="sensor A's session")
-    p.add_argument("--cross-seeds", type=int_list, default="21,22,23",
+    p.add_argument("--holdouts", type=object_names, default=",".join(BUILTIN_OBJECTS), help="objects to leave out, one run each")
+    p.add_argument("--objects", type=object_names, default=",".join(BUILTIN_OBJECTS))
+    p.add_argument("--sensor-seed", type=sensor_seed, default=11, help="sensor A of sections 1-2")
+    p.add_argument("--poses-per-object", type=positive_int, default=8, help="sensor A's session")
+    p.add_argument("--cross-seeds", type=sensor_seed_list, default="21,22,23",
                    help="comma-separated seeds of the new sensors of sections 3-4")
-    p.add_argument("--calib-poses", type=int, default=6, help="calibration poses per object (4 x 6: ~45 s of recording)")
-    p.add_argument("--test-poses", type=int, default=3, help="test poses per object")
-    p.add_argument("--finetune-minutes", type=float, default=CommissionConfig.finetune_minutes)
+    p.add_argument("--calib-poses", type=positive_int, default=6, help="calibration poses per object (4 x 6: ~45 s of recording)")
+    p.add_argument("--test-poses", type=positive_int, default=3, help="test poses per object")
+    p.add_argument("--finetune-minutes", type=positive_float, default=CommissionConfig.finetune_minutes)
     p.add_argument("--base-model", type=model_dir, default="base", help="pretrained model (default: the packaged base model)")
-    p.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed of bubble collect")
-    p.add_argument("--work", type=Path, help="sessions and models (default: runs/bench_accuracy[_quick])")
+    p.add_argument("--sim-speed", type=sim_speed, default=20.0, help="simulated clock speed of bubble collect")
+    p.add_argument("--work", type=work_dir, help="sessions and models (default: runs/bench_accuracy[_quick])")
     p.add_argument("--reuse-models", action="store_true",
                    help="keep models in --work trained on the same data, init and budget (rebuild the tables cheaply)")
     p.add_argument("--out", type=markdown_out, help="markdown, JSON next to it (default: docs/bench_accuracy.md; with --quick, "
@@ -320,6 +321,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.quick:
         for key, value in QUICK.items():
             setattr(args, key, value)
+    strangers = [name for name in args.holdouts.split(",") if name not in args.objects.split(",")]
+    if strangers:  # was: its leave-one-out run validated on no frame of it
+        p.error(f"--holdouts: {strangers[0]} is not among --objects {args.objects}")
     args.work = (args.work or ROOT / "runs" / ("bench_accuracy_quick" if args.quick else "bench_accuracy")).resolve()
     args.out = args.out or (args.work if args.quick else ROOT / "docs") / "bench_accuracy.md"
     seen = base_model_serials(args.base_model)

@@ -33,7 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import int_list, model_dir, positive_float, run_main  # noqa: E402
+from benchmarks.arguments import model_dir, positive_float, run_main, sensor_seed_list, work_dir  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
 from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
@@ -288,14 +288,14 @@ def write_doc(all_rows: list[dict], args, info: dict) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int_list, default="101,202,303",
+    parser.add_argument("--seeds", type=sensor_seed_list, default="101,202,303",
                         help="comma-separated sensor seeds (default 101,202,303)")
     parser.add_argument("--minutes", type=positive_float, default=CommissionConfig.finetune_minutes,
                         help="fine-tune budget")
     parser.add_argument("--base-model", type=model_dir, help="model to fine-tune from (default: the packaged base model)")
     parser.add_argument("--defects", default=",".join(DEFECT_CHECKS),
                         help=f"comma-separated simulated defects, one defective sensor each (seed {DEFECT_SEED}; '' for none)")
-    parser.add_argument("--work", type=Path,
+    parser.add_argument("--work", type=work_dir,
                         help="keep the runs here, a folder without the runs of an earlier call (default: a temporary "
                              "directory)")
     parser.add_argument("--no-doc", action="store_true", help="print only, do not write docs/bench_commission.md")

@@ -24,7 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import model_dir, run_main  # noqa: E402
+from benchmarks.arguments import (model_dir, object_names, positive_float, positive_int, run_main, sensor_seed,  # noqa: E402
+                                 sim_speed, work_dir)
 from collect.errors import InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect.session_info import session_summary  # noqa: E402
@@ -65,19 +66,19 @@ def zero_shot(config: TrainConfig) -> dict:
     return {**metrics, "n_val_frames": len(held)}
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--init", type=model_dir, default="base", help="model to fine-tune from (default: the base model)")
-    parser.add_argument("--minutes", type=float, default=TARGET_MINUTES)
-    parser.add_argument("--eval-s", type=float, default=15.0)
-    parser.add_argument("--sensor-seed", type=int, default=7)
-    parser.add_argument("--poses-per-object", type=int, default=8)
-    parser.add_argument("--objects", default=DEFAULT_OBJECTS_ARG)
-    parser.add_argument("--sim-speed", type=float, default=20.0, help="simulated clock speed (lower on a busy machine)")
+    parser.add_argument("--minutes", type=positive_float, default=TARGET_MINUTES)
+    parser.add_argument("--eval-s", type=positive_float, default=15.0)
+    parser.add_argument("--sensor-seed", type=sensor_seed, default=7)
+    parser.add_argument("--poses-per-object", type=positive_int, default=8)
+    parser.add_argument("--objects", type=object_names, default=DEFAULT_OBJECTS_ARG)
+    parser.add_argument("--sim-speed", type=sim_speed, default=20.0, help="simulated clock speed (lower on a busy machine)")
     parser.add_argument("--scratch", action="store_true", help="also train from scratch for the same time")
-    parser.add_argument("--work", help="keep sessions and models here (default: a temporary directory)")
+    parser.add_argument("--work", type=work_dir, help="keep sessions and models here (default: a temporary directory)")
     parser.add_argument("--no-doc", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     info = machine_info()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import int_list, markdown_out, run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, positive_float, run_main, sensor_seed_list, work_dir  # noqa: E402
 from collect.errors import InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.contact_patch import contact_points  # noqa: E402
@@ -248,10 +248,10 @@ def main(argv=None) -> int:
     ap.add_argument("--session", type=Path, help="simulated session with the mug (default: record one per --seeds)")
     ap.add_argument("--model", type=Path, help="model directory (default: fine-tune the base model)")
     ap.add_argument("--speed-only", action="store_true")
-    ap.add_argument("--seeds", type=int_list, default="0,1,2,3,4,5",
+    ap.add_argument("--seeds", type=sensor_seed_list, default="0,1,2,3,4,5",
                     help="comma-separated seeds of the simulated sensors to record and fine-tune (default 0-5)")
-    ap.add_argument("--train-minutes", type=float, default=3.0)
-    ap.add_argument("--work", type=Path, help="keep the recorded sessions and models here, or reuse those already there (default: a temporary folder)")
+    ap.add_argument("--train-minutes", type=positive_float, default=3.0)
+    ap.add_argument("--work", type=work_dir, help="keep the recorded sessions and models here, or reuse those already there (default: a temporary folder)")
     ap.add_argument("--out", type=markdown_out, default=ROOT / "docs" / "bench_pose.md")
     args = ap.parse_args(argv)
     if (args.session is None) != (args.model is None):

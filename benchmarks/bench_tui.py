@@ -30,13 +30,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from textual import events  # noqa: E402
 
-from benchmarks.arguments import markdown_out, model_dir, run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, model_dir, positive_float, positive_int, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_events import STEPS  # noqa: E402
+from calibrate.commission_config import validate_config  # noqa: E402
 from calibrate.commissioning import CommissionConfig  # noqa: E402
 from calibrate.tui.app import BenchApp  # noqa: E402
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, OLDER_EVERY, YOUNG_OBJECTS  # noqa: E402
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE  # noqa: E402
+from collect.errors import InputError  # noqa: E402
 
 TARGET_MS = 100.0
 SIZE = (120, 36)
@@ -156,7 +158,7 @@ async def measure(config: CommissionConfig, interval: float, max_seconds: float,
         received = app.events_received
         clock.close()
     return {"presses": presses, "missed": missed, "wall_s": wall, "outcome": outcome, "events": received,
-            "frames": clock.frames, "gc_pauses": dict(clock.gc_pauses)}
+            "frames": clock.frames, "gc_pauses": dict(clock.gc_pauses), "error": app.error}
 
 
 def describe_outcome(app: BenchApp) -> str:
@@ -250,10 +252,10 @@ def write_markdown(path: Path, stats: dict, args, info: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--finetune-minutes", type=float, default=1.0)
-    parser.add_argument("--poses-per-object", type=int, default=2)
-    parser.add_argument("--interval", type=float, default=0.3, help="s between key presses")
-    parser.add_argument("--max-seconds", type=float, default=600.0)
+    parser.add_argument("--finetune-minutes", type=positive_float, default=1.0)
+    parser.add_argument("--poses-per-object", type=positive_int, default=2)
+    parser.add_argument("--interval", type=positive_float, default=0.3, help="s between key presses")
+    parser.add_argument("--max-seconds", type=positive_float, default=600.0)
     parser.add_argument("--bench-nice", type=int, default=BENCH_NICE,
                         help="nice increment of the flow in the bench steps")
     parser.add_argument("--compute-nice", type=int, default=COMPUTE_NICE,
@@ -269,8 +271,14 @@ def main(argv: list[str] | None = None) -> int:
                                   objects=("mug", "box"), poses_per_object=args.poses_per_object,
                                   finetune_minutes=args.finetune_minutes, leak_hold_s=3.0,
                                   base_model=None if args.base_model is None else Path(args.base_model))
+        validate_config(config)  # InputError: exit 2 before the app starts (was: run, then a page of the error)
         stats = asyncio.run(measure(config, args.interval, args.max_seconds, args.bench_nice, args.compute_nice,
                                      not args.python_gc))
+    if isinstance(stats["error"], InputError):  # bad input the flow found: its line, exit 2, no page
+        raise stats["error"]
+    if stats["error"] is not None:  # the flow failed: no page of its timings (was: written, exit 0)
+        print(f"bench_tui: {stats['outcome']}; {args.out} left as it was", file=sys.stderr)
+        return 1
     write_markdown(args.out, stats, args, info)
     print(args.out.read_text())
     return 0

@@ -244,3 +244,56 @@ def test_a_benchmark_page_is_a_markdown_file_in_an_existing_folder(script, tmp_p
     from benchmarks.arguments import markdown_out
 
     assert markdown_out(str(tmp_path / "page.md")) == tmp_path / "page.md"  # a new page
+
+
+@pytest.mark.parametrize("script, argv, says", [
+    # was: a traceback once the session was recorded, or from bubble collect (exit 1)
+    ("bench_finetune", ["--objects", "cup"], "unknown object 'cup'"),
+    ("bench_finetune", ["--sim-speed", "1000"], "simulation speed 1000.0 must be within"),
+    ("bench_finetune", ["--sensor-seed", "-1"], "expected a sensor seed within 0..4294967295, got '-1'"),
+    ("bench_finetune", ["--minutes", "0"], "expected a number above 0, got '0'"),  # was: ran
+    ("bench_finetune", ["--objects", "mug,mug"], "object names must be unique, got mug twice"),
+    ("bench_pose", ["--seeds", "-1"], "expected a sensor seed within 0..4294967295, got '-1'"),
+    ("bench_pose", ["--train-minutes", "0"], "expected a number above 0"),
+    ("bench_accuracy", ["--objects", "cup"], "unknown object 'cup'"),  # was: exit 1 from bubble collect
+    ("bench_accuracy", ["--objects", "box", "--holdouts", "mug"], "--holdouts: mug is not among --objects box"),
+    ("bench_accuracy", ["--cross-seeds", "21,-2"], "expected a sensor seed within"),
+    ("bench_commission", ["--seeds", "-1"], "expected a sensor seed within"),
+    ("bench_tui", ["--interval", "0"], "expected a number above 0"),
+    ("bench_tui", ["--max-seconds", "nan"], "expected a number above 0"),
+])
+def test_benchmark_arguments_are_checked_before_any_work(script, argv, says, capsys):
+    import importlib
+
+    line = _refused(importlib.import_module(f"benchmarks.{script}").main, argv, capsys)
+    assert says in line, line
+
+
+@pytest.mark.parametrize("script", ["bench_finetune", "bench_pose", "bench_accuracy", "bench_commission"])
+def test_a_benchmarks_work_folder_is_not_a_file(script, tmp_path, capsys):
+    """Was: a traceback (FileExistsError or NotADirectoryError) once the benchmark began."""
+    import importlib
+
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    main = importlib.import_module(f"benchmarks.{script}").main
+    assert f"{afile} is a file, not a folder" in _refused(main, ["--work", str(afile)], capsys)
+    assert "is a file, not a directory" in _refused(main, ["--work", str(afile / "w")], capsys)
+    assert afile.read_text() == "x"
+
+
+def test_bench_tui_refuses_what_the_flow_would_refuse_and_keeps_its_page(tmp_path, capsys):
+    """Was: ``--poses-per-object 1`` ran the app, whose flow refused it, and the page of that run was
+    written over docs/bench_tui.md with exit 0."""
+    from benchmarks import bench_tui
+
+    page = tmp_path / "bench_tui.md"
+    page.write_text("earlier page")
+    with pytest.raises(SystemExit) as exit_info:
+        from benchmarks.arguments import run_main
+
+        run_main(lambda: bench_tui.main(["--poses-per-object", "1", "--out", str(page)]), "bench_tui")
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err == ("bench_tui: poses per object must be 2..1000 (one or more is held out), "
+                                       "got 1\n")
+    assert page.read_text() == "earlier page"
