@@ -76,6 +76,24 @@ def tiny_config(root, **changes) -> CommissionConfig:
     return dataclasses.replace(config, **changes)
 
 
+def edited_base_model(folder, edit) -> str:
+    """A copy of the packaged base model in ``folder`` whose first floating-point weight tensor is
+    ``edit(tensor)``, its new SHA-256 recorded as ``save_model`` records it (a whole model); returns
+    that tensor's name."""
+    from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, WEIGHTS_FILE, load_weights, weights_sha256, \
+        write_safetensors
+
+    shutil.copytree(BASE_MODEL_DIR, folder)
+    weights = load_weights(folder)
+    first = next(k for k, t in weights.items() if t.is_floating_point())
+    weights[first] = edit(weights[first])
+    write_safetensors(weights, folder / WEIGHTS_FILE)
+    meta = json.loads((folder / METADATA_FILE).read_text())
+    meta["inference"]["weights_sha256"] = weights_sha256(folder)
+    (folder / METADATA_FILE).write_text(json.dumps(meta))
+    return first
+
+
 @pytest.fixture(scope="module")
 def faulted_then_resumed(tmp_path_factory):
     root = tmp_path_factory.mktemp("commission")
@@ -253,7 +271,7 @@ def test_rerunning_a_finished_run_only_reports_it(faulted_then_resumed):
 def test_a_finished_run_is_not_reported_again_under_other_limits_or_another_base_model(faulted_then_resumed, tmp_path):
     """Was: re-run with a stricter --thresholds, a finished run printed ACCEPTED under the limits it
     was judged by, and a resumed one mixed the two; another --base-model was taken the same way."""
-    from trainer.model_dir import BASE_MODEL_DIR, WEIGHTS_FILE, load_weights, write_safetensors
+    from trainer.model_dir import BASE_MODEL_DIR
 
     config = faulted_then_resumed["config"]
     strict = tmp_path / "strict.yaml"
@@ -265,11 +283,7 @@ def test_a_finished_run_is_not_reported_again_under_other_limits_or_another_base
     shutil.copytree(BASE_MODEL_DIR, same_model)
     assert run_commissioning(dataclasses.replace(config, base_model=same_model), lambda e: None).accepted
     other_model = tmp_path / "other_model"  # other weights (was: taken when given by the same path)
-    shutil.copytree(BASE_MODEL_DIR, other_model)
-    weights = load_weights(other_model)
-    first = next(k for k, t in weights.items() if t.is_floating_point())
-    weights[first] = weights[first] + 1e-3
-    write_safetensors(weights, other_model / WEIGHTS_FILE)
+    edited_base_model(other_model, lambda tensor: tensor + 1e-3)
     with pytest.raises(InputError, match=r"holds a run fine-tuned from other base-model weights \(--base-model "
                                          r"'base'\) than --base-model gives now \('.*other_model'\)"):
         run_commissioning(dataclasses.replace(config, base_model=other_model), lambda e: None)
@@ -423,22 +437,10 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, setup, args, fragmen
 def test_a_base_model_the_fine_tune_cannot_load_is_refused_before_the_bench_opens(tmp_path, capsys):
     """Was: only its metadata and weights file were read up front; NaN weights (or tensors of another
     shape or dtype) were refused by the fine-tune, after the whole recording."""
-    import json
-    import shutil
-
-    from safetensors.torch import load_file, save_file
-
-    from trainer.model_dir import BASE_MODEL_DIR, METADATA_FILE, WEIGHTS_FILE, weights_sha256
+    import torch
 
     model = tmp_path / "nan_model"
-    shutil.copytree(BASE_MODEL_DIR, model)
-    weights = load_file(model / WEIGHTS_FILE)
-    key = next(k for k, v in weights.items() if v.is_floating_point())
-    weights[key][...] = float("nan")
-    save_file(weights, model / WEIGHTS_FILE)
-    meta = json.loads((model / METADATA_FILE).read_text())
-    meta["inference"]["weights_sha256"] = weights_sha256(model)  # a whole model, its weights NaN
-    (model / METADATA_FILE).write_text(json.dumps(meta))
+    key = edited_base_model(model, lambda tensor: torch.full_like(tensor, float("nan")))
     argv = ["commission", "--sim", "--out", str(tmp_path / "run"), "--registry", str(tmp_path / "registry"),
             "--base-model", str(model)]
     assert main(argv) == 2
