@@ -17,6 +17,12 @@
   writer together with the arm state samples and pressure readings that arrived meanwhile. It also reports progress (<= 10 Hz and on every phase
   change) and watches the camera (stall) and the pressure board (unplug, timeout): a fault there
   aborts the arm's running motion at once (``Arm.abort``), which raises it in the main thread.
+* progress thread: hands the recorder's reports to ``progress_callback`` (``_ProgressRelay``), so
+  that a display that blocks (a terminal paused with Ctrl-S) never holds up the recorder.
+* recorder watchdog: a recorder that handled no frame for ``RECORDER_STALL_S`` of bench time (the
+  session file's disk stalled, its queue full) is a ``recorder`` fault that stops the arm: the
+  camera and the pressure board are watched by the recorder alone (was: the arm pressed on,
+  unwatched and unrecorded, until the disk came back).
 
 Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInterrupt`` or any
 other error, the loop calls ``bench.safe_stop()`` (stop the arm, retract when possible), stops the
@@ -55,6 +61,11 @@ PROGRESS_HZ = 10.0
 FRAME_TIMEOUT_S = 0.5
 #: Arm samples kept for stamping frames with the pose at their capture time (~1 s at 500 Hz).
 ARM_HISTORY = 512
+#: Bench time (s) the recorder may go without handling a frame (or a camera timeout) before it counts
+#: as blocked: a ``recorder`` fault stops the arm (``_watch_recorder``). Four camera timeouts.
+RECORDER_STALL_S = 4 * FRAME_TIMEOUT_S
+#: Progress reports a lagging display may have pending; more drop the oldest (``_ProgressRelay``).
+PROGRESS_BACKLOG = 64
 
 _PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
 
@@ -131,6 +142,51 @@ class CollectionResult:
     stopped: bool = False
 
 
+class _ProgressRelay(threading.Thread):
+    """Calls ``callback(**report)`` in its own thread, in order, for each report ``post``-ed by the
+    recorder, which never waits on it: a display that blocks (a terminal paused with Ctrl-S, whose
+    writes then wait) delays only itself (was: the recorder waited in the callback, the camera and the
+    pressure board unwatched while the arm pressed on). Over ``PROGRESS_BACKLOG`` pending reports the
+    oldest are dropped. An exception of the callback ends the relay and is kept in ``error``, which
+    the recorder raises."""
+
+    def __init__(self, callback: Callable[..., None]):
+        super().__init__(name="collection-progress", daemon=True)
+        self.callback = callback
+        self.error: BaseException | None = None
+        self._pending: collections.deque = collections.deque(maxlen=PROGRESS_BACKLOG)
+        self._wake = threading.Condition()
+        self._closing = False
+
+    def post(self, report: dict) -> None:
+        with self._wake:
+            self._pending.append(report)
+            self._wake.notify()
+
+    def run(self) -> None:
+        while True:
+            with self._wake:
+                while not self._pending and not self._closing:
+                    self._wake.wait()
+                if not self._pending:
+                    return
+                report = self._pending.popleft()
+            try:
+                self.callback(**report)
+            except BaseException as err:  # noqa: BLE001 - raised by the recorder
+                self.error = err
+                return
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Deliver the pending reports and end, waiting at most ``timeout_s`` for a blocked display
+        (its thread then delivers them once the display takes them)."""
+        with self._wake:
+            self._closing = True
+            self._wake.notify()
+        if self.is_alive():
+            self.join(timeout_s)
+
+
 @dataclass(frozen=True)
 class _Stamp:
     """What the arm is doing now: plan object index (-1 = none), pose id, phase value, pose index."""
@@ -149,7 +205,7 @@ class _Recorder(threading.Thread):
         self.bench = bench
         self.plan = plan
         self.writer = writer
-        self.progress_callback = progress_callback
+        self.progress = _ProgressRelay(progress_callback) if progress_callback is not None else None
         self.result = result
         self.stamp = _Stamp()  # the latest stamp (what the arm is doing now)
         self._timeline_t: list[float] = [-np.inf]  # bench-clock start time of each stamp
@@ -161,6 +217,16 @@ class _Recorder(threading.Thread):
         self._last_seq: int | None = None
         self._last_report = 0.0
         self._reported_stamp: _Stamp | None = None
+        self.beat = bench.clock()  # bench time (s) at which the loop last began: _watch_recorder
+        self._error_lock = threading.Lock()
+
+    def fail(self, err: BaseException) -> bool:
+        """Keep ``err`` as the recorder's error unless it has one; whether it was kept."""
+        with self._error_lock:
+            if self.error is not None:
+                return False
+            self.error = err
+            return True
 
     def set_stamp(self, stamp: _Stamp, t: float) -> None:
         """``stamp`` is under way from bench-clock time ``t`` (s) on."""
@@ -189,6 +255,9 @@ class _Recorder(threading.Thread):
     def run(self) -> None:
         try:
             while not self.halt.is_set():
+                self.beat = self.bench.clock()
+                if self.progress is not None and self.progress.error is not None:
+                    raise self.progress.error
                 frame = self.bench.camera.get_frame(FRAME_TIMEOUT_S)
                 self._write_streams()
                 self._write_frame(frame)
@@ -201,14 +270,13 @@ class _Recorder(threading.Thread):
                 log.debug("recorder thread failed", exc_info=err)
                 wrapped = HardwareFault(RECORDER_FAULT, f"recorder: stopped recording ({type(err).__name__}: {err})")
                 wrapped.__cause__, err = err, wrapped
-            self.error = err
-            if isinstance(err, HardwareFault):
+            if self.fail(err) and isinstance(err, HardwareFault):
                 self.bench.arm.abort(err)  # the running motion stops now and raises it
         finally:
             try:
                 self._write_streams()
             except BaseException as err:  # noqa: BLE001
-                self.error = self.error or err
+                self.fail(err)
 
     def write_remaining_streams(self) -> None:
         """After the thread ended: queue the arm samples and pressure readings still pending."""
@@ -237,7 +305,7 @@ class _Recorder(threading.Thread):
             self.writer.append_pressure(reading.t, reading.hpa)
 
     def _report(self, force: bool = False) -> None:
-        if self.progress_callback is None:
+        if self.progress is None:
             return
         now = time.monotonic()
         stamp = self.stamp
@@ -247,7 +315,7 @@ class _Recorder(threading.Thread):
         arm = self.bench.arm.state()
         reading = self.bench.pressure.latest()
         name = self.plan.objects[stamp.object_index].name if stamp.object_index >= 0 else ""
-        self.progress_callback(
+        self.progress.post(dict(
             object_name=name,
             pose_index=stamp.pose_index,
             poses_per_object=self.plan.settings.poses_per_object,
@@ -255,7 +323,22 @@ class _Recorder(threading.Thread):
             frames=self.writer.n_frames,
             force_n=float(np.linalg.norm(arm.tcp_wrench[:3])) if arm is not None else 0.0,
             pressure_hpa=float(reading.hpa) if reading is not None else float("nan"),
-        )
+        ))
+
+
+def _watch_recorder(recorder: _Recorder) -> None:
+    """Until the recorder halts: a recorder whose loop has not begun again for ``RECORDER_STALL_S``
+    of bench time (blocked in the writer's full queue: the session file's disk stalled) fails with a
+    ``recorder`` fault that stops the arm (``Arm.abort``), as a camera or pressure-board fault would."""
+    bench = recorder.bench
+    while not recorder.halt.wait(RECORDER_STALL_S / 8):
+        blocked_s = bench.clock() - recorder.beat
+        if blocked_s > RECORDER_STALL_S:
+            fault = HardwareFault(RECORDER_FAULT, f"recorder: blocked for {blocked_s:.1f} s, no frame recorded "
+                                                  "(is the session file's disk stalled?)")
+            if recorder.fail(fault):
+                bench.arm.abort(fault)
+            return
 
 
 def run_collection(
@@ -268,8 +351,9 @@ def run_collection(
     """Run ``plan`` on ``bench`` (a ``collect.bench.Bench``), recording into ``writer``.
 
     ``progress_callback(object_name, pose_index, poses_per_object, phase, frames, force_n,
-    pressure_hpa)`` is called with keyword arguments from the recorder thread (the fields of
-    ``calibrate.commission_events.CollectionProgress``); it must not block.
+    pressure_hpa)`` is called with keyword arguments from a thread of its own (the fields of
+    ``calibrate.commission_events.CollectionProgress``; ``_ProgressRelay``); should it block, the
+    recording goes on, and its reports wait (the oldest dropped).
     Poses already completed in the file (``writer.completed_pose_ids``, after ``resume``) and
     reference frames already recorded (``writer.referenced_objects``) are skipped; with nothing
     left, nothing moves and nothing is recorded.
@@ -293,7 +377,11 @@ def run_collection(
     stops = remaining_stops(plan, writer.completed_pose_ids, referenced)
     if not stops:
         return result
+    if recorder.progress is not None:
+        recorder.progress.start()
     recorder.start()
+    threading.Thread(target=_watch_recorder, args=(recorder,), name="collection-recorder-watchdog",
+                     daemon=True).start()
     try:
         for stop, poses, has_reference in stops:
             oi = stop.object_index
@@ -362,6 +450,8 @@ def _end_recording(recorder: _Recorder) -> None:
     recorder.halt.set()
     recorder.join()
     recorder.write_remaining_streams()
+    if recorder.progress is not None:
+        recorder.progress.close()
 
 
 def _safe_stop(bench, recorder: _Recorder) -> None:

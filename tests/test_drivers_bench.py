@@ -177,6 +177,76 @@ def test_a_recorder_that_fails_stops_the_arm_at_once_and_keeps_the_data(tmp_path
         assert s.closed_cleanly and len(s.select(phase="press")) > 0
 
 
+def test_a_recorder_blocked_by_its_disk_stops_the_arm_and_keeps_the_data(tmp_path, monkeypatch):
+    """The session file's disk stalls during a hold (the writer's queue fills and the recorder waits
+    on it): a ``recorder`` fault stops and retracts the arm within ``RECORDER_STALL_S`` (was: the arm
+    ran the plan on, its camera and pressure board unwatched, until the disk came back)."""
+    from collect.collection import FRAME_TIMEOUT_S, RECORDER_STALL_S
+    from collect.session_writer import SessionWriter
+
+    disk_back = threading.Event()
+    stalled_at = []
+    append_frame = SessionWriter.append_frame
+
+    def stalling_append_frame(writer, *args, **kwargs):
+        if stalled_at:
+            disk_back.wait(60)
+        return append_frame(writer, *args, **kwargs)
+
+    monkeypatch.setattr(SessionWriter, "append_frame", stalling_append_frame)
+    out = tmp_path / "s.h5"
+    with open_bench(_config()) as bench:
+        def progress(phase, **_):
+            if phase == "hold" and not stalled_at:
+                stalled_at.append(bench.clock())
+
+        safe_stops = []
+        real_safe_stop = bench.safe_stop
+
+        def safe_stop_then_disk_back() -> bool:
+            safe_stops.append(bench.clock())
+            retracted = real_safe_stop()
+            disk_back.set()  # the recorder then ends, and the writer closes the file
+            return retracted
+
+        monkeypatch.setattr(bench, "safe_stop", safe_stop_then_disk_back)
+        plan, fault = _collect_with(bench, out, progress, PlanSettings(poses_per_object=1, seed=1, hold_s=8.0))
+        assert fault.kind == "recorder" and "recorder: blocked for" in str(fault), fault
+        # within the stall limit and the watchdog's period, 10x a camera timeout for a loaded machine
+        assert stalled_at[0] < safe_stops[0] < stalled_at[0] + RECORDER_STALL_S + 10 * FRAME_TIMEOUT_S < \
+            stalled_at[0] + 8.0
+        np.testing.assert_allclose(_at_rest(bench).tcp_pose[:3], plan.poses[0].above_pose[:3], atol=5e-4)
+    with Session.open(out) as s:
+        assert s.closed_cleanly and len(s.select(phase="press")) > 0
+
+
+def test_a_display_that_blocks_holds_up_neither_the_recording_nor_its_fault_checks(tmp_path, monkeypatch):
+    """The progress display blocks from the hold on (a terminal paused with Ctrl-S): the camera goes
+    silent and the arm is stopped as always (was: the recorder waited in the display, and the arm
+    pressed on through the silence until the terminal was resumed)."""
+    from collect.collection import FRAME_TIMEOUT_S
+
+    resumed = threading.Event()
+    out = tmp_path / "s.h5"
+    with open_bench(_config()) as bench:
+        def progress(phase, **_):
+            if phase == "hold" and not bench.sim.faults:
+                bench.sim.faults.append(SimFault("camera-stall", bench.clock() + 0.3))
+                resumed.wait(60)
+
+        safe_stops = []
+        real_safe_stop = bench.safe_stop
+        monkeypatch.setattr(bench, "safe_stop", lambda: safe_stops.append(bench.clock()) or real_safe_stop())
+        try:
+            _, fault = _collect_with(bench, out, progress, PlanSettings(poses_per_object=1, seed=1, hold_s=8.0))
+        finally:
+            resumed.set()
+        (stall,) = bench.sim.faults
+        assert fault.kind == "camera-stall" and stall.at_s < safe_stops[0] < stall.at_s + 10 * FRAME_TIMEOUT_S
+    with Session.open(out) as s:
+        assert s.closed_cleanly and s.t_host[-1] > stall.at_s - 0.1  # recorded up to the silence
+
+
 def test_the_arms_own_fault_is_reported_when_another_device_fails_during_its_safe_stop(tmp_path, monkeypatch):
     """A force fault first, then the camera stalls during the safe stop: the run reports the force
     fault (was: the camera's, as if the camera had caused the stop)."""
