@@ -40,6 +40,10 @@ MAX_TCP_SPEED_M_S = 1.0
 MAX_TCP_ACCEL_M_S2 = 2.5
 MAX_FORCE_LIMIT_N = 150.0
 MAX_TILT_DEG = 90.0
+#: Largest distance (m) of a workspace box corner coordinate from the robot base: the reach of the
+#: largest UR arm (UR20, 1.75 m) with room to spare. A box in millimetres (``[-350, -350, -100]``)
+#: or a typo is refused instead of switching the workspace check off.
+MAX_WORKSPACE_COORD_M = 2.0
 #: Largest rotation vector norm (rad) a pose may hold: one turn. A longer one is the same rotation
 #: written in degrees (``[0, 180, 0]``) or a typo, never what was meant.
 MAX_ROTATION_RAD = 2.0 * np.pi
@@ -111,6 +115,11 @@ class SafetyLimits:
         for name in ("workspace_min", "workspace_max"):
             if getattr(self, name) is not None and not real_numbers(getattr(self, name), 3):
                 raise InputError(f"safety: {name} must be 3 numbers [x, y, z] (m), got {getattr(self, name)!r}")
+        for name in ("workspace_min", "workspace_max"):
+            corner = getattr(self, name)
+            if corner is not None and max(abs(float(v)) for v in corner) > MAX_WORKSPACE_COORD_M:
+                raise InputError(f"safety: {name} {list(corner)} must lie within {MAX_WORKSPACE_COORD_M:g} m of the "
+                                 "robot base in x, y and z (metres, not millimetres)")
         if self.has_workspace and not all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)):
             raise InputError(f"safety: workspace box min {self.workspace_min} must be below max {self.workspace_max}")
         check_within_bounds("safety", self, LIMIT_BOUNDS)

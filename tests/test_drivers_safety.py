@@ -62,6 +62,11 @@ def test_bad_limit_values_are_input_errors():
         SafetyLimits(workspace_min=(0, 0, 1), workspace_max=(1, 1, 0.5))
     with pytest.raises(InputError):
         SafetyLimits(force_limit_n=-1.0)
+    # was: a box in millimetres accepted, every pose inside it: the workspace check switched off
+    with pytest.raises(InputError, match=r"safety: workspace_min \[-350, -350, -100\] must lie within 2 m of the "
+                                         r"robot base in x, y and z \(metres, not millimetres\)"):
+        SafetyLimits(workspace_min=(-350, -350, -100), workspace_max=(650, 350, 350))
+    assert SafetyLimits(workspace_min=(-2.0, -2.0, -0.5), workspace_max=(2.0, 2.0, 2.0)).has_workspace
 
 
 def test_limits_and_motion_settings_have_upper_bounds():
