@@ -8,8 +8,9 @@ an OAK ToF camera over depthai, the pressure board on a serial port) or ``'sim'`
 (``safe_stop``) and every device closed on the way out.
 
 Objects: both types place the named objects with ``hw_mocks.objects.fixture_plate`` (the plate
-layout is geometry shared by the real fixture and the simulation); a real bench adds
-``plate_pose``, where its plate origin sits in the robot base frame.
+layout is geometry shared by the real fixture and the simulation: a row along base y centred at
+x = ``PLATE_X``, on the plate top z = ``PLATE_Z``); a real bench adds ``plate_pose``, the pose of
+that row's centre on its plate in the robot base frame, to which the layout is moved.
 """
 
 from __future__ import annotations
@@ -186,14 +187,18 @@ def _built(config_type: type, kwargs: dict, who: str):
 
 
 def _placed_objects(names, plate_pose=None) -> list:
-    from hw_mocks.objects import fixture_plate, load_object
+    """The objects ``names`` on the fixture plate (``fixture_plate``'s row, centred at x = ``PLATE_X``
+    on z = ``PLATE_Z``), moved so that the row's centre is at ``plate_pose`` (6,) (base frame; None:
+    where the layout puts it). Was: ``plate_pose`` applied to the layout's own frame, 0.45 m before the
+    row's centre, so a plate given by its measured centre put every object 0.45 m out."""
+    from hw_mocks.objects import PLATE_X, PLATE_Z, fixture_plate, load_object
     from collect.transforms import matrix_to_pose, pose_to_matrix
 
     placed = fixture_plate([load_object(n) for n in names])
     if plate_pose is None:
         return placed
-    plate = pose_to_matrix(plate_pose)
-    return [o.placed(matrix_to_pose(plate @ o.object_to_base())) for o in placed]
+    move = pose_to_matrix(plate_pose) @ np.linalg.inv(pose_to_matrix([PLATE_X, 0.0, PLATE_Z, 0.0, 0.0, 0.0]))
+    return [o.placed(matrix_to_pose(move @ o.object_to_base())) for o in placed]
 
 
 def workspace_limits(objects, base: SafetyLimits | None = None) -> SafetyLimits:
@@ -217,7 +222,8 @@ class URBenchConfig(BenchConfig):
     """A real bench. robot_ip: UR controller; rtde_hz: RTDE frequency (Hz, ``RTDE_HZ_RANGE``; 500 on
     e-Series); camera_id: depthai device id (None = first found); camera_fps (``CAMERA_FPS_RANGE``);
     tof_profile; serial_port: the pressure board's device (e.g. /dev/ttyACM0); plate_pose (6,): the
-    fixture plate origin in the base frame; home_pose (6,): safe TCP pose above the plate.
+    pose of the fixture plate's centre (the middle of the object row, on the plate top) in the base
+    frame, None: [0.45, 0, 0, 0, 0, 0] (``_placed_objects``); home_pose (6,): safe TCP pose above the plate.
     Every field (the rates and the ToF profile's name included) is checked when the config is
     built, before any device is opened."""
 
@@ -227,7 +233,7 @@ class URBenchConfig(BenchConfig):
     camera_fps: float = 45.0
     tof_profile: str = "LOW_RANGE"
     serial_port: str = "/dev/ttyACM0"
-    plate_pose: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    plate_pose: tuple[float, ...] | None = None
     home_pose: tuple[float, ...] | None = None
 
     def __post_init__(self):
@@ -250,7 +256,8 @@ class URBenchConfig(BenchConfig):
             if not (isinstance(value, str) or name == "camera_id" and value is None):
                 raise InputError(f"bench 'ur': {name} must be text ({what}), got {value!r}")
         check_tof_profile(self.tof_profile, "bench 'ur'")
-        _check_pose("ur", "plate_pose", self.plate_pose, "the fixture plate origin in the base frame")
+        if self.plate_pose is not None:
+            _check_pose("ur", "plate_pose", self.plate_pose, "the fixture plate's centre in the base frame")
         if self.home_pose is not None:
             _check_pose("ur", "home_pose", self.home_pose, "a safe TCP pose above the plate")
 

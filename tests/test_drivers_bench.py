@@ -428,6 +428,33 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
 
 UR_BENCH = "type: ur\nrobot_ip: 192.0.2.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n"
 
+def test_plate_pose_is_where_the_centre_of_the_object_row_is():
+    """Was: the layout's own frame, 0.45 m before the row's centre: a plate given by its measured
+    centre put every object (and the workspace box fitted around them) 0.45 m further out."""
+    from collect.bench import _placed_objects
+
+    def footprint_centre(obj) -> np.ndarray:
+        lo, hi = obj.bounds_base()
+        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+
+    (box,) = _placed_objects(("box",), [0.6, 0.1, 0.02, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(footprint_centre(box), [0.6, 0.1, 0.02], atol=1e-9)
+    def row_centre(objects) -> np.ndarray:
+        lo = np.min([o.bounds_base()[0] for o in objects], axis=0)
+        hi = np.max([o.bounds_base()[1] for o in objects], axis=0)
+        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+
+    nominal = [footprint_centre(o) for o in _placed_objects(("mug", "box"))]
+    np.testing.assert_allclose(row_centre(_placed_objects(("mug", "box"))), [0.45, 0.0, 0.0], atol=1e-9)
+    turned_row = _placed_objects(("mug", "box"), [0.5, 0.0, 0.0, 0.0, 0.0, np.pi / 2])
+    turned = [footprint_centre(o) for o in turned_row]
+    np.testing.assert_allclose(row_centre(turned_row), [0.5, 0.0, 0.0], atol=1e-9)  # the row turned about its
+    # centre by 90 deg: base y onto -x, the objects as far apart as before
+    np.testing.assert_allclose(turned[1] - turned[0], [-(nominal[1] - nominal[0])[1], 0.0, 0.0], atol=1e-9)
+    default = [footprint_centre(o) for o in _placed_objects(("mug", "box"), [0.45, 0.0, 0.0, 0.0, 0.0, 0.0])]
+    np.testing.assert_allclose(default, nominal, atol=1e-9)  # the layout's own place
+
+
 #: A bench YAML line of the wrong kind -> what the one error line says. Each is checked when the
 #: config is built, before the arm lock or any connection (was: a traceback from the arm lock, the
 #: fixture plate or the safety limits, or an error only after the robot had connected).
@@ -437,9 +464,9 @@ BAD_BENCH_LINES = {
     "tof_profile: [LOW_RANGE]": "bench 'ur': tof_profile must be text",
     "tof_profile: LOW": "bench 'ur': unknown ToF profile 'LOW' (one of LOW_RANGE, MID_RANGE, HIGH_RANGE)",
     "camera_id: true": "bench 'ur': camera_id must be text",
-    "plate_pose: [0, 0, 0]": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers "
+    "plate_pose: [0, 0, 0]": "bench 'ur': plate_pose (the fixture plate's centre in the base frame) must be 6 numbers "
                              "[x, y, z, rx, ry, rz] (m, rotation vector in rad), got (0, 0, 0)",
-    "plate_pose: flat": "bench 'ur': plate_pose (the fixture plate origin in the base frame) must be 6 numbers",
+    "plate_pose: flat": "bench 'ur': plate_pose (the fixture plate's centre in the base frame) must be 6 numbers",
     "state_hz: fast": "bench 'ur': state_hz 'fast' is outside 125..500 Hz (the arm's state sampling rate)",
     # was: accepted, and the force guards sampled at 10 Hz (a simulated press overshot its 15 N cap)
     "state_hz: 10": "bench 'ur': state_hz 10 is outside 125..500 Hz (the arm's state sampling rate)",
