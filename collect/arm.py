@@ -442,9 +442,13 @@ class Arm:
             self._set_fault(fault)
 
     def _send_move(self, target: np.ndarray, speed: float, accel: float, check_faults: bool) -> None:
-        if check_faults:
-            self.check()
+        """Send the move unless (``check_faults``) a fault or the operator's stop is recorded: the check
+        and the moveL under the lock that orders commands, so that a stop of a fault recorded meanwhile
+        (``abort``, from another thread) is sent after the move, never before it (was: the check outside
+        it, and a stopL could precede the moveL it should have stopped)."""
         with self._ctl_lock:
+            if check_faults:
+                self.check()
             accepted = self._ctl.moveL(target.tolist(), speed, accel, True)
         if not accepted:
             if check_faults:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -150,6 +151,42 @@ def test_arm_rejects_unsafe_requests_before_sending_any_motion():
         np.testing.assert_allclose(arm.state().tcp_pose, start, atol=1e-9)
         arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
         assert control.moves == 1
+    finally:
+        arm.close()
+
+
+def test_a_fault_between_the_check_and_the_move_is_never_followed_by_the_move():
+    """Another device's fault lands right after a move's fault check: its stop comes after the move
+    (was: the check ran outside the lock that orders commands, so the stopL could go first and the
+    moveL after it set the arm moving again until the next state sample)."""
+    start = [0.4, 0.0, 0.2, *DOWN]
+    controller = SimURController(_Still(), start)
+    sent = []
+
+    class _OrderedControl(FakeRTDEControl):
+        def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
+            sent.append("moveL")
+            return super().moveL(pose, speed, acceleration, asynchronous)
+
+        def stopL(self, a=10.0, asynchronous=False):
+            sent.append("stopL")
+            return super().stopL(a, asynchronous)
+
+    arm = Arm(_OrderedControl(controller), FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    check = arm.check
+
+    def check_then_a_camera_fault() -> None:
+        check()
+        if not sent:  # the first move's check: the camera fails now, from the recorder's thread
+            other = threading.Thread(target=arm.abort, args=(HardwareFault("camera-stall", "camera: silent"),))
+            other.start()
+            other.join(0.3)  # done, or waiting for its turn to send the stop
+
+    arm.check = check_then_a_camera_fault
+    try:
+        with pytest.raises(HardwareFault, match="camera: silent"):
+            arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
+        assert "stopL" in sent and "moveL" not in sent[sent.index("stopL"):], sent  # nothing moves after a stop
     finally:
         arm.close()
 
