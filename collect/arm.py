@@ -63,7 +63,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from collect.errors import HardwareFault, InputError, StopRequested
+from collect.errors import HOST_STALLED_FAULT, HardwareFault, InputError, StopRequested
 from collect.loop_thread import LoopThread
 from collect.numbers import real_number
 from collect.safety import (MAX_FORCE_LIMIT_N, MAX_TCP_ACCEL_M_S2, MAX_TCP_SPEED_M_S, SafetyLimits,
@@ -274,6 +274,9 @@ class Arm:
         self._stop_request: threading.Event | None = None
         self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
         self._monitor_ended = False  # the monitor thread returned (a fault, or close)
+        self._kicked_at: float | None = None  # time.monotonic() of the watchdog's last kick (or arming)
+        #: longest time (s, host clock, as the robot's watchdog counts) the watchdog went without a kick
+        self.longest_kick_gap_s = 0.0
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -286,9 +289,10 @@ class Arm:
             return
         with self._ctl_lock:
             armed = self._ctl.setWatchdog(self.watchdog_hz)
+            self._kicked_at = time.monotonic()
         if not armed:  # ur_rtde returns False where the control script refused or timed out
-            raise HardwareFault("arm-refused", "arm: the robot refused to arm its watchdog (setWatchdog); is its "
-                                               "control script running?")
+            raise self._refused("arm: the robot refused to arm its watchdog (setWatchdog); is its control script "
+                                "running?")
         self._monitor_ended = False
         self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
@@ -338,6 +342,7 @@ class Arm:
                                                         "s (its clock stopped): the link is dead")
             with self._ctl_lock:
                 self._ctl.getStepTime()  # the watchdog's kick (module docstring)
+                self._note_kick()
             sample = self._read()
             force = float(np.linalg.norm(sample.tcp_wrench[:3]))
             bits = self._rcv.getSafetyStatusBits()
@@ -441,6 +446,29 @@ class Arm:
         except HardwareFault as fault:
             self._set_fault(fault)
 
+    def _note_kick(self) -> None:
+        """Count the time since the watchdog's previous kick (``longest_kick_gap_s``); under ``_ctl_lock``."""
+        now = time.monotonic()
+        if self._kicked_at is not None:
+            self.longest_kick_gap_s = max(self.longest_kick_gap_s, now - self._kicked_at)
+        self._kicked_at = now
+
+    def _refused(self, message: str) -> HardwareFault:
+        """The fault of a command the robot refused: ``host-stalled`` (this computer's, judged neither
+        way) once the watchdog has gone without a kick for longer than it allows, which shut the
+        robot's control program down (a computer that froze, a link that paused); else
+        ``arm-refused`` with ``message`` (was: ``arm-refused`` either way, and the sensor of a run on
+        a computer that froze for a second registered as rejected)."""
+        allowed_s = 1.0 / self.watchdog_hz
+        if self._kicked_at is not None:  # a gap still open: the monitor has not kicked since the freeze
+            self.longest_kick_gap_s = max(self.longest_kick_gap_s, time.monotonic() - self._kicked_at)
+        if self.longest_kick_gap_s > allowed_s:
+            return HardwareFault(HOST_STALLED_FAULT, f"arm: the robot stopped its control program: this computer did "
+                                                     f"not reach it for {self.longest_kick_gap_s:.2f} s, over its "
+                                                     f"{allowed_s:g} s watchdog (a computer too busy or frozen, or a "
+                                                     "link that paused); nothing judged")
+        return HardwareFault("arm-refused", message)
+
     def _send_move(self, target: np.ndarray, speed: float, accel: float, check_faults: bool) -> None:
         """Send the move unless (``check_faults``) a fault or the operator's stop is recorded: the check
         and the moveL under the lock that orders commands, so that a stop of a fault recorded meanwhile
@@ -453,7 +481,7 @@ class Arm:
         if not accepted:
             if check_faults:
                 self.check()
-            raise HardwareFault("arm-refused", f"arm: robot refused moveL to {np.round(target, 4).tolist()}")
+            raise self._refused(f"arm: robot refused moveL to {np.round(target, 4).tolist()}")
 
     def _run_move(self, target, speed: float, accel: float, *, guard: Callable[[ArmState], bool] | None = None,
                   ignore_faults: bool = False, on_sent: Callable[[], None] | None = None) -> tuple[ArmState, bool]:
@@ -567,8 +595,7 @@ class Arm:
         with self._ctl_lock:
             zeroed = self._ctl.zeroFtSensor()
         if not zeroed:  # the approach would stop on the old zero's offset (up to max_preload_n)
-            raise HardwareFault("arm-refused", "arm: the robot refused to zero its force sensor (zeroFtSensor); "
-                                               "arm not moved")
+            raise self._refused("arm: the robot refused to zero its force sensor (zeroFtSensor); arm not moved")
         self._retract_pose = start.tcp_pose.copy()
         sample, touched = self._run_move(target, speed, s.accel,
                                          guard=lambda smp: smp.pressing_force_n(axis) >= threshold)

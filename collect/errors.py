@@ -32,8 +32,11 @@ RECORDER_FAULT = "recorder"
 #: Kind of the ``HardwareFault`` of a commissioning whose fine-tune could hardly train in its time (a
 #: computer too slow or too busy for the budget): the host's too, judged neither way.
 HOST_TOO_SLOW_FAULT = "host-too-slow"
+#: Kind of the ``HardwareFault`` of a robot that shut its control program down because this computer
+#: did not kick its watchdog in time (frozen or overloaded; ``collect.arm``): the host's too.
+HOST_STALLED_FAULT = "host-stalled"
 #: The faults of this computer, not of the sensor or the bench: a commissioning ends without a verdict.
-HOST_FAULTS = (RECORDER_FAULT, HOST_TOO_SLOW_FAULT)
+HOST_FAULTS = (RECORDER_FAULT, HOST_TOO_SLOW_FAULT, HOST_STALLED_FAULT)
 #: ``OSError.errno`` of a write that found no room: the disk full, or the user's quota spent.
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import re
 import threading
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -187,6 +189,30 @@ def test_a_fault_between_the_check_and_the_move_is_never_followed_by_the_move():
         with pytest.raises(HardwareFault, match="camera: silent"):
             arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
         assert "stopL" in sent and "moveL" not in sent[sent.index("stopL"):], sent  # nothing moves after a stop
+    finally:
+        arm.close()
+
+
+def test_a_move_refused_after_the_watchdog_ran_out_is_this_computers_fault():
+    """This computer froze for over the watchdog's 0.5 s (here: the monitor held off its kicks), and
+    the robot shut its control program down: the next move's refusal is ``host-stalled``, one of
+    ``HOST_FAULTS`` (nothing judged, nothing registered), and says why (was: ``arm-refused``, and a
+    commissioning registered the sensor as rejected)."""
+    from collect.errors import HOST_FAULTS
+
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    arm = Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.move_to([0.42, 0.0, 0.2, *DOWN], speed=0.1)  # kicked all along: moves as asked
+        assert arm.longest_kick_gap_s < 1.0 / arm.watchdog_hz
+        with arm._ctl_lock:  # the monitor's kicks wait here: a frozen computer, as the robot sees it
+            time.sleep(1.0)
+        with pytest.raises(HardwareFault) as err:
+            arm.move_to([0.45, 0.0, 0.2, *DOWN], speed=0.1)
+        assert controller.watchdog_fired and err.value.kind == "host-stalled" and "host-stalled" in HOST_FAULTS
+        assert re.fullmatch(r"arm: the robot stopped its control program: this computer did not reach it for "
+                            r"1\.\d\d s, over its 0\.5 s watchdog \(a computer too busy or frozen, or a link that "
+                            r"paused\); nothing judged", str(err.value)), str(err.value)
     finally:
         arm.close()
 
