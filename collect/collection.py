@@ -26,7 +26,8 @@
 
 Faults and interrupts: on a ``HardwareFault`` from any device, a ``KeyboardInterrupt`` or any
 other error, the loop calls ``bench.safe_stop()`` (stop the arm, retract when possible), stops the
-recorder thread (every frame taken so far is queued to the writer) and re-raises; a Ctrl-C (or
+recorder thread (every frame captured until then is queued to the writer, those still in the
+camera's queue included) and re-raises; a Ctrl-C (or
 SIGTERM, SIGHUP) during that stop is only acknowledged, so that it neither cuts the retract short
 nor hides the fault (``stop_signals.acknowledge_stop``). The caller owns
 the writer and closes it (``with SessionWriter(...)``), which keeps every frame. A set
@@ -218,6 +219,7 @@ class _Recorder(threading.Thread):
         self._last_report = 0.0
         self._reported_stamp: _Stamp | None = None
         self.beat = bench.clock()  # bench time (s) at which the loop last began: _watch_recorder
+        self.halted_at = np.inf  # bench time (s) of the halt (_end_recording): the frames to drain
         self._error_lock = threading.Lock()
 
     def fail(self, err: BaseException) -> bool:
@@ -263,6 +265,7 @@ class _Recorder(threading.Thread):
                 self._write_frame(frame)
                 self.bench.pressure.check()
                 self._report()
+            self._drain_frames()
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
             if isinstance(err, Exception) and not isinstance(err, HardwareFault):
                 # a frame of another shape, a failing progress callback: the arm must not go on
@@ -277,6 +280,20 @@ class _Recorder(threading.Thread):
                 self._write_streams()
             except BaseException as err:  # noqa: BLE001
                 self.fail(err)
+
+    def _drain_frames(self) -> None:
+        """After the halt: record the frames the camera captured before it (``halted_at``) that are
+        still in its queue, a recorder that lagged behind on a loaded machine (was: dropped, and with
+        them the frames of a fault's last moments: a protective stop's retract had none on file).
+        Ends at the first later frame, or when none comes within ``FRAME_TIMEOUT_S``."""
+        while True:
+            try:
+                frame = self.bench.camera.get_frame(FRAME_TIMEOUT_S)
+            except HardwareFault:  # none left: a camera silent now is nothing the run still needs
+                return
+            if frame.t_host > self.halted_at:
+                return
+            self._write_frame(frame)
 
     def write_remaining_streams(self) -> None:
         """After the thread ended: queue the arm samples and pressure readings still pending."""
@@ -445,8 +462,10 @@ def press_target_n(contact, added_n: float, cap_n: float) -> float:
 
 
 def _end_recording(recorder: _Recorder) -> None:
-    """Stop the recorder thread and queue what it left (e.g. the safe-stop retract after the camera
-    failed); safe to repeat."""
+    """Stop the recorder thread, once it has recorded the frames captured until now, and queue what
+    it left (e.g. the safe-stop retract after the camera failed); safe to repeat."""
+    if not recorder.halt.is_set():
+        recorder.halted_at = recorder.bench.clock()
     recorder.halt.set()
     recorder.join()
     recorder.write_remaining_streams()

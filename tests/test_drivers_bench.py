@@ -220,6 +220,36 @@ def test_a_recorder_blocked_by_its_disk_stops_the_arm_and_keeps_the_data(tmp_pat
         assert s.closed_cleanly and len(s.select(phase="press")) > 0
 
 
+def test_the_frames_captured_before_a_runs_end_are_recorded_by_a_recorder_that_lags(tmp_path, monkeypatch):
+    """A recorder behind the camera (a slow disk, a loaded machine) records, once halted, the frames
+    still in the camera's queue up to the halt (was: dropped: a protective stop's retract, 0.05 s
+    long, had no frame on file on a loaded machine)."""
+    import collect.collection as collection
+    from collect.session_writer import SessionWriter
+
+    append_frame, end_recording = SessionWriter.append_frame, collection._end_recording
+    halts = []
+
+    def slow_append_frame(writer, *args, **kwargs):
+        time.sleep(0.03)  # slower than the camera's 45 fps
+        return append_frame(writer, *args, **kwargs)
+
+    def end_and_note(recorder) -> None:
+        halts.append(bench.clock())  # the run ends now
+        end_recording(recorder)
+
+    monkeypatch.setattr(SessionWriter, "append_frame", slow_append_frame)
+    monkeypatch.setattr(collection, "_end_recording", end_and_note)
+    out = tmp_path / "s.h5"
+    with open_bench(_config()) as bench:
+        plan = plan_bench_collection(bench, PlanSettings(poses_per_object=1, seed=1, hold_s=0.5))
+        with open_collection_writer(out, bench, plan, resume=False) as writer:
+            run_collection(bench, plan, writer)
+        period_s = 1.0 / bench.sim.spec.fps
+    with Session.open(out) as s:
+        assert halts[0] - 1.5 * period_s < s.t_host[-1] < halts[0] + period_s, (s.t_host[-3:], halts)
+
+
 def test_a_display_that_blocks_holds_up_neither_the_recording_nor_its_fault_checks(tmp_path, monkeypatch):
     """The progress display blocks from the hold on (a terminal paused with Ctrl-S): the camera goes
     silent and the arm is stopped as always (was: the recorder waited in the display, and the arm
