@@ -213,14 +213,22 @@ def load_thresholds(path: Path | None = None) -> Thresholds:
 
 
 def _fmt(value: float, limits: tuple = ()) -> str:
-    """``value`` to 4 significant digits, or to as many more as it takes not to read as one of ``limits``
-    (was: a failed a1 of 0.94996 shown as 0.95 against ``>= 0.95``)."""
+    """``value`` to 4 significant digits, or to as many more as it takes to read on the same side of each
+    of ``limits`` as ``value`` is (was: only not as a limit itself, and a passing 1030.45 hPa read
+    ``1030`` beside a minimum of 1030.4; before that a failed a1 of 0.94996 read 0.95 beside ``>= 0.95``)."""
     limits = tuple(x for x in limits if x is not None)
     for digits in range(4, 17):
         text = f"{value:.{digits}g}"
-        if float(text) == value or float(text) not in limits:
+        if all((float(text) > x) == (value > x) and (float(text) < x) == (value < x) for x in limits):
             return text
     return repr(value)
+
+
+def limit_text(limit: float) -> str:
+    """A check's limit as text, as written in its thresholds file (the shortest text that reads back
+    as it: ``1030.5``, ``0.12345``, ``25``; was, in the TUI, 4 significant digits: ``1030`` for 1030.5)."""
+    text = repr(float(limit))
+    return text[:-2] if text.endswith(".0") else text
 
 
 def check_value_text(check: dict) -> str:
@@ -250,11 +258,11 @@ def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str =
         high = th.hi is not None and value > th.hi
         passed = not (low or high)
         if passed:
-            reason = f"{th.describe}: {_fmt(value)}{unit} within limit"
+            reason = f"{th.describe}: {_fmt(value, (th.lo, th.hi))}{unit} within limit"
         elif low:
-            reason = f"{th.describe}: {_fmt(value, (th.lo,))}{unit} below minimum {_fmt(th.lo)}{unit}"
+            reason = f"{th.describe}: {_fmt(value, (th.lo,))}{unit} below minimum {limit_text(th.lo)}{unit}"
         else:
-            reason = f"{th.describe}: {_fmt(value, (th.hi,))}{unit} above maximum {_fmt(th.hi)}{unit}"
+            reason = f"{th.describe}: {_fmt(value, (th.hi,))}{unit} above maximum {limit_text(th.hi)}{unit}"
     if note:
         reason = f"{reason} ({note})"
     return {

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.acceptance import check_value_text
+from calibrate.acceptance import check_value_text, limit_text
 from collect.atomic_files import replacing
 
 #: The paper's table columns: (metric key, header, format).
@@ -105,7 +105,8 @@ def _checks_table(checks: list[dict]) -> str:
     rows = ""
     for c in checks:
         thr = c["threshold"]
-        thr_s = f"{thr[0]:g} &ndash; {thr[1]:g}" if isinstance(thr, (list, tuple)) else html.escape(f"{c['op']} {thr:g}")
+        thr_s = (f"{limit_text(thr[0])} &ndash; {limit_text(thr[1])}" if isinstance(thr, (list, tuple))
+                 else html.escape(f"{c['op']} {limit_text(thr)}"))
         val = "&ndash;" if c["value"] is None else check_value_text(c)
         cls = "pass" if c["passed"] else ("fail" if c["verdict"] == "fail" else "skip")  # skip: not run
         rows += (

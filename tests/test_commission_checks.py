@@ -225,6 +225,28 @@ def test_a_failed_value_never_reads_as_its_limit(tmp_path, name, value, shown):
     assert f"<td>{shown}</td>" in html and ("&lt;= " in html or "&gt;= " in html)  # the comparison escaped
 
 
+def test_a_value_reads_on_its_side_of_a_lab_limit_and_the_limit_as_written(tmp_path):
+    """Lab limits with more digits than a value's 4: was "1030 hPa within limit" for a passing 1030.45
+    beside a minimum of 1030.4 (the report: ``1030 | 1030.4 - 1110 | PASS``), and the TUI showed the
+    limits to 4 digits (0.12345 as 0.1235, 1030.5 as 1030)."""
+    from calibrate.report import ReportData, write_report
+    from calibrate.tui.widgets.acceptance_table import threshold_text, value_text
+
+    lab = tmp_path / "lab.yaml"
+    lab.write_text("version: 1\nchecks:\n  inflation_pressure_hpa: {min: 1030.4}\n"
+                   "  leak_rate_hpa_per_min: {max: 0.12345}\n")
+    thresholds = load_thresholds(lab)
+    passing = evaluate(thresholds, "inflation_pressure_hpa", 1030.45)
+    assert passing["passed"] and "1030.5 hPa within limit" in passing["reason"]
+    assert (value_text(passing), threshold_text(passing)) == ("1030.5 hPa", "in [1030.4, 1110] hPa")
+    failing = evaluate(thresholds, "leak_rate_hpa_per_min", 0.123456)
+    assert not failing["passed"] and "0.1235 hPa/min above maximum 0.12345 hPa/min" in failing["reason"]
+    assert (value_text(failing), threshold_text(failing)) == ("0.1235 hPa/min", "<= 0.12345 hPa/min")
+    html = write_report(ReportData(serial="SB-1", accepted=False, simulated=True, reason="x",
+                                   checks=[passing, failing]), tmp_path / "report.html").read_text()
+    assert "<td>1030.5</td><td>1030.4 &ndash; 1110</td>" in html and "&lt;= 0.12345" in html
+
+
 @pytest.mark.parametrize("seed", [2, 4])
 def test_the_housing_at_the_image_edges_is_no_dot(seed):
     """Was: on a simulated sensor printed without dots, the dark housing at the image's top and

@@ -9,21 +9,26 @@ from rich.text import Text
 from textual.containers import Vertical, VerticalScroll
 from textual.widgets import Static
 
-from calibrate.acceptance import check_value_text, unit_suffix
-from calibrate.tui.widgets.formatting import number
+from calibrate.acceptance import check_value_text, limit_text, unit_suffix
+from collect.numbers import is_number
 
 
 def _with_unit(text: str, unit: str | None) -> str:
     return text + unit_suffix(unit) if text != "-" else text  # was: "ratio" written
 
 
+def _limit(value: object) -> str:
+    """A limit as its thresholds file writes it (``acceptance.limit_text``); other values as text."""
+    return limit_text(value) if is_number(value) else str(value)
+
+
 def threshold_text(check: dict) -> str:
     """``<= 1.5 mm``, ``in [1030, 1110] hPa``, or the bare threshold when the check has no ``op``."""
     threshold, op, unit = check.get("threshold"), check.get("op"), check.get("unit")
     if isinstance(threshold, (list, tuple)):
-        bounds = "[" + ", ".join(number(v) for v in threshold) + "]"
+        bounds = "[" + ", ".join(_limit(v) for v in threshold) + "]"
         return _with_unit(f"{op or 'in'} {bounds}", unit)
-    return _with_unit(f"{op} {number(threshold)}" if op else number(threshold), unit)
+    return _with_unit(f"{op} {_limit(threshold)}" if op else _limit(threshold), unit)
 
 
 def value_text(check: dict) -> str:
