@@ -379,6 +379,8 @@ class Bench:
         self.camera.start()
         self.intrinsics = self.camera.intrinsics()
         self.arm.start()
+        if self.sim is not None:
+            self.sim.devices_streaming()
 
     def check(self) -> None:
         """Raise the first pending device fault (arm monitor, pressure board)."""

@@ -33,6 +33,7 @@ its messages but keeps time).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import threading
@@ -210,6 +211,18 @@ class SimBench:
     def start(self) -> None:
         """Start the physics thread (idempotent)."""
         self._loop.start()
+
+    def devices_streaming(self) -> None:
+        """The bench's drivers read every twin from now on (``collect.bench.Bench.start``): a short
+        fault (``FAULT_DURATION_S``) that would have ended by now starts now instead, as no driver could
+        have seen it (was: lost without a word: ``--sim-fault force-spike@0.5`` at ``--sim-speed 20``
+        came and went while the bench opened, and the run was accepted)."""
+        now = self.now()
+        for i, fault in enumerate(self.faults):
+            if fault.duration_s is not None and fault.at_s + fault.duration_s <= now:
+                self.faults[i] = dataclasses.replace(fault, at_s=now)
+                log.warning("simulated bench: --sim-fault %s starts at %.2f s of simulated time instead: the bench's "
+                            "devices were not read before then", fault, now)
 
     def stop(self) -> None:
         """Stop the physics thread; log each scheduled fault the run ended before (was: nothing said, and a

@@ -322,6 +322,18 @@ def test_a_ctrl_c_while_a_fault_ends_the_recording_keeps_the_faults_exit(tmp_pat
         assert fault.kind == "force-spike" and interrupted
 
 
+def test_a_short_fault_before_the_devices_stream_is_moved_to_when_they_do(caplog):
+    """Was: a ``force-spike`` (0.25 s) at 0 s came and went while the bench opened, no driver read it,
+    and the run went on as if none had been injected (at ``--sim-speed 20`` a spike at 1 s too)."""
+    with open_bench(_config(faults=("force-spike@0",), speed=20.0)) as bench:
+        (fault,) = bench.sim.faults
+        deadline = time.monotonic() + 5.0
+        while bench.arm.fault is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert bench.arm.fault is not None and bench.arm.fault.kind == "force-spike"
+    assert fault.at_s > 0.25 and f"--sim-fault force-spike@0 starts at {fault.at_s:.2f} s" in caplog.text
+
+
 def test_parse_sim_fault():
     assert parse_sim_fault("camera-stall@12.5") == SimFault("camera-stall", 12.5)
     assert parse_sim_fault(" force-spike@3 ").at_s == 3.0
