@@ -26,8 +26,9 @@ def register(subparsers) -> None:
         "commission",
         help="commission a sensor: leak test, camera health, calibration set, fine-tune, validate, report",
         description="Commission a new bubble sensor end to end and register it. Exit 0 accepted, 1 rejected (a "
-        "failed check or a hardware fault), 2 bad input, 3 the recorder stopped (this computer's disk: nothing "
-        "registered), 130 stopped by Ctrl-C (143 SIGTERM, 129 SIGHUP). Re-running with the same --out resumes from "
+        "failed check or a hardware fault), 2 bad input, 3 a fault of this computer, nothing judged or registered "
+        "(its disk stopped the recorder, or its CPU was too busy to fine-tune or to keep the robot's watchdog fed), "
+        "130 stopped by Ctrl-C (143 SIGTERM, 129 SIGHUP). Re-running with the same --out resumes from "
         "the last completed step.",  # was: 0, 1 and 2 only
     )
     p.add_argument("--bench", type=named_path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
