@@ -43,6 +43,7 @@ a stop that comes after the last step's start is honoured before the verdict.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -96,6 +97,8 @@ from collect.output_files import output_folder_lock
 from collect.session_format import DEPTH_UNIT_M, utc_now
 from trainer.contact import contact_mask
 from trainer.metrics import METRIC_KEYS
+
+log = logging.getLogger(__name__)
 
 #: Leak test: the bubble settles this long (s of bench time) before the hold (``CommissionConfig.leak_hold_s``).
 LEAK_SETTLE_S = 1.0
@@ -577,6 +580,17 @@ class _Flow:
         write_run_report(self.run_dir, self.state, doc)
         return doc
 
+    def _write_host_fault_outcome(self, fault: HardwareFault) -> None:
+        """``acceptance.json`` and ``report.html`` of a run that this computer's fault ended: no verdict,
+        nothing registered, the checks made so far (was: left as an earlier attempt wrote them, e.g.
+        "stopped" with every check not run, beside a state.json that had gone on to the fine-tune). A
+        disk too full to write them leaves the earlier ones (logged): the fault is what the run says."""
+        try:
+            self.write_outcome(False, f"no verdict: this computer's fault ({fault.kind}), not the sensor's; nothing "
+                                      "registered", f"{fault.kind}: {fault}", stopped=False)
+        except OSError as err:
+            log.error("could not write the run's outcome files: %s", err)
+
     def _all_checks(self) -> list[dict]:
         """The checks the run's steps made, in step order; a run that ended before its last step adds
         every other check of the thresholds as ``not run`` (a run that reached its end lists what it
@@ -742,6 +756,7 @@ class _Flow:
             self.close_bench(safe_stop=True)
             if fault.kind in HOST_FAULTS:  # the host's disk or CPU, not the sensor: no verdict (was: rejected,
                 # registered)
+                self._write_host_fault_outcome(fault)
                 raise
             return self.finish(fault=f"{fault.kind}: {fault}")
         except StopRequested:

@@ -22,6 +22,7 @@ import numpy as np
 
 from calibrate.acceptance import check_value_text, limit_text
 from collect.atomic_files import replacing
+from collect.errors import HOST_FAULTS
 
 #: The paper's table columns: (metric key, header, format).
 PAPER_COLUMNS = (
@@ -309,7 +310,8 @@ def render_html(data: ReportData) -> str:
             body = f"<p class='note'>Not available: {html.escape(why)}.</p>"
         parts.append(f"<h2>{title}</h2>{body}")
 
-    verdict = "ACCEPTED" if data.accepted else ("STOPPED" if data.stopped else "REJECTED")
+    host_fault = data.fault is not None and data.fault.split(":", 1)[0] in HOST_FAULTS  # this computer's: unjudged
+    verdict = "ACCEPTED" if data.accepted else ("STOPPED" if data.stopped else "NO VERDICT" if host_fault else "REJECTED")
     kind = "simulated" if data.simulated else "hardware"
     head = (
         f"<h1>Sensor {html.escape(data.serial)} &mdash; commissioning report</h1>"

@@ -565,6 +565,11 @@ def test_a_fine_tune_that_could_hardly_train_is_the_computers_fault_not_the_sens
     assert err.value.kind == "host-too-slow" and "nothing judged, nothing registered" in str(err.value)
     state = json.loads((config.run_dir / "state.json").read_text())
     assert "collect" in state["steps"] and "finetune" not in state["steps"] and "verdict" not in state["steps"]
+    # its outcome files say so (was: none, or those of an attempt before: "stopped", every check not run)
+    outcome = json.loads((config.run_dir / "acceptance.json").read_text())
+    assert not outcome["accepted"] and outcome["fault"].startswith("host-too-slow: ") and not outcome["stopped"]
+    assert outcome["reason"].startswith("no verdict: this computer's fault (host-too-slow)")
+    assert set(outcome["steps"]) == set(state["steps"]) and ">NO VERDICT</div>" in (config.run_dir / "report.html").read_text()
     assert SensorRegistry(config.registry_dir).survey().profiles == []
     monkeypatch.setattr(commission_config, "MIN_TRAINING_SHARE", 0.0)
     assert run_commissioning(config, lambda e: None).accepted  # the same command, on a free computer
