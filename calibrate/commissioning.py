@@ -609,6 +609,9 @@ class _Flow:
         The registry entry carries an id that ``state.json`` keeps from before the registration (until the
         end of a run that ends in a fault, for good with a verdict): a run killed between the registration
         and the record of its end, and run again, replaces its entry instead of adding a second one."""
+        if fault is None and not stopped and self.stop_event.is_set():  # a stop already in: no verdict to write
+            # (was: written as the verdict first, ACCEPTED say, then again as stopped)
+            return self.finish(stopped=True)
         checks = self.state.checks()
         accepted = acceptance.accepted(checks) and fault is None and not stopped and self._all_done()
         reason = acceptance.rejection_reason(checks, fault)
@@ -749,7 +752,8 @@ class _Flow:
             self.check_stop()  # a stop during the last step (was: acknowledged, then a verdict registered)
             self.emit(StepStarted(Step.VERDICT))
             result = self.finish()
-            self.emit(StepFinished(Step.VERDICT, result.accepted, "accepted" if result.accepted else result.reason))
+            if not result.stopped:  # a stopped verdict step is not a failed one (its Verdict event says stopped)
+                self.emit(StepFinished(Step.VERDICT, result.accepted, "accepted" if result.accepted else result.reason))
             return result
         except HardwareFault as fault:
             self.emit(FaultRaised(fault.kind, str(fault)))

@@ -838,6 +838,35 @@ def test_a_stop_while_the_verdict_is_written_registers_nothing(faulted_then_resu
     assert json.loads((config.run_dir / "acceptance.json").read_text())["stopped"]
 
 
+def test_a_stop_as_the_verdict_starts_writes_no_verdict_and_shows_the_step_stopped(faulted_then_resumed, tmp_path,
+                                                                                   monkeypatch):
+    """The operator's stop comes as the verdict step starts: the outcome files are written once, as
+    stopped, and the verdict step does not finish as failed (the TUI then shows it stopped). Was: they
+    were written as the verdict (ACCEPTED: a kill then left an accepted acceptance.json never
+    registered), then again as stopped, and the step finished as failed."""
+    from calibrate.commissioning import _Flow
+
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    stop = threading.Event()
+    written = []
+    write_outcome = _Flow.write_outcome
+
+    def noting(self, accepted, reason, fault, stopped, *args):
+        written.append((accepted, stopped))
+        return write_outcome(self, accepted, reason, fault, stopped, *args)
+
+    def on_event(event) -> None:
+        if isinstance(event, StepStarted) and event.step is Step.VERDICT:
+            stop.set()
+        events.append(event)
+
+    events = []
+    monkeypatch.setattr(_Flow, "write_outcome", noting)
+    result = run_commissioning(config, on_event, stop)
+    assert result.stopped and written == [(False, True)]
+    assert not [e for e in events if isinstance(e, StepFinished) and e.step is Step.VERDICT]
+
+
 def test_a_full_disk_outside_the_recorder_is_a_recorder_fault(tmp_path, capsys, monkeypatch):
     """Was: exit 2 ("bad input") after the arm had moved, and a cut-off leak_test.npz."""
     import errno
