@@ -278,13 +278,17 @@ def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str =
     }
 
 
+#: The ``verdict`` of a check its run ended before (``not_run``).
+NOT_RUN = "not run"
+
+
 def not_run(thresholds: Thresholds, name: str) -> dict:
     """The check ``name`` of a run that ended before its step: no value, not passed, verdict "not run"
     (was: left out of ``acceptance.json``, which then held the checks of the steps that ran alone)."""
     th = thresholds[name]
     op, limit = th.limit()
     return {"name": name, "value": None, "threshold": limit, "op": op, "unit": th.unit, "passed": False,
-            "verdict": "not run", "gate": th.gate, "reason": f"{th.describe}: not run, the run ended before it"}
+            "verdict": NOT_RUN, "gate": th.gate, "reason": f"{th.describe}: not run, the run ended before it"}
 
 
 def failed(checks: list[dict]) -> list[dict]:

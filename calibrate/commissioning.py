@@ -639,7 +639,7 @@ class _Flow:
             for key in (REGISTRATION_KEY, REGISTERED_IN_KEY):
                 self.state.data.pop(key, None)
             self.state.save()
-        self.emit(Verdict(accepted, checks, str(report_path)))
+        self.emit(Verdict(accepted, doc["checks"], str(report_path)))  # as acceptance.json lists them
         return CommissionResult(accepted, checks, self.run_dir, report_path, stopped=stopped, fault=fault, reason=reason)
 
     def _short_finetune_note(self) -> str:
@@ -786,7 +786,7 @@ class _Flow:
         if not report.is_file() or not (self.run_dir / ACCEPTANCE_FILE).is_file():  # deleted since: written anew
             doc = self.write_outcome(verdict["ok"], verdict["reason"], verdict["fault"], False, verdict["finished"])
         self._register_elsewhere(verdict, doc)
-        self.emit(Verdict(verdict["ok"], checks, str(report)))
+        self.emit(Verdict(verdict["ok"], self._all_checks(), str(report)))  # as acceptance.json lists them
         return CommissionResult(verdict["ok"], checks, self.run_dir, report, fault=verdict["fault"], reason=verdict["reason"])
 
     def _register_elsewhere(self, verdict: dict, doc: dict | None) -> None:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.acceptance import check_value_text, limit_text
+from calibrate.acceptance import NOT_RUN, check_value_text, limit_text
 from collect.atomic_files import replacing
 from collect.errors import HOST_FAULTS
 
@@ -328,7 +328,7 @@ def render_html(data: ReportData) -> str:
     head += "</p>"
     parts.append(head)
 
-    ran = any(c["verdict"] != "not run" for c in data.checks)  # none: the note says why (an early fault)
+    ran = any(c["verdict"] != NOT_RUN for c in data.checks)  # none: the note says why (an early fault)
     section("Acceptance checks", _checks_table(data.checks) if ran else None, "checks")
     section(
         "Held-out metrics (paper's columns)",

@@ -628,9 +628,16 @@ def test_a_sensor_that_failed_a_gate_is_not_reconnected_when_its_run_is_run_agai
     spec = tmp_path / "spec.yaml"
     draw_sensor(11, "leak").to_yaml(spec)
     config = dataclasses.replace(tiny_config(tmp_path), sensor_spec=spec)
-    first = run_commissioning(config, lambda e: None)
+    events = []
+    first = run_commissioning(config, events.append)
     assert not first.accepted and "leak_rate_hpa_per_min" in first.reason
     assert "fine-tuned" not in first.reason  # no model judged: the budget is not the reason
+    # the verdict shows the checks acceptance.json lists, the ones after the gate "not run" (was: the TUI
+    # showed the checks made, "1/2 checks passed", beside the file's 16)
+    (verdict,) = [e for e in events if isinstance(e, Verdict)]
+    listed = json.loads((config.run_dir / "acceptance.json").read_text())["checks"]
+    assert [(c["name"], c["verdict"]) for c in verdict.checks] == [(c["name"], c["verdict"]) for c in listed]
+    assert any(c["verdict"] == "not run" for c in listed)
     state = RunState(config.run_dir / "state.json", json.loads((config.run_dir / "state.json").read_text()))
     del state.data["steps"]["verdict"]  # as a stop at the verdict leaves it
     state.data.pop("registration_id", None), state.data.pop("registered_in", None)

@@ -843,6 +843,37 @@ def test_a_fault_verdict_says_why_and_a_stopped_run_shows_its_report(in_tmp):
     assert "stopped by operator" in verdict and report == "report: run/report.html" and collect == "stopped"
 
 
+def test_a_failed_gate_shows_the_checks_after_it_as_not_run(in_tmp):
+    """The leak test's gate failed: the Acceptance tab lists every check as acceptance.json does, those
+    after the gate "not run" (was: the checks made alone, "REJECTED 0/1 checks passed", beside the
+    file's full list)."""
+    leak = {"name": "leak_rate_hpa_per_min", "value": 3.2, "threshold": 1.0, "op": "<=", "unit": "hPa/min",
+            "passed": False, "verdict": "fail", "reason": "bubble pressure loss: 3.2 hPa/min above maximum 1"}
+    later = [{"name": name, "value": None, "threshold": 0.95, "op": ">=", "unit": None, "passed": False,
+              "verdict": "not run", "reason": f"{name}: not run, the run ended before it"}
+             for name in ("heldout_a1", "contact_rmse_mm")]
+
+    async def scenario():
+        flow = ScriptedFlow([], finish=[Verdict(False, [leak, *later], "run/report.html")],
+                            result=lambda config, stopped: CommissionResult(
+                                accepted=False, checks=[leak], run_dir=config.run_dir,
+                                report_path=config.run_dir / "report.html", stopped=stopped, reason="leak"))
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.result is not None, pilot)
+            await pilot.press("3")  # the Acceptance tab
+            await pilot.pause()
+            return (str(app.acceptance.verdict_line.render()), app.acceptance.checks,
+                    "\n".join(rendered_lines(app.acceptance.table)))
+
+    verdict, checks, table = asyncio.run(scenario())
+    assert "REJECTED" in verdict and "0/1 checks passed, 2 not run" in verdict, verdict
+    assert [c["name"] for c in checks] == ["leak_rate_hpa_per_min", "heldout_a1", "contact_rmse_mm"]
+    assert table.count("not run") == 2 and "heldout_a1: not run" not in table  # no reason line for those
+
+
 def test_the_bench_panel_ends_on_the_flows_last_snapshot(in_tmp):
     """The flow sends a snapshot of the parked arm just before collection's end; the panel shows it
     (was: the last one the refresh timer had taken, the arm still pressing)."""

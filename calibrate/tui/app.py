@@ -158,6 +158,9 @@ class BenchApp(App):
         self._worker: Worker | None = None
         self._quit_requested = False
         self._stop_requested = False  # this run was asked to stop: its flow's Verdict is no verdict
+        #: the checks of this run's Verdict, as acceptance.json lists them (those after a failed gate "not
+        #: run"; ``CommissionResult.checks`` holds the checks made); None before it
+        self._verdict_checks: list[dict] | None = None
         self._gave_up = False  # quitting gave up on the flow after QUIT_WAIT_S
         #: Quitting gave up on a flow in a child process that still runs (``FlowRunner.abandon``): whoever
         #: ran the app ends this process without joining it (multiprocessing joins children at exit).
@@ -413,8 +416,10 @@ class BenchApp(App):
             elif isinstance(event, FaultRaised):
                 self._fault_text = f"FAULT {event.kind}: {event.message}"
                 self.banner.show(self._fault_text, "fault")
-            elif isinstance(event, Verdict) and not self._stop_requested:  # a stopped run's: "NO VERDICT" at its end
-                self.acceptance.show(event.accepted, event.checks, event.report_path)
+            elif isinstance(event, Verdict):
+                self._verdict_checks = event.checks
+                if not self._stop_requested:  # a stopped run's: "NO VERDICT" at its end
+                    self.acceptance.show(event.accepted, event.checks, event.report_path)
         self.training.apply(points)
         if steps_changed:
             steps.tick(now)
@@ -489,6 +494,7 @@ class BenchApp(App):
         self._connected = False
         self._last_snapshot_at = None
         self._fault_text = None
+        self._verdict_checks = None
         self.safe_stop = None
         self.banner.show(RUN_HINT, "hint")
         self.steps.reset()
@@ -505,6 +511,7 @@ class BenchApp(App):
         banner = self.banner
         if event.state == WorkerState.SUCCESS:
             self.result = result = event.worker.result
+            checks = result.checks if self._verdict_checks is None else self._verdict_checks
             if result.stopped or result.fault:
                 self.steps.interrupt(now, "stopped" if result.stopped else "failed")
             session = Path(result.run_dir) / "session.h5"
@@ -513,18 +520,18 @@ class BenchApp(App):
                 kept = (f"Recorded data kept in {session}" if session.is_file() else
                         f"No calibration frames recorded yet; the completed steps are kept in {result.run_dir}")
                 banner.show(f"Stopped by operator: {self._arm_outcome()}. {kept}", "warning")
-                self.acceptance.show(None, result.checks, report, "stopped by operator")
+                self.acceptance.show(None, checks, report, "stopped by operator")
             elif result.fault:
                 reported = self._fault_text or f"FAULT {result.fault}"
                 banner.show(f"{reported} | {self._arm_outcome()} | run rejected; c retries (completed steps are kept)",
                             "fault")
-                self.acceptance.show(result.accepted, result.checks, report, f"hardware fault {result.fault}")
+                self.acceptance.show(result.accepted, checks, report, f"hardware fault {result.fault}")
             else:
                 verdict = "ACCEPTED" if result.accepted else "REJECTED"
                 if result.reason and not result.accepted:
                     verdict += f" ({result.reason})"
                 banner.show(f"{verdict}. Report: {result.report_path}", "info" if result.accepted else "fault")
-                self.acceptance.show(result.accepted, result.checks, str(result.report_path))
+                self.acceptance.show(result.accepted, checks, str(result.report_path))
         else:
             self.error = err = event.worker.error
             self.steps.interrupt(now, "failed")

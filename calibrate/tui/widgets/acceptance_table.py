@@ -9,7 +9,7 @@ from rich.text import Text
 from textual.containers import Vertical, VerticalScroll
 from textual.widgets import Static
 
-from calibrate.acceptance import check_value_text, limit_text, unit_suffix
+from calibrate.acceptance import NOT_RUN, check_value_text, limit_text, unit_suffix
 from collect.numbers import is_number
 
 
@@ -80,8 +80,11 @@ class AcceptanceTable(Vertical):
         else:
             line = Text(" REJECTED ", style="bold white on red")
         if accepted is not None:
-            failed = sum(1 for check in checks if not check.get("passed"))
-            line.append(f"  {len(checks) - failed}/{len(checks)} checks passed")
+            made = [check for check in checks if check.get("verdict") != NOT_RUN]
+            passed = sum(1 for check in made if check.get("passed"))
+            line.append(f"  {passed}/{len(made)} checks passed")
+            if len(made) < len(checks):  # a gate failed: the checks after it, as acceptance.json lists them
+                line.append(f", {len(checks) - len(made)} not run")
             if note:
                 line.append(f"  ({note})", style="bold red")
         self.verdict_line.update(line)
@@ -95,14 +98,15 @@ class AcceptanceTable(Vertical):
         table.add_column("result", no_wrap=True)
         why = []  # reasons of the failed checks, below the table
         for check in checks:
-            passed = bool(check.get("passed"))
+            passed, ran = bool(check.get("passed")), check.get("verdict") != NOT_RUN
             table.add_row(
                 str(check.get("name", "?")),
                 value_text(check),
                 threshold_text(check),
-                Text("PASS", style="bold green") if passed else Text("FAIL", style="bold red"),
+                Text("PASS", style="bold green") if passed else Text("FAIL", style="bold red") if ran
+                else Text("not run", style="dim"),
             )
-            if not passed and check.get("reason"):
+            if ran and not passed and check.get("reason"):
                 why.append(Text.assemble((f"{check.get('name', '?')}: ", "bold red"), str(check["reason"])))
         self.table.update(Group(table, *([Text("")] + why if why else [])) if checks else "")
         self.report_line.update(Text(f"report: {report_path}") if report_path else "")
