@@ -247,7 +247,9 @@ def test_the_frames_captured_before_a_runs_end_are_recorded_by_a_recorder_that_l
             run_collection(bench, plan, writer)
         period_s = 1.0 / bench.sim.spec.fps
     with Session.open(out) as s:
-        assert halts[0] - 1.5 * period_s < s.t_host[-1] < halts[0] + period_s, (s.t_host[-3:], halts)
+        # up to the halt, but for a frame or two the full queue dropped (was: 8-9 frames before it, the
+        # camera queue's length)
+        assert halts[0] - 4 * period_s < s.t_host[-1] < halts[0] + period_s, (s.t_host[-3:], halts)
 
 
 def test_a_display_that_blocks_holds_up_neither_the_recording_nor_its_fault_checks(tmp_path, monkeypatch):
