@@ -53,6 +53,9 @@ SENSOR_SERIAL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 SENSOR_SERIAL_RULE = "1-64 letters, digits, '.', '_' or '-', the first a letter or digit"
 #: Corrupt lines in a row that make a ``serial-garbage`` fault (0.1 s of the 100 Hz stream).
 MAX_CORRUPT_RUN = 10
+#: Longest time (s) a command may wait to be sent: a board that stops reading its port fills the
+#: serial buffer, and a write would then wait for it forever.
+WRITE_TIMEOUT_S = 1.0
 #: s a board may stay silent after its port opens: opening raises DTR, which reboots boards wired
 #: like an Arduino (a bootloader waits 1-2 s); ``ID?`` is repeated every ``BOOT_RETRY_S`` until
 #: then, and silence is no ``serial-timeout`` before the board's first valid line or this long.
@@ -132,7 +135,8 @@ class PressureBoard:
     def open(self) -> None:
         """Open the port and start the reader thread."""
         try:  # exclusive: flock(2) on the port, so that two runs never split the board's lines between them
-            self._serial = serial.Serial(self.port, self.baudrate, timeout=0.05, exclusive=True)
+            self._serial = serial.Serial(self.port, self.baudrate, timeout=0.05, write_timeout=WRITE_TIMEOUT_S,
+                                         exclusive=True)
         except (serial.SerialException, OSError) as err:
             if err.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
                 raise InputError(f"pressure board: {self.port} is in use by another bubble process; wait until "
@@ -285,6 +289,9 @@ class PressureBoard:
             self._replies.clear()
         try:
             self._serial.write(text.encode("ascii") + b"\n")
+        except serial.SerialTimeoutException as err:  # was: no write timeout, and the command waited forever
+            raise HardwareFault("serial-timeout", f"pressure board: {self.port} takes no data: '{text[:20]}' waited "
+                                                  f"{WRITE_TIMEOUT_S:g} s to be sent (board hung?)") from err
         except (serial.SerialException, OSError) as err:
             self._set_fault(HardwareFault("serial-unplug", f"pressure board: {self.port} vanished ({err})"))
             raise self._fault from err

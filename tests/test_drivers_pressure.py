@@ -154,6 +154,24 @@ def test_command_replies_errors_and_timeouts(pty_board):
     assert err.value.kind == "serial-timeout"
 
 
+def test_a_board_that_stops_reading_its_port_times_a_command_out(pty_board):
+    """Nobody reads the port (a hung board): the serial buffer fills and the command's write gives up
+    after ``WRITE_TIMEOUT_S`` (was: no write timeout, the command waited forever)."""
+    import threading
+
+    from collect.pressure_board import WRITE_TIMEOUT_S
+
+    board, _ = pty_board  # the test never reads the master: the board's side of the line stays full
+    raised = []
+    sender = threading.Thread(target=lambda: raised.append(pytest.raises(HardwareFault, board.command,
+                                                                         "X" * 1_000_000, "X", timeout_s=0.1)),
+                              daemon=True)
+    sender.start()
+    sender.join(WRITE_TIMEOUT_S + 5.0)
+    assert not sender.is_alive(), "the command still waits to be sent"
+    assert raised[0].value.kind == "serial-timeout" and "takes no data" in str(raised[0].value)
+
+
 def test_silence_is_a_timeout_fault(pty_board):
     board, master = pty_board
     os.write(master, encode_line("P,0,1000.00"))
