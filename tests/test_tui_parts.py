@@ -124,6 +124,16 @@ def test_halfblock_rows_paint_upper_and_lower_pixels():
     assert right.bgcolor.get_truecolor() == INVALID_RGB
 
 
+def test_no_depth_looks_like_no_colour_of_the_depth_map():
+    """Was: dark magenta, 31 RGB units from the map's far end: the farthest membrane read as dropouts."""
+    from calibrate.tui.halfblock import DEPTH_INVALID_RGB
+
+    distances = np.linalg.norm(DEPTH.lut.astype(float) - np.array(DEPTH_INVALID_RGB, float), axis=1)
+    assert distances.min() > 100
+    (row,) = halfblock_rows(np.array([[-1], [0]], np.int16), 1, 1, DEPTH)
+    assert row[0].style.color.get_truecolor() == DEPTH_INVALID_RGB
+
+
 def test_halfblock_rows_merge_runs_and_resample():
     index = np.zeros((172, 224), np.int16)
     index[:, 112:] = 200

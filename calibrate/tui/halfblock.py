@@ -41,6 +41,9 @@ def _interpolated_lut(anchors: np.ndarray) -> np.ndarray:
 
 
 INVALID_RGB = (70, 0, 70)  # dark magenta: no data (ToF dropout, housing)
+#: Light grey: no depth in the depth map, unlike any of its colours (its far end, (48, 18, 59), was 31
+#: RGB units from the dark magenta: the farthest membrane read as a dropout).
+DEPTH_INVALID_RGB = (160, 160, 160)
 
 
 class Colormap:
@@ -77,7 +80,7 @@ class Colormap:
 
 
 GREY = Colormap(_interpolated_lut(np.array([(0, 0, 0), (255, 255, 255)], dtype=np.float64)))
-DEPTH = Colormap(_interpolated_lut(_DEPTH_ANCHORS))
+DEPTH = Colormap(_interpolated_lut(_DEPTH_ANCHORS), DEPTH_INVALID_RGB)
 
 
 @dataclass
