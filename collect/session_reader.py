@@ -260,7 +260,7 @@ class Session:
         n = self.n_frames
         #: metres per count of frames/depth
         self.depth_unit_m = _depth_unit_m(self.path, f[sf.FRAMES_DEPTH])
-        _check_depth_marks(self.path, f)
+        phase_map = _check_depth_marks(self.path, f)
         #: (N,) per-frame metadata, loaded eagerly (small)
         self.t_device = f[sf.FRAMES_T_DEVICE][:n]
         self.t_host = f[sf.FRAMES_T_HOST][:n]
@@ -270,9 +270,15 @@ class Session:
         # phase 256 read as free and an object 65535 as none)
         seq, object_index, pose_id, phase = (_int_column(self.path, f[name], n) for name in (
             sf.FRAMES_SEQ, sf.FRAMES_OBJECT, sf.FRAMES_POSE_ID, sf.FRAMES_PHASE))
-        bad_phase = ~np.isin(phase, list(_PHASE_NAMES))
+        bad_phase = ~np.isin(phase, list(phase_map or _PHASE_NAMES))
         if bad_phase.any():
             raise InputError(f"{self.path}: corrupt session, unknown phase value at frame {int(np.argmax(bad_phase))}")
+        #: the file numbers its phases otherwise than ``PHASES`` (its enum says how; read as ``PHASES``)
+        self.phases_renumbered = phase_map is not None
+        if phase_map is not None:  # the file's own numbering, read as the format's
+            lookup = np.zeros(256, np.int64)
+            lookup[list(phase_map)] = list(phase_map.values())
+            phase = lookup[phase]
         if ((object_index < -1) | (object_index >= len(self.objects))).any():
             raise InputError(f"{self.path}: corrupt session, frames/object out of range")
         if (pose_id < -1).any():  # -1: no pose
@@ -617,22 +623,28 @@ def _depth_unit_m(path: str, depth: h5py.Dataset) -> float:
     return float(unit_m)
 
 
-def _check_depth_marks(path: str, f: h5py.File) -> None:
-    """InputError when the file marks its data otherwise than this code reads it: ``frames/depth``'s
-    ``invalid`` value other than 0, or ``frames/phase``'s ``enum`` other than ``PHASES`` (was: ignored,
-    a file with press and hold swapped read swapped). Either attribute may be absent."""
+def _check_depth_marks(path: str, f: h5py.File) -> dict[int, int] | None:
+    """InputError when ``frames/depth``'s ``invalid`` value is other than 0, or ``frames/phase``'s
+    ``enum`` does not name the format's five phases, each with its own value 0-255. Returns the map
+    from the file's phase values to ``PHASES``' where its enum numbers them otherwise (a file of
+    another writer; DESIGN.md fixes the names, not the numbers; was: refused, and before that read as
+    if numbered as ``PHASES``, press and hold swapped), else None. Either attribute may be absent."""
     invalid = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_INVALID)
     if invalid is not None and not (np.ndim(invalid) == 0 and real_number(invalid) and invalid == 0):
         raise _bad(path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_INVALID}'", "0 (this software reads 0 as no depth)", invalid)
     enum = f[sf.FRAMES_PHASE].attrs.get(sf.ATTR_PHASE_ENUM)
     if enum is None:
-        return
+        return None
     try:
         value = json.loads(_text(enum))
     except JSON_READ_ERRORS:
         value = enum
-    if not isinstance(value, dict) or value != sf.PHASES:  # (an array's != is elementwise: was a ValueError's text)
-        raise _bad(path, f"{sf.FRAMES_PHASE} attr '{sf.ATTR_PHASE_ENUM}'", f"the format's phases {json.dumps(sf.PHASES)}", value)
+    numbers = list(value.values()) if isinstance(value, dict) else []
+    if not (isinstance(value, dict) and set(value) == set(sf.PHASES) and len(set(numbers)) == len(numbers)
+            and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in numbers)):
+        raise _bad(path, f"{sf.FRAMES_PHASE} attr '{sf.ATTR_PHASE_ENUM}'",
+                   f"the phases {', '.join(sf.PHASES)}, each with its own value 0-255", value)
+    return None if value == sf.PHASES else {stored: sf.PHASES[name] for name, stored in value.items()}
 
 
 def _check_finite(path: str, name: str, values, rows=None) -> None:

@@ -813,6 +813,9 @@ def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simu
     frame in it) and plan, and its objects of the names in ``objects`` with the same meshes."""
     path = session.path
     height, width = int(intrinsics["height"]), int(intrinsics["width"])
+    if session.phases_renumbered:  # its frames and ours would mix two numberings
+        raise InputError(f"cannot resume {path}: its frames/phase enum numbers the phases otherwise than this "
+                         "software writes them; record into a new file")
     if str(session.sensor_serial) != str(serial):
         raise InputError(f"cannot resume {path}: it was recorded with sensor {session.sensor_serial}, not {serial}")
     if (session.height, session.width) != (height, width):

@@ -153,16 +153,50 @@ CASES = {
                           "such as '1e-05 m'; found None)"),
     "depth-unit-text-disagrees": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_UNIT, "1e-04 m"),
                                   "corrupt session, frames/depth attrs 'unit_m' (1e-05 m) and 'unit' ('1e-04 m') disagree"),
-    # the file's own marks (was: ignored, press and hold read swapped)
-    "phase-enum-swapped": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
-                               {**sf.PHASES, "press": sf.PHASES["hold"], "hold": sf.PHASES["press"]})),
-                           "frames/phase attr 'enum' must be the format's phases"),
+    # the file's own phase names, each with its own value (a renumbering is read: test_session_format)
+    "phase-enum-a-name-twice": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
+                                    {**sf.PHASES, "press": sf.PHASES["hold"]})),
+                                "frames/phase attr 'enum' must be the phases free, approach, press, hold, retract, "
+                                "each with its own value 0-255"),
+    "phase-enum-unknown-name": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
+                                    {**{k: v for k, v in sf.PHASES.items() if k != "hold"}, "dwell": 9})),
+                                "frames/phase attr 'enum' must be the phases"),
     # was: "corrupt or truncated session () or a.all()"
     "phase-enum-an-array": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, np.array([1, 2])),
-                            "frames/phase attr 'enum' must be the format's phases"),
+                            "frames/phase attr 'enum' must be the phases"),
+    # renumbered, but a frame holds a value the file's enum does not name
+    "phase-outside-its-enum": (lambda f: f[sf.FRAMES_PHASE].attrs.__setitem__(sf.ATTR_PHASE_ENUM, json.dumps(
+                                   {name: value + 10 for name, value in sf.PHASES.items()})),
+                               "corrupt session, unknown phase value at frame 0"),
     "depth-invalid-65535": (lambda f: f[sf.FRAMES_DEPTH].attrs.__setitem__(sf.ATTR_INVALID, 65535),
                             "frames/depth attr 'invalid' must be 0 (this software reads 0 as no depth), got 65535"),
 }
+
+
+def test_a_file_that_numbers_its_phases_otherwise_is_read_by_its_enum(tmp_path, small_session, capsys):
+    """DESIGN.md fixes the phase names ("enum in attrs"), not their numbers: a writer that numbers them
+    otherwise, its enum saying so, is read as it says (was: refused, "must be the format's phases")."""
+    from collect.session_reader import Session
+
+    path = tmp_path / "renumbered.h5"
+    shutil.copyfile(small_session, path)
+    theirs = {name: 10 + 4 - value for name, value in sf.PHASES.items()}  # approach 13 ... retract 10, free 14
+    with h5py.File(path, "a") as f:
+        ours = f[sf.FRAMES_PHASE][()]
+        del f[sf.FRAMES_PHASE]
+        f[sf.FRAMES_PHASE] = np.array([10 + 4 - v for v in ours], np.uint8)
+        f[sf.FRAMES_PHASE].attrs[sf.ATTR_PHASE_ENUM] = json.dumps(theirs)
+    with Session.open(small_session) as original, Session.open(path) as renumbered:
+        everything = np.arange(original.n_frames)
+        assert list(renumbered.phase_name(everything)) == list(original.phase_name(everything))
+        assert len(renumbered.select(phase="hold")) == len(original.select(phase="hold")) > 0
+        metadata = dict(sensor_serial=original.sensor_serial, intrinsics=original.intrinsics,
+                        camera_in_tcp=original.camera_in_tcp, simulated=original.simulated, objects=[])
+    assert main(["info", str(path)]) == 0
+    from collect.session_writer import resume_progress
+
+    with pytest.raises(InputError, match="numbers the phases otherwise than this software writes them"):
+        resume_progress(path, **metadata)  # its frames and a resume's would mix two numberings
 
 
 @pytest.mark.parametrize("edit, needle", list(CASES.values()), ids=list(CASES))
