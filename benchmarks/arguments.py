@@ -94,14 +94,13 @@ def sim_speed(text: str) -> float:
 def object_names(text: str) -> str:
     """``argparse`` type: comma-separated objects of the bench (built-in names or mesh files), at least
     one, each once, each loadable; returns them comma-separated, without blanks."""
-    from collect.pose_planner import check_unique_names
-    from hw_mocks.objects import load_object
+    from collect.pose_planner import check_object_names
 
     names = [s.strip() for s in text.split(",") if s.strip()]
     if not names:
         raise argparse.ArgumentTypeError(f"expected one or more comma-separated objects, got {text!r}")
     try:
-        check_unique_names([load_object(name).name for name in names])
+        check_object_names(names)
     except InputError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
     return ",".join(names)

@@ -104,9 +104,8 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
     from calibrate.run_directory import SESSION_FILE, RunState, recording_done, run_settings
     from calibrate.sensor_registry import PROFILE, SensorRegistry
     from collect.output_files import check_parent_dirs, output_folder_lock
-    from collect.pose_planner import MAX_POSES_PER_OBJECT, check_unique_names
+    from collect.pose_planner import MAX_POSES_PER_OBJECT, check_object_names
     from collect.session_writer import check_free_space
-    from hw_mocks.objects import load_object
     from trainer.cli import check_model_arg
     from trainer.model_dir import BASE_MODEL_DIR, load_network
 
@@ -124,7 +123,7 @@ def validate_config(config: CommissionConfig) -> acceptance.Thresholds:
         raise InputError("no objects to press; give at least one")
     # InputError for an unknown object, a bad mesh, or one named twice (the run would reach the
     # collection step, after the arm's first moves, before the planner said so)
-    check_unique_names([load_object(name).name for name in config.objects])
+    check_object_names(config.objects)
     # the Python API's settings, which no argparse typed (was: NaN a ValueError traceback, 3.9 poses accepted
     # and refused by the planner once the bench had opened, "5" minutes a TypeError)
     for name in ("poses_per_object", "seed"):

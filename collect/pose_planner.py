@@ -176,6 +176,14 @@ def check_unique_names(names: list[str]) -> None:
         raise InputError(f"object names must be unique, got {', '.join(duplicates)} twice")
 
 
+def check_object_names(names) -> None:
+    """Raise ``InputError`` for an unknown object or a bad mesh file among ``names`` (built-in names or
+    mesh paths), or for two that load under one name (``check_unique_names``): checked before a run."""
+    from hw_mocks.objects import load_object
+
+    check_unique_names([load_object(name).name for name in names])
+
+
 def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings = PlanSettings(),
                     motion: MotionSettings = MotionSettings()) -> CollectionPlan:
     """Plan reference stops and ``settings.poses_per_object`` contact poses for each placed object,
