@@ -115,8 +115,10 @@ class BenchConfig(ABC):
         if not _within(self.state_hz, lo, hi):
             raise InputError(f"bench '{self.type}': state_hz {self.state_hz!r} is outside {lo:g}..{hi:g} Hz "
                              "(the arm's state sampling rate)")
-        if self.limits is not None:  # before any device opens (was: after the arm's lock and connection)
-            check_motion_settings(self.motion, self.limits)
+        # before any device opens; with no limits given, against the defaults that the arm will get (their
+        # speeds, accelerations and forces; only the workspace box is fitted later). Was: only with limits
+        # given, otherwise in open(), after the simulated bench's threads or the robot's connection had started
+        check_motion_settings(self.motion, self.limits or SafetyLimits())
 
     @classmethod
     def register(cls, name: str) -> Callable[[type], type]:

@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 import pytest
+import yaml
 
 from collect.arm import ARRIVAL_TOL_RAD
 from collect.bench import BenchConfig, open_bench
@@ -584,6 +585,17 @@ def test_an_empty_object_list_in_a_sim_bench_file_names_the_file_field(tmp_path,
     # was: "--objects is empty: name at least one object or give --object-mesh", a flag never given
     assert capsys.readouterr().err == ("bubble: error: bench 'sim': objects is empty: name at least one object or "
                                        "mesh path\n")
+
+
+@pytest.mark.parametrize("bench_text", [UR_BENCH, SIM_BENCH], ids=["ur", "sim"])
+def test_a_motion_over_the_default_limits_is_refused_when_the_config_is_built(bench_text):
+    """A bench file with no ``limits`` gets the default ones (0.25 m/s). Was: its motion checked only in
+    ``open()``, after the simulated bench's physics and firmware threads had started (left running once
+    the arm refused) or, on a real bench, after the arm's lock and both RTDE connections."""
+    threads_before = set(threading.enumerate())
+    with pytest.raises(InputError, match=r"^safety: speed 0\.5 m/s is outside \(0, 0\.25\] m/s$"):
+        BenchConfig.from_dict(yaml.safe_load(bench_text + "motion: {travel_speed: 0.5}\n"))
+    assert set(threading.enumerate()) <= threads_before
 
 
 @pytest.mark.parametrize("line, says", [
