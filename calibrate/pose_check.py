@@ -47,7 +47,7 @@ from collect.atomic_files import replacing
 from collect.errors import InputError
 from collect.json_files import write_json
 from collect.output_files import PNG_WRITER_KEY
-from collect.transforms import pose_to_matrix
+from collect.transforms import invert, pose_to_matrix
 from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
 from trainer.metrics import METRIC_KEYS, depth_metrics
 
@@ -155,7 +155,7 @@ def bench_pose(tcp_pose, camera_in_tcp, fixture_pose) -> Pose:
     All three arguments are UR poses ``(6,)``: TCP in base, camera in TCP, object in base.
     """
     base_cam = pose_to_matrix(tcp_pose) @ pose_to_matrix(camera_in_tcp)
-    return Pose.from_matrix(np.linalg.inv(base_cam) @ pose_to_matrix(fixture_pose))
+    return Pose.from_matrix(invert(base_cam) @ pose_to_matrix(fixture_pose))
 
 
 def perturbed_prior(pose: Pose, rng: np.random.Generator, error_mm: float, error_deg: float,

@@ -32,7 +32,7 @@ from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings, check_motion_settin
 from collect.camera import STALL_TIMEOUT_S, ToFCamera, check_tof_profile
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
-from collect.numbers import real_number, real_numbers
+from collect.numbers import real_number, real_numbers, whole_number
 from collect.output_files import exclusive_lock
 from collect.pressure_board import PressureBoard
 from collect.safety import MAX_ROTATION_RAD, SafetyLimits, rotation_vector_ok
@@ -194,12 +194,12 @@ def _placed_objects(names, plate_pose=None) -> list:
     where the layout puts it). Was: ``plate_pose`` applied to the layout's own frame, 0.45 m before the
     row's centre, so a plate given by its measured centre put every object 0.45 m out."""
     from hw_mocks.objects import PLATE_X, PLATE_Z, fixture_plate, load_object
-    from collect.transforms import matrix_to_pose, pose_to_matrix
+    from collect.transforms import invert, matrix_to_pose, pose_to_matrix
 
     placed = fixture_plate([load_object(n) for n in names])
     if plate_pose is None:
         return placed
-    move = pose_to_matrix(plate_pose) @ np.linalg.inv(pose_to_matrix([PLATE_X, 0.0, PLATE_Z, 0.0, 0.0, 0.0]))
+    move = pose_to_matrix(plate_pose) @ invert(pose_to_matrix([PLATE_X, 0.0, PLATE_Z, 0.0, 0.0, 0.0]))
     return [o.placed(matrix_to_pose(move @ o.object_to_base())) for o in placed]
 
 
@@ -314,7 +314,7 @@ class SimBenchConfig(BenchConfig):
         if not (self.sensor is None or isinstance(self.sensor, (str, os.PathLike, SensorSpec))):
             raise InputError(f"bench 'sim': sensor must be a sensor spec YAML path (leave it out to draw one "
                              f"from seed), got {self.sensor!r}")
-        if not (isinstance(self.seed, (int, np.integer)) and not isinstance(self.seed, bool) and self.seed >= 0):
+        if not whole_number(self.seed):
             raise InputError(f"bench 'sim': seed must be a whole number >= 0, got {self.seed!r}")
         if isinstance(self.faults, str):  # one fault, not a sequence of letters
             self.faults = (self.faults,)

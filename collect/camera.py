@@ -106,9 +106,9 @@ class ToFCamera(ABC):
 class QueueToFCamera(ToFCamera):
     """A ToF camera reading depth and amplitude ``dai.ImgFrame`` messages from two queues.
 
-    Queues are anything with depthai's ``MessageQueue.tryGet()`` (returns None when empty).
-    Counters: ``frames`` delivered, ``dropped`` (gaps in the sequence numbers), ``unpaired``
-    (messages discarded because their partner never came).
+    Queues are anything with depthai's ``MessageQueue.tryGet()`` (returns None when empty). A message
+    whose partner never came is discarded; its frame is a gap in the sequence numbers, which the
+    recorder counts as dropped (``CollectionResult.dropped``).
     """
 
     def __init__(self, depth_unit_m: float, stall_timeout_s: float = STALL_TIMEOUT_S,
@@ -120,9 +120,6 @@ class QueueToFCamera(ToFCamera):
         self._amp_q = None
         self._last_seq: int | None = None
         self._last_t_device = -np.inf
-        self.frames = 0
-        self.dropped = 0
-        self.unpaired = 0
 
     def _attach(self, depth_queue, amplitude_queue) -> None:
         self._depth_q, self._amp_q = depth_queue, amplitude_queue
@@ -149,7 +146,6 @@ class QueueToFCamera(ToFCamera):
         depth_msg = self._get(self._depth_q, deadline, timeout_s)
         amp_msg = self._get(self._amp_q, deadline, timeout_s)
         while depth_msg.getSequenceNum() != amp_msg.getSequenceNum():
-            self.unpaired += 1
             if depth_msg.getSequenceNum() < amp_msg.getSequenceNum():
                 depth_msg = self._get(self._depth_q, deadline, timeout_s)
             else:
@@ -159,9 +155,7 @@ class QueueToFCamera(ToFCamera):
             if frame.seq <= self._last_seq or frame.t_device <= self._last_t_device:
                 raise HardwareFault("camera-clock", f"camera: frame {frame.seq} at {frame.t_device:.6f} s is not "
                                                     f"after frame {self._last_seq} at {self._last_t_device:.6f} s")
-            self.dropped += frame.seq - self._last_seq - 1
         self._last_seq, self._last_t_device = frame.seq, frame.t_device
-        self.frames += 1
         return frame
 
 

@@ -68,9 +68,6 @@ RECORDER_STALL_S = 4 * FRAME_TIMEOUT_S
 #: Progress reports a lagging display may have pending; more drop the oldest (``_ProgressRelay``).
 PROGRESS_BACKLOG = 64
 
-_PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
-
-
 #: Camera pose in the TCP frame of a sensor with no spec on record: 93 mm behind the apex, looking
 #: along TCP +z ([x,y,z,rx,ry,rz] m + rotation vector, docs/architecture.md).
 NOMINAL_CAMERA_IN_TCP = (0.0, 0.0, -0.093, 0.0, 0.0, 0.0)
@@ -336,7 +333,7 @@ class _Recorder(threading.Thread):
             object_name=name,
             pose_index=stamp.pose_index,
             poses_per_object=self.plan.settings.poses_per_object,
-            phase=_PHASE_NAMES[stamp.phase],
+            phase=sf.PHASE_NAMES[stamp.phase],
             frames=self.writer.n_frames,
             force_n=float(np.linalg.norm(arm.tcp_wrench[:3])) if arm is not None else 0.0,
             pressure_hpa=float(reading.hpa) if reading is not None else float("nan"),
@@ -409,7 +406,7 @@ def run_collection(
                 enter(_Stamp(oi, -1, sf.PHASE_FREE))
                 arm.hold(s.reference_s)
             for pose in poses:
-                k = pose.pose_id - oi * s.poses_per_object
+                k = pose.index_in_object
                 enter(_Stamp(oi, pose.pose_id, sf.PHASE_APPROACH, k))
                 arm.move_to(pose.above_pose, m.travel_speed, m.accel)
                 contact = arm.move_until_contact(

@@ -16,6 +16,11 @@ def is_number(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
+def whole_number(value) -> bool:
+    """Whether ``value`` is an int (numpy's too), not a bool, and >= 0: a seed, a count."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) and bool(value >= 0)
+
+
 def real_number(value) -> bool:
     """Whether ``value`` is a finite real number: an int or a float (numpy's too), not a bool, NaN or inf,
     nor an int beyond float's range (JSON and YAML read a 400-digit number as an exact int)."""

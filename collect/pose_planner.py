@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from collect.arm import MotionSettings, check_motion_settings, move_duration_s, retract_speed
 from collect.errors import InputError
+from collect.numbers import whole_number
 from collect.safety import SafetyLimits
 from collect.transforms import linear_path_m
 
@@ -66,7 +67,7 @@ class PlanSettings:
     reference_s: float = 0.4
 
     def __post_init__(self):
-        if not (isinstance(self.seed, (int, np.integer)) and not isinstance(self.seed, bool) and self.seed >= 0):
+        if not whole_number(self.seed):
             raise InputError(f"plan seed must be a whole number >= 0, got {self.seed!r}")
         if not 1 <= int(self.poses_per_object) <= MAX_POSES_PER_OBJECT:
             raise InputError(f"poses per object must be 1..{MAX_POSES_PER_OBJECT}, got {self.poses_per_object}")
@@ -81,8 +82,9 @@ class PlanSettings:
 class ContactPose:
     """One planned press. Points (3,) m and poses (6,) m + rotvec in the base frame."""
 
-    pose_id: int  # session-wide contact pose index (object_index * poses_per_object + k)
+    pose_id: int  # session-wide contact pose index (object_index * poses_per_object + index_in_object)
     object_index: int  # index into ``CollectionPlan.objects``
+    index_in_object: int  # k: the pose's place among its object's poses, 0..poses_per_object-1
     object_name: str
     contact_point: np.ndarray  # (3,) planned first-contact point on the object surface
     surface_normal: np.ndarray  # (3,) unit, at the contact point
@@ -116,6 +118,7 @@ class CollectionPlan:
     motion: MotionSettings = field(default_factory=MotionSettings)
 
     def poses_of(self, object_index: int) -> list[ContactPose]:
+        """The contact poses on object ``object_index`` (its place in ``objects``), in plan order."""
         return [p for p in self.poses if p.object_index == object_index]
 
     def describe(self) -> dict:
@@ -240,6 +243,7 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
                 ContactPose(
                     pose_id=index * s.poses_per_object + k,
                     object_index=index,
+                    index_in_object=k,
                     object_name=obj.name,
                     contact_point=points[k].copy(),
                     surface_normal=normals[k].copy(),

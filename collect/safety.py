@@ -85,7 +85,8 @@ def rotation_vector_ok(pose) -> bool:
 
 
 def tilt_deg(pose) -> float:
-    """Angle in degrees between the TCP pressing axis (+z) and straight down (base -z)."""
+    """Angle in degrees between the TCP pressing axis (+z) of ``pose`` (6,) (m + rotation vector, base
+    frame) and straight down (base -z)."""
     cos = float(np.clip(-tool_z_axis(pose)[2], -1.0, 1.0))
     return float(np.degrees(np.arccos(cos)))
 

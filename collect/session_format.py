@@ -27,6 +27,7 @@ PHASES = {
     "hold": PHASE_HOLD,
     "retract": PHASE_RETRACT,
 }
+PHASE_NAMES = {value: name for name, value in PHASES.items()}  # value -> name, the inverse of PHASES
 
 # Root attributes.
 ATTR_FORMAT = "format"

@@ -38,7 +38,6 @@ _REQUIRED = (
     sf.OBJECTS_MESH_SHA256,
 )
 
-_PHASE_NAMES = {value: name for name, value in sf.PHASES.items()}
 #: Layout each dataset must have: (what it is, its dimensions, numpy dtype kinds, its row width or
 #: None); images are (N,H,W), poses and wrenches (N,6).
 _LAYOUT = {
@@ -270,7 +269,7 @@ class Session:
         # phase 256 read as free and an object 65535 as none)
         seq, object_index, pose_id, phase = (_int_column(self.path, f[name], n) for name in (
             sf.FRAMES_SEQ, sf.FRAMES_OBJECT, sf.FRAMES_POSE_ID, sf.FRAMES_PHASE))
-        bad_phase = ~np.isin(phase, list(phase_map or _PHASE_NAMES))
+        bad_phase = ~np.isin(phase, list(phase_map or sf.PHASE_NAMES))
         if bad_phase.any():
             raise InputError(f"{self.path}: corrupt session, unknown phase value at frame {int(np.argmax(bad_phase))}")
         #: the file numbers its phases otherwise than ``PHASES`` (its enum says how; read as ``PHASES``)
@@ -375,8 +374,8 @@ class Session:
         """Phase names of frames ``idx`` (an index array ``(n,)`` -> ``(n,) str``; an int -> str)."""
         values = self.phase[idx]
         if np.isscalar(values):
-            return _PHASE_NAMES[int(values)]
-        return np.array([_PHASE_NAMES[int(v)] for v in values])
+            return sf.PHASE_NAMES[int(values)]
+        return np.array([sf.PHASE_NAMES[int(v)] for v in values])
 
     # ------------------------------------------------------------------ loaders
     def ir(self, idx) -> np.ndarray:

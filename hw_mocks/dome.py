@@ -30,6 +30,8 @@ class RayGrid:
 
     @classmethod
     def build(cls, spec: SensorSpec, u0: float, v0: float, step: int, shape: tuple[int, int]) -> "RayGrid":
+        """The grid of ``shape = (rows, cols)`` pixels starting at pixel ``(u0, v0)`` (px) every ``step`` px,
+        with its rays through ``spec``'s pinhole intrinsics."""
         rows, cols = shape
         u = u0 + step * np.arange(cols, dtype=np.float64)
         v = v0 + step * np.arange(rows, dtype=np.float64)

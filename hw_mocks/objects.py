@@ -76,7 +76,7 @@ class BenchObject:
     @property
     def heightmap(self) -> Heightmap:
         """Top-down height field of the mesh (object frame, 0.5 mm cells), computed once per mesh."""
-        return _heightmap_of(self.mesh_sha256, self.mesh)
+        return _heightmap_of(self.mesh)
 
     def object_to_base(self) -> np.ndarray:
         """``(4,4)`` transform from the object frame to the base frame."""
@@ -151,15 +151,16 @@ def _eroded(mask: np.ndarray, cells: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def _heightmap_cached(sha: str, vertices_bytes: bytes, faces_bytes: bytes) -> Heightmap:
+def _heightmap_cached(vertices_bytes: bytes, faces_bytes: bytes) -> Heightmap:
+    """The ``Heightmap`` of a mesh given as its float64 vertices ``(V,3)`` m and int64 faces ``(F,3)``, C order."""
     vertices = np.frombuffer(vertices_bytes, dtype=np.float64).reshape(-1, 3)
     faces = np.frombuffer(faces_bytes, dtype=np.int64).reshape(-1, 3)
     return Heightmap.from_mesh(vertices, faces)
 
 
-def _heightmap_of(sha: str, mesh: trimesh.Trimesh) -> Heightmap:
+def _heightmap_of(mesh: trimesh.Trimesh) -> Heightmap:
+    """``Heightmap.from_mesh`` of ``mesh``, computed once per mesh content (the last 16 kept)."""
     return _heightmap_cached(
-        sha,
         np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes(),
         np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes(),
     )

@@ -61,6 +61,7 @@ class CurvePlot(Widget):
         self.values: list[float] = []
 
     def set_values(self, values: list[float]) -> None:
+        """Show ``values``, the series in order (in the unit that ``fmt`` prints; NaN and inf left out of the bars)."""
         self.values = list(values)
         self.refresh()
 
