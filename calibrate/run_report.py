@@ -60,7 +60,7 @@ def write_run_report(run_dir: Path, state: RunState, doc: dict) -> Path:
             data.nocontact_err_mean, data.nocontact_err_var = z["err_mean"], z["err_var"]
             data.example_ir, data.example_depth, data.example_pred = z["example_ir"], z["example_depth"], z["example_pred"]
             data.example_true = z["example_true"] if "example_true" in z.files else None
-            data.example_labels = [f"{o} pose {p}" for o, p in zip(z["example_object"], z["example_pose"])]
+            data.example_labels = [f"{o} pose_id {p}" for o, p in zip(z["example_object"], z["example_pose"])]
         vs_true = state.get(Step.VALIDATE).get("vs_true")
         if vs_true:
             drop = vs_true["model_on_tof_dropout"]

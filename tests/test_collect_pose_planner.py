@@ -92,6 +92,6 @@ def test_a_negative_seed_and_an_approach_beyond_the_contact_travel_setting_are_r
 
     with pytest.raises(InputError, match="plan seed must be a whole number >= 0, got -1"):
         PlanSettings(seed=-1)
-    with pytest.raises(InputError, match=r"the guarded approach to mug \(pose 0\) is 1\d\.\d mm, longer than "
+    with pytest.raises(InputError, match=r"the guarded approach to mug \(pose 1/2\) is 1\d\.\d mm, longer than "
                                          r"motion.max_contact_travel_m 5 mm"):
         plan_collection(plate, BOX, PlanSettings(poses_per_object=2), MotionSettings(max_contact_travel_m=0.005))
