@@ -281,8 +281,10 @@ def _coerce(name: str, value, source: str):
     """Convert one YAML value to the field's type, or raise ``InputError``."""
     try:
         if name in _STR_FIELDS:  # text only: YAML reads serial: 0042 as the octal 34, 1:30 as 90
-            if not isinstance(value, str):
-                raise InputError(f"{source}: field '{name}' must be text; quote it ({name}: '{value}')")
+            if not isinstance(value, str):  # the hint quotes no value: YAML's (34 for 0042) would register a
+                # sensor under the wrong serial (was: "quote it (serial: '34')")
+                raise InputError(f"{source}: field '{name}' must be text, but YAML read it as {value!r}; quote it "
+                                 f"exactly as the file writes it ({name}: '...')")
             return value
         if name == "defect":
             return None if value is None else str(value)

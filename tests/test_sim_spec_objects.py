@@ -81,7 +81,8 @@ def test_draw_sensor_is_deterministic_and_varied():
         (lambda d: d.update(colour="red"), "colour"),
         # was: 1.7 taken as pixel 1; a serial written as a number taken as its text, 0042 as "34"
         (lambda d: d.update(dead_pixels=[[1.7, 2.9]]), "field 'dead_pixels' has a bad value"),
-        (lambda d: d.update(serial=34), r"field 'serial' must be text; quote it \(serial: '34'\)"),
+        (lambda d: d.update(serial=34), r"field 'serial' must be text, but YAML read it as 34; quote it exactly as "
+                                        r"the file writes it \(serial: '\.\.\.'\)"),
         # a slipped decimal point: a 10-degree view (was: a physics grid 100 times as large, no end to a preview)
         (lambda d: d.update(fx=10 * d["fx"]), "field 'fx' = .* gives a field of view of 10.. degrees over 224 px"),
         (lambda d: d.update(fy=20.0), "field 'fy' = 20.0 px gives a field of view of 153.8 degrees over 172 px"),
