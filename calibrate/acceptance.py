@@ -243,8 +243,8 @@ def check_value_text(check: dict) -> str:
 def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str = "") -> dict:
     """One check of ``value`` against the threshold ``name``.
 
-    ``value`` None or NaN fails ("not measured"). ``note`` is appended to the reason (e.g. what
-    a failing check implies for the sensor).
+    ``value`` None or NaN fails ("not measured"). ``note`` is appended to the reason of a failing
+    check (what its failure implies for the sensor); a passing check's reason has none.
     """
     th = thresholds[name]
     op, limit = th.limit()
@@ -263,7 +263,7 @@ def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str =
             reason = f"{th.describe}: {_fmt(value, (th.lo,))}{unit} below minimum {limit_text(th.lo)}{unit}"
         else:
             reason = f"{th.describe}: {_fmt(value, (th.hi,))}{unit} above maximum {limit_text(th.hi)}{unit}"
-    if note:
+    if note and not passed:  # was: on a pass too, "353 dots within limit (is the dot pattern printed?)"
         reason = f"{reason} ({note})"
     return {
         "name": name,
