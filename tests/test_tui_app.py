@@ -334,6 +334,23 @@ def test_flow_thread_yields_to_the_ui_and_more_from_fine_tuning_on(in_tmp):
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == ui_nice
 
 
+def test_the_training_loss_is_charted_in_mm_as_the_cli_and_the_report_give_it(in_tmp):
+    """Was: ``loss (m)`` with five decimals (0.00074) beside the CLI's ``loss 0.740 mm`` and the report's mm axis."""
+    events = [StepStarted(Step.FINETUNE, 9.0), TrainingProgress(1, 0.1, 0.00074), TrainingProgress(2, 0.2, 0.00061)]
+
+    async def scenario():
+        flow = ScriptedFlow(events)
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await start_and_wait(pilot, flow)
+            flow.release.set()
+            await wait_for(lambda: app.result is not None, pilot)
+            return app.training.loss, app.training.loss_plot.title, str(app.training.loss_plot.render())
+
+    loss, title, drawn = asyncio.run(scenario())
+    assert loss == pytest.approx([0.74, 0.61]) and title == "loss (mm)" and drawn.startswith("loss (mm)  0.610")
+
+
 def test_quit_mid_run_stops_first_and_exits_after_the_flow_returns(in_tmp):
     async def scenario():
         flow = ScriptedFlow(mid_run_events())

@@ -90,7 +90,8 @@ class CurvePlot(Widget):
 
 
 class TrainingCurve(Vertical):
-    """Loss and a1 charts plus step / elapsed / ETA, from ``TrainingProgress`` events."""
+    """Loss and a1 charts plus step / elapsed / ETA, from ``TrainingProgress`` events. ``loss``: the
+    training loss of every point in mm (the masked L1 depth error, as the CLI and the report give it)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
@@ -99,7 +100,7 @@ class TrainingCurve(Vertical):
         self.a1: list[float] = []
         self.last: TrainingProgress | None = None
         self.line = Static("waiting for fine-tuning", id="training-line")
-        self.loss_plot = CurvePlot("loss (m)", "{:.5f}", "bold yellow", id="loss-plot")
+        self.loss_plot = CurvePlot("loss (mm)", "{:.3f}", "bold yellow", id="loss-plot")  # was: m, unlike the rest
         self.a1_plot = CurvePlot("val δ<1.05", "{:.3f}", "bold green", id="a1-plot")
 
     def compose(self):
@@ -121,7 +122,7 @@ class TrainingCurve(Vertical):
         if not points:
             return
         for point in points:
-            self.loss.append(float(point.loss))
+            self.loss.append(float(point.loss) * 1000.0)  # m -> mm
             if point.a1 is not None:
                 self.a1.append(float(point.a1))
         self.last = points[-1]
