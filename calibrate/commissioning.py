@@ -93,7 +93,7 @@ from collect.errors import (DISK_FULL_ERRNOS, HOST_FAULTS, HOST_TOO_SLOW_FAULT, 
                            InputError, StopRequested)
 from collect.json_files import plain_json, write_json
 from collect.loop_thread import LoopThread
-from collect.output_files import output_folder_lock
+from collect.output_files import output_folder_lock, write_json_result
 from collect.session_format import DEPTH_UNIT_M, utc_now
 from trainer.contact import contact_mask
 from trainer.metrics import METRIC_KEYS
@@ -532,7 +532,8 @@ class _Flow:
                 acceptance.evaluate(th, "pose_e_theta_median", None, str(err)),
             ]
             return {"summary": f"no usable mug frame: {err}", "checks": checks}
-        result.write_json(self.run_dir / POSE_FILE)
+        # bubble pose's --json document, marked as this run's (bubble pose --json does not write over it)
+        write_json_result(self.run_dir / POSE_FILE, "bubble commission", result.to_dict())
         checks = [
             acceptance.evaluate(th, "pose_e_x_median_mm", result.e_x_mm.median),
             acceptance.evaluate(th, "pose_e_theta_median", result.e_theta.median),

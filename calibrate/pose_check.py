@@ -45,7 +45,6 @@ from calibrate.pose_estimation import (
 )
 from collect.atomic_files import replacing
 from collect.errors import InputError
-from collect.json_files import write_json
 from collect.output_files import PNG_WRITER_KEY
 from collect.transforms import invert, pose_to_matrix
 from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
@@ -120,10 +119,6 @@ class PoseCheckResult:
         data = asdict(self)
         data.update(data.pop("depth_metrics"))
         return data
-
-    def write_json(self, path: str | Path) -> None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        write_json(path, self.to_dict())
 
     def e_x_median_by_pose(self) -> dict[int, float]:
         """Median ``e_x`` (mm, predicted vs measured) over the used frames of each contact pose."""
