@@ -26,7 +26,7 @@ from trainer.distributed import DistContext
 from trainer.inference import DepthEstimator
 from trainer.metrics import METRIC_KEYS
 from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, load_metadata, load_weights
-from trainer.training import TrainConfig, train_model
+from trainer.training import TrainConfig, seconds_left, train_model
 
 SMALL = {"height": 48, "width": 64, "poses_per_object": 3}
 
@@ -237,6 +237,16 @@ def test_deadline_bounds_the_whole_call_and_drives_the_schedule(session, tmp_pat
     meta = load_metadata(result.model_dir)
     assert meta.training["ended_at_deadline"] and meta.training["deadline_s"] == 6.0
     assert meta.inference["runtime"] in ("onnx", "torch")  # the export still ran
+
+
+def test_the_time_left_is_the_budget_or_the_deadline_whichever_ends_training_first():
+    """Was: the larger share done, as seconds at the budget's rate: 84 s of a 150 s budget with the
+    deadline 20 s away read 66 s left, then 2 s once the deadline's share took over."""
+    assert seconds_left(84.0, 84.0 / 150.0, 20.0) == pytest.approx(20.0)  # the deadline ends it first
+    assert seconds_left(84.0, 84.0 / 150.0, 120.0) == pytest.approx(66.0)  # the budget does
+    assert seconds_left(84.0, 84.0 / 150.0, None) == pytest.approx(66.0)  # no deadline
+    assert seconds_left(0.0, 0.0, None) is None and seconds_left(0.0, 0.0, 30.0) == 30.0  # before a step
+    assert seconds_left(84.0, 84.0 / 150.0, -3.0) == 0.0  # past it
 
 
 def test_generous_deadline_leaves_the_budget_alone(session, tmp_path):
