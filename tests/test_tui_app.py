@@ -315,11 +315,9 @@ def test_ctrl_p_opens_no_search_field_that_takes_the_stop_key(in_tmp):
     asyncio.run(scenario())
 
 
-def test_flow_thread_yields_to_the_ui_and_more_from_fine_tuning_on(in_tmp):
-    events = [StepStarted(Step.COLLECT, 1.0), StepFinished(Step.COLLECT, True), StepStarted(Step.FINETUNE, 9.0),
-              TrainingProgress(1, 0.1, 0.01)]
-    ui_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-
+def run_released(events, read):
+    """Run the app headless on a flow that sends ``events`` once started and released at once;
+    ``read(app, flow)`` once the run has its result."""
     async def scenario():
         flow = ScriptedFlow(events)
         app = BenchApp(make_config(), flow=flow)
@@ -327,27 +325,25 @@ def test_flow_thread_yields_to_the_ui_and_more_from_fine_tuning_on(in_tmp):
             await start_and_wait(pilot, flow)
             flow.release.set()
             await wait_for(lambda: app.result is not None, pilot)
-        return flow.nice
+            return read(app, flow)
 
+    return asyncio.run(scenario())
+
+
+def test_flow_thread_yields_to_the_ui_and_more_from_fine_tuning_on(in_tmp):
+    events = [StepStarted(Step.COLLECT, 1.0), StepFinished(Step.COLLECT, True), StepStarted(Step.FINETUNE, 9.0),
+              TrainingProgress(1, 0.1, 0.01)]
+    ui_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
     bench, compute = min(ui_nice + BENCH_NICE, 19), min(ui_nice + COMPUTE_NICE, 19)
-    assert asyncio.run(scenario()) == [bench, bench, compute, compute]
+    assert run_released(events, lambda app, flow: flow.nice) == [bench, bench, compute, compute]
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == ui_nice
 
 
 def test_the_training_loss_is_charted_in_mm_as_the_cli_and_the_report_give_it(in_tmp):
     """Was: ``loss (m)`` with five decimals (0.00074) beside the CLI's ``loss 0.740 mm`` and the report's mm axis."""
     events = [StepStarted(Step.FINETUNE, 9.0), TrainingProgress(1, 0.1, 0.00074), TrainingProgress(2, 0.2, 0.00061)]
-
-    async def scenario():
-        flow = ScriptedFlow(events)
-        app = BenchApp(make_config(), flow=flow)
-        async with app.run_test(size=SIZE) as pilot:
-            await start_and_wait(pilot, flow)
-            flow.release.set()
-            await wait_for(lambda: app.result is not None, pilot)
-            return app.training.loss, app.training.loss_plot.title, str(app.training.loss_plot.render())
-
-    loss, title, drawn = asyncio.run(scenario())
+    loss, title, drawn = run_released(events, lambda app, flow: (
+        app.training.loss, app.training.loss_plot.title, str(app.training.loss_plot.render())))
     assert loss == pytest.approx([0.74, 0.61]) and title == "loss (mm)" and drawn.startswith("loss (mm)  0.610")
 
 
