@@ -19,7 +19,8 @@ import os
 import signal
 import sys
 
-from collect.stop_signals import INTERRUPTS, Terminated, exit_code, raise_interrupt, stop_signals_handled
+from collect.stop_signals import (INTERRUPTS, Terminated, exit_code, raise_interrupt, raise_pending_stop,
+                                  stop_signals_handled)
 from collect.errors import (
     DISK_FULL_ERRNOS,
     EXIT_BAD_INPUT,
@@ -78,7 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)  # a Ctrl-C while it imports the commands: below, as any other
         with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+            if code == 0:  # a command that ends on a stop says so with its own code; one that did not see it
+                raise_pending_stop()  # (a library swallowed its KeyboardInterrupt) ends as stopped all the same
+            return code
     except InputError as err:
         print(f"bubble: error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT

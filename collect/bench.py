@@ -36,6 +36,7 @@ from collect.numbers import real_number, real_numbers, whole_number
 from collect.output_files import exclusive_lock
 from collect.pressure_board import PressureBoard
 from collect.safety import MAX_ROTATION_RAD, SafetyLimits, rotation_vector_ok
+from collect.stop_signals import raise_pending_stop
 
 log = logging.getLogger(__name__)
 
@@ -427,6 +428,8 @@ def open_bench(config: BenchConfig) -> Iterator[Bench]:
     bench = config.open()
     try:
         bench.start()
+        raise_pending_stop()  # a stop that came while the bench opened, its KeyboardInterrupt swallowed on the
+        # way (depthai's import turns it into an ImportError, trimesh's catches it): no motion starts
         yield bench
     finally:
         try:

@@ -31,6 +31,7 @@ import numpy as np
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
 from collect.session_format import DEPTH_UNIT_M
+from collect.stop_signals import raise_pending_stop
 
 #: Unit of the depth frames the OAK ToF node outputs.
 DEPTHAI_TOF_DEPTH_UNIT_M = 1e-3
@@ -179,10 +180,16 @@ DEPTHAI_IMPORT_SAID: list[str] = []
 
 def import_depthai():
     """The ``depthai`` module; the first import's console lines go to ``DEPTHAI_IMPORT_SAID``
-    instead of the console (a bad bench file is then reported as one line, with nothing before it)."""
+    instead of the console (a bad bench file is then reported as one line, with nothing before it).
+    A Ctrl-C during that import, which depthai turns into ``ImportError: initialization failed``,
+    ends the command as the stop it is (was: that traceback, exit 1)."""
     if "depthai" not in sys.modules:
         with native_output_into(DEPTHAI_IMPORT_SAID, pass_on=False):
-            import depthai  # noqa: F401
+            try:
+                import depthai  # noqa: F401
+            except ImportError:
+                raise_pending_stop()
+                raise
     return sys.modules["depthai"]
 
 

@@ -127,6 +127,16 @@ def raise_interrupt(signum: int) -> None:
     raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
 
 
+def raise_pending_stop() -> None:
+    """Raise (``raise_interrupt``) the first stop signal that the command's outermost block (``process_ends``)
+    has handled, if any; nothing before a stop or outside such a block. For a command to end on a stop
+    whose ``KeyboardInterrupt`` a library swallowed: trimesh's imports catch ``BaseException``, and
+    depthai's turns it into an ``ImportError`` (was: a Ctrl-C while ``bubble collect`` started was
+    lost, every later one only acknowledged, and the whole plan recorded, exit 0)."""
+    if _stops_before_exit:
+        raise_interrupt(_stops_before_exit[0])
+
+
 @contextmanager
 def stop_signals_deferred(signals: tuple = INTERRUPTS) -> Iterator[None]:
     """Hold each of ``signals`` that arrives during the block, and deliver the first of them again

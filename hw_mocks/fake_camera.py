@@ -25,7 +25,7 @@ import threading
 
 import numpy as np
 
-from collect.camera import CameraFrame, QueueToFCamera, STALL_TIMEOUT_S
+from collect.camera import STALL_TIMEOUT_S, CameraFrame, QueueToFCamera, import_depthai
 from collect.loop_thread import LoopThread
 from collect.session_format import DEPTH_UNIT_M
 
@@ -42,7 +42,7 @@ PACE_NAME = "camera"
 def img_frame(image: np.ndarray, seq: int, t_device: float, t_host: float):
     """A depthai ``ImgFrame`` (RAW16) as an OAK sends it: ``image`` (H,W) uint16, sequence number,
     device and host time stamps in s."""
-    import depthai as dai
+    dai = import_depthai()
 
     msg = dai.ImgFrame()
     msg.setType(dai.ImgFrame.Type.RAW16)
@@ -59,7 +59,7 @@ class SimCameraDevice:
     """The simulated ToF device of ``scene`` (a ``SimBench``): renders at ``scene.spec.fps``."""
 
     def __init__(self, scene, seed: int = 0, queue_size: int = QUEUE_SIZE):
-        import depthai as dai
+        dai = import_depthai()
 
         self.scene = scene
         self.fps = float(scene.spec.fps)

@@ -7,6 +7,7 @@ import os
 import signal
 import tempfile
 import threading
+import time
 
 import h5py
 import numpy as np
@@ -409,6 +410,61 @@ def test_a_ctrl_c_whose_exception_python_loses_still_stops_the_run(tmp_path, mon
     assert code == 130 and calls == [signal.SIGINT, signal.SIGINT]  # the lost one, then raised again
     with Session.open(out) as s:
         assert s.closed_cleanly and s.n_frames > 0 and len(set(s.pose_id[s.phase == sf.PHASE_HOLD].tolist())) < 8
+
+
+def _ctrl_c_here() -> None:
+    """Send this process a Ctrl-C and give its handler (which raises KeyboardInterrupt) time to run."""
+    os.kill(os.getpid(), signal.SIGINT)
+    for _ in range(100):
+        time.sleep(0.01)
+
+
+SMALL_PLAN = ["collect", "--sim", "--objects", "box", "--poses-per-object", "1", "--sim-speed", "4", "--quiet"]
+
+
+def test_a_ctrl_c_that_a_library_swallows_while_collect_starts_still_stops_it(tmp_path, monkeypatch,
+                                                                              interrupt_handlers_restored):
+    """trimesh's imports catch BaseException: a Ctrl-C during them (``check_mesh_files`` imports it) was
+    lost, every later one only acknowledged, and the whole plan recorded, exit 0. Now no motion starts."""
+    import collect.cli
+
+    real = collect.cli.check_mesh_files
+
+    def swallowing(meshes):
+        try:
+            _ctrl_c_here()
+        except BaseException:  # noqa: BLE001 - as trimesh's optional imports do
+            pass
+        real(meshes)
+
+    monkeypatch.setattr(collect.cli, "check_mesh_files", swallowing)
+    out = tmp_path / "s.h5"
+    assert main([*SMALL_PLAN, "--out", str(out)]) == 130
+    assert not out.exists()  # stopped as the bench opened, before the file and any motion
+
+
+def test_a_ctrl_c_that_depthai_turns_into_an_import_error_is_a_stop(tmp_path, monkeypatch, capsys,
+                                                                   interrupt_handlers_restored):
+    """depthai's import turns a KeyboardInterrupt into ``ImportError: initialization failed``: was that
+    traceback and exit 1 (the simulated camera imports it as the bench opens)."""
+    import importlib.abc
+    import sys
+
+    class InterruptedDepthai(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name != "depthai":
+                return None
+            try:
+                _ctrl_c_here()
+            except KeyboardInterrupt:
+                raise ImportError("initialization failed") from None
+            raise AssertionError("the Ctrl-C was not delivered")
+
+    monkeypatch.delitem(sys.modules, "depthai")
+    monkeypatch.setattr(sys, "meta_path", [InterruptedDepthai(), *sys.meta_path])
+    out = tmp_path / "s.h5"
+    assert main([*SMALL_PLAN, "--out", str(out)]) == 130
+    assert capsys.readouterr().err == "bubble: interrupted\n" and not out.exists()
 
 
 def test_object_list_from_the_command_line():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 import pytest
 
@@ -104,3 +105,27 @@ def test_ctrl_c_before_the_command_starts_is_one_line_and_exit_130(monkeypatch, 
         with pytest.raises(SystemExit) as exited:
             main(argv)
         assert exited.value.code == exit_code
+
+
+def test_a_command_that_finished_without_seeing_its_stop_ends_as_stopped(monkeypatch, capsys, synthetic_session,
+                                                                        interrupt_handlers_restored):
+    """A SIGTERM whose ``Terminated`` a library swallowed (trimesh's imports catch BaseException):
+    was exit 0, as if nothing had been asked."""
+    import collect.session_info
+    from calibrate.cli import main
+
+    real = collect.session_info.describe_session
+
+    def swallowing(path):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)  # the command's handler raises Terminated here
+            for _ in range(100):
+                time.sleep(0.01)
+        except BaseException:  # noqa: BLE001 - as such a library does
+            pass
+        return real(path)
+
+    monkeypatch.setattr(collect.session_info, "describe_session", swallowing)
+    assert main(["info", str(synthetic_session)]) == 143
+    out, err = capsys.readouterr()
+    assert str(synthetic_session) in out and err == "bubble: interrupted (SIGTERM)\n"
