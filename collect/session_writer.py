@@ -31,7 +31,8 @@ Deleted file: a recording file deleted (or replaced) while it is written would t
 with it when the writer closes it. After every flush the writer checks that its open file is still
 the one at its path; if not, it stops writing (see "Stopping") and at once copies the open file back
 to its path (its folder recreated if that was deleted too; next to it as ``<name>.restored-<n>.h5``
-when another file took its place). The producer gets ``HardwareFault("recorder")``; ``close()``'s
+when another file took its place, in the nearest folder above under that name when a file took the
+folder's). The producer gets ``HardwareFault("recorder")``; ``close()``'s
 says where the frames are.
 
 Stopping (low disk space, deleted file): the writer first stops accepting items, so that the next
@@ -164,10 +165,20 @@ def _file_replaced(fd: int, path: str) -> bool:
 
 def _restore(fd: int, path: str) -> str:
     """Copy the open file ``fd`` (deleted from ``path``) to ``path``, recreating its folder, or next to
-    it as ``<name>.restored-<n><ext>`` when another file is there now. Returns the copy's path."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    it as ``<name>.restored-<n><ext>`` when another file is there now. Where a file took the folder's
+    place, the copy goes into the nearest folder above it that is still one, under that second name
+    (was: the copy failed, "File exists", and every frame went with the unlinked file). Returns the
+    copy's path."""
+    folder = os.path.dirname(os.path.abspath(path))
     root, ext = os.path.splitext(path)
     target, n = path, 0
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):  # a file where the folder (or a folder above it) was
+        while not os.path.isdir(folder):
+            folder = os.path.dirname(folder)
+        root = os.path.join(folder, os.path.splitext(os.path.basename(path))[0])
+        target, n = f"{root}.restored-1{ext}", 1
     while os.path.lexists(target):
         n += 1
         target = f"{root}.restored-{n}{ext}"
@@ -966,9 +977,15 @@ def _reserve_space(path: str) -> str | None:
 
 
 def _give_back(reserve: str | None) -> None:
-    """Delete the reserve file ``reserve`` (None: there is none)."""
-    if reserve is not None:
+    """Delete the reserve file ``reserve`` (None: there is none); never raises, so that the close it
+    makes room for always runs (was: its folder replaced by a file, ``NotADirectoryError`` skipped the
+    file's close, a traceback, exit 1)."""
+    if reserve is None:
+        return
+    try:
         Path(reserve).unlink(missing_ok=True)
+    except OSError:  # its folder is gone (a file in its place): so is the reserve; one left otherwise is
+        pass  # taken over by the next writer of that path, or removed by a resume
 
 
 def _keep_owner_and_mode(original: str, copy: str) -> None:

@@ -229,6 +229,28 @@ def test_a_recording_deleted_with_its_folder_is_restored_and_resumable(tmp_path)
     _assert_every_appended_frame_kept_and_resumable(path, w, frames)
 
 
+def test_a_recording_whose_folder_a_file_replaced_is_restored_in_the_folder_above(tmp_path):
+    """Was: the copy back failed ("File exists": the folder could not be made again), the reserve's
+    NotADirectoryError skipped the file's close, a traceback, and every frame was lost."""
+    path = tmp_path / "run" / "s.h5"
+    path.parent.mkdir()
+    w = SessionWriter(path, **_metadata("S1"), flush_interval_s=0.05)
+
+    def replace_the_folder(i):
+        if i == 60:
+            shutil.rmtree(path.parent)
+            path.parent.write_text("a file where the folder was")
+
+    frames: list = []
+    _record_until_fault(w, frames, replace_the_folder)
+    restored = tmp_path / "s.restored-1.h5"
+    with pytest.raises(HardwareFault, match=f"restored to {restored}: resume the recording from there"):
+        w.close()
+    assert path.parent.read_text() == "a file where the folder was"
+    with Session.open(restored) as s:
+        assert s.closed_cleanly and s.n_frames == w.stats.frames_flushed == len(frames)
+
+
 def test_a_recording_replaced_by_another_file_is_restored_beside_it(tmp_path):
     path = tmp_path / "s.h5"
     w = SessionWriter(path, **_metadata("S1"), flush_interval_s=0.05)
