@@ -960,10 +960,20 @@ def _recover_crashed(path: str) -> h5py.File:
 
 def _reserve_space(path: str) -> str | None:
     """Allocate ``RESERVE_BYTES`` in ``path`` + ``RESERVE_SUFFIX`` (one a killed writer left is
-    taken over); returns its name, or None where the file system gives no such file."""
+    taken over); returns its name, or None where the file system gives no such file or something
+    else has that name: anything but a writer's leftover (a link, a file with data) is left alone,
+    and the recording goes on without a reserve (was: truncated to zeros and deleted, the file a
+    link pointed to included)."""
     name = path + RESERVE_SUFFIX
     try:
-        fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+    except FileExistsError:
+        if not _is_reserve_leftover(name):
+            return None
+        try:
+            fd = os.open(name, os.O_WRONLY | os.O_NOFOLLOW)
+        except OSError:
+            return None
     except OSError:
         return None
     try:
@@ -974,6 +984,22 @@ def _reserve_space(path: str) -> str | None:
     finally:
         os.close(fd)
     return name
+
+
+def _is_reserve_leftover(name: str) -> bool:
+    """Whether ``name`` is a reserve file a writer left: a regular file (not a link) of at most
+    ``RESERVE_BYTES``, all zeros."""
+    try:
+        info = os.lstat(name)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > RESERVE_BYTES:
+            return False
+        with open(name, "rb") as f:
+            while chunk := f.read(2**20):
+                if chunk.count(0) != len(chunk):
+                    return False
+    except OSError:
+        return False
+    return True
 
 
 def _give_back(reserve: str | None) -> None:

@@ -635,7 +635,7 @@ def test_a_recording_holds_a_reserve_on_its_disk_and_gives_it_back_before_it_clo
     failed part-way and the process segfaulted at exit, where it should exit 3)."""
     path = tmp_path / "s.h5"
     reserve = tmp_path / ("s.h5" + session_writer.RESERVE_SUFFIX)
-    reserve.write_bytes(b"left by a killed recording")
+    reserve.write_bytes(bytes(1000))  # left by a killed recording: zeros, as allocated
     w = _writer(path)
     assert reserve.stat().st_size == session_writer.RESERVE_BYTES
     seen_at_close = []
@@ -650,6 +650,21 @@ def test_a_recording_holds_a_reserve_on_its_disk_and_gives_it_back_before_it_clo
     w.close()
     assert seen_at_close == [(False, {}, {})]  # given back, and every dataset closed, before the file
     assert not reserve.exists()
+
+
+def test_what_else_has_the_reserve_name_is_left_alone(tmp_path):
+    """Was: opened with O_TRUNC, following links: a file named s.h5.reserve, or the file a link of that
+    name pointed to, became 16 MiB of zeros and was deleted at the close."""
+    notes = tmp_path / "important.txt"
+    notes.write_text("precious notes")
+    (tmp_path / ("a.h5" + session_writer.RESERVE_SUFFIX)).symlink_to(notes)
+    (tmp_path / ("b.h5" + session_writer.RESERVE_SUFFIX)).write_text("someone's data")
+    for name in ("a.h5", "b.h5"):
+        w = _writer(tmp_path / name)
+        w.append_arm(0.0, np.zeros(6), np.zeros(6))
+        w.close()
+    assert notes.read_text() == "precious notes" and (tmp_path / "a.h5.reserve").is_symlink()
+    assert (tmp_path / "b.h5.reserve").read_text() == "someone's data"
 
 
 def test_info_counts_pressed_poses_and_recording_time_without_the_pause_of_a_resume(tmp_path):
