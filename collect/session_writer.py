@@ -654,8 +654,8 @@ def check_output_path(path, resume: bool) -> None:
         raise InputError(f"{path} is a directory, not a session file; name a file in it, e.g. "
                          f"{os.path.join(path, 'session.h5')}")
     if resume:
-        if not os.path.isfile(path):
-            raise InputError(f"cannot resume {path}: no such file")
+        if not os.path.isfile(path):  # was "no such file" for a device or a FIFO too (/dev/full)
+            raise InputError(f"cannot resume {path}: " + ("not a regular file" if os.path.exists(path) else "no such file"))
         if not os.access(path, os.R_OK | os.W_OK):
             raise InputError(f"cannot resume {path}: the file is not writable")
         return

@@ -75,6 +75,8 @@ def test_output_in_a_folder_that_takes_no_file_is_refused_before_any_work(tmp_pa
         _refused(capsys, argv, cannot)
     assert not (tmp_path / "m").exists() and not (tmp_path / "run").exists()
     _refused(capsys, ["info", "/dev/null"], "/dev/null is not a regular file")  # was: "no such file"
+    _refused(capsys, ["collect", "--sim", "--resume", "--out", "/dev/full"],
+             "cannot resume /dev/full: not a regular file")  # was: "no such file"
 
 
 def test_preview_never_overwrites_another_file(tmp_path, places, synthetic_session, capsys):
