@@ -73,12 +73,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, exits_after: bool = False) -> int:
     """Run the ``bubble`` command line ``argv`` (default: ``sys.argv[1:]``); returns the exit code.
-    argparse's own exits (``--help``, a bad option) raise ``SystemExit`` as usual."""
+    argparse's own exits (``--help``, a bad option) raise ``SystemExit`` as usual. ``exits_after``:
+    the process exits with the code (``run``), and the stop signals stay ignored after the command."""
     try:
         args = build_parser().parse_args(argv)  # a Ctrl-C while it imports the commands: below, as any other
-        with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True):
+        with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True, exits_after=exits_after):
             code = int(args.func(args) or 0)
             if code == 0:  # a command that ends on a stop says so with its own code; one that did not see it
                 raise_pending_stop()  # (a library swallowed its KeyboardInterrupt) ends as stopped all the same
@@ -110,5 +111,11 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
 
 
+def run() -> None:
+    """The ``bubble`` executable: exit with ``main()``'s code, which a stop signal arriving as the
+    process exits can no longer change."""
+    sys.exit(main(exits_after=True))
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -60,7 +60,7 @@ _stops_before_exit: list[int] | None = None
 
 @contextmanager
 def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP_SIGNALS, *,
-                         process_ends: bool = False) -> Iterator[None]:
+                         process_ends: bool = False, exits_after: bool = False) -> Iterator[None]:
     """Call ``on_signal(signum)`` for the first of ``signals`` that arrives during the with-block;
     later ones are ignored (a Ctrl-C prints ``STILL_STOPPING``). The previous handlers are restored
     afterwards. After SIGHUP stdout and stderr go to /dev/null first: the terminal is gone, and a
@@ -72,7 +72,10 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
     acknowledged, no block inside restores a handler that would act on it, and this one leaves
     them ignored (``SIG_IGN``: the interpreter puts Python handlers back to the default as it
     shuts down, and the default of each kills the process), so that a repeat can no longer change
-    how the process ends."""
+    how the process ends. ``exits_after`` (with ``process_ends``): the process exits right after the
+    block, so it leaves them ignored with no stop too (the ``bubble`` executable; was: a Ctrl-C or
+    SIGTERM just after a command's end, a fault's line printed, ended the process by the signal,
+    exit -2 or -15 for its exit 3)."""
     global _stops_before_exit
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -101,11 +104,12 @@ def stop_signals_handled(on_signal: Callable[[int], None], signals: tuple = STOP
         yield
     finally:
         stopping = bool(_stops_before_exit)
+        ignored = stopping or process_ends and exits_after
         if process_ends:
             _stops_before_exit = outer_record
-            for sig in INTERRUPTS if stopping else ():
+            for sig in INTERRUPTS if ignored else ():
                 signal.signal(sig, signal.SIG_IGN)
-        if not stopping:
+        if not ignored:
             for sig, old in previous.items():
                 signal.signal(sig, old)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from pathlib import Path
 
 import pytest
 
@@ -129,3 +130,33 @@ def test_a_command_that_finished_without_seeing_its_stop_ends_as_stopped(monkeyp
     assert main(["info", str(synthetic_session)]) == 143
     out, err = capsys.readouterr()
     assert str(synthetic_session) in out and err == "bubble: interrupted (SIGTERM)\n"
+
+
+def test_the_executable_keeps_its_exit_code_when_a_stop_signal_comes_as_it_exits(tmp_path):
+    """Was: a Ctrl-C just after a command's end (its fault's line printed) ended the process by the
+    signal, exit -2 instead of the command's code."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "bubble_then_ctrl_c.py"
+    script.write_text(
+        "import os, signal, sys\n"
+        "import calibrate.cli as cli\n"
+        "real = cli.main\n"
+        "def main_then_ctrl_c(*args, **kwargs):\n"
+        "    code = real(*args, **kwargs)\n"
+        "    os.kill(os.getpid(), signal.SIGINT)  # as the process exits\n"
+        "    return code\n"
+        "cli.main = main_then_ctrl_c\n"
+        "sys.argv = ['bubble', 'info', '/dev/null']\n"
+        "cli.run()\n")
+    done = subprocess.run([sys.executable, str(script)], cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                          text=True, timeout=120, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert (done.returncode, done.stderr) == (2, "bubble: error: /dev/null is not a regular file (a device, a pipe or "
+                                                 "a socket), not a session file\n")
+
+
+def test_a_block_the_process_exits_after_leaves_the_stop_signals_ignored(interrupt_handlers_restored):
+    with stop_signals_handled(raise_interrupt, INTERRUPTS, process_ends=True, exits_after=True):
+        pass
+    assert {signal.getsignal(sig) for sig in INTERRUPTS} == {signal.SIG_IGN}
