@@ -231,7 +231,8 @@ def plan_collection(objects: list, limits: SafetyLimits, settings: PlanSettings 
             approach = back + s.approach_margin_m
             if approach > motion.max_contact_travel_m:  # the arm would be sent further than the setting allows
                 raise InputError(
-                    f"plan: the guarded approach to {obj.name} (pose {k + 1}/{s.poses_per_object}) is {approach * 1e3:.1f} mm, longer than "
+                    f"plan: the guarded approach to {obj.name} (pose {k + 1}/{s.poses_per_object}) is "
+                    f"{approach * 1e3:.1f} mm, longer than "
                     f"motion.max_contact_travel_m {motion.max_contact_travel_m * 1e3:.3g} mm; raise that setting")
             # targets the arm is sent to: the guarded approach's end and the deepest press
             approach_end, deepest = above.copy(), above.copy()

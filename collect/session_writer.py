@@ -655,7 +655,8 @@ def check_output_path(path, resume: bool) -> None:
                          f"{os.path.join(path, 'session.h5')}")
     if resume:
         if not os.path.isfile(path):  # was "no such file" for a device or a FIFO too (/dev/full)
-            raise InputError(f"cannot resume {path}: " + ("not a regular file" if os.path.exists(path) else "no such file"))
+            what = "not a regular file" if os.path.exists(path) else "no such file"
+            raise InputError(f"cannot resume {path}: {what}")
         if not os.access(path, os.R_OK | os.W_OK):
             raise InputError(f"cannot resume {path}: the file is not writable")
         return

@@ -133,8 +133,9 @@ def test_evaluate_pass_fail_and_unmeasured():
     assert not low["passed"] and "below minimum" in low["reason"]
     nan = evaluate(th, "heldout_a1", float("nan"))
     # what a failure implies is said on a failure alone (was: "353 dots within limit (is the dot pattern printed?)")
-    assert evaluate(th, "dot_count", 353, "is the dot pattern printed?")["reason"] == ("printed dots found in the no-contact IR image: 353 dots within limit")
-    assert evaluate(th, "dot_count", 3, "is the dot pattern printed?")["reason"].endswith("(is the dot pattern printed?)")
+    hint = "is the dot pattern printed?"
+    assert evaluate(th, "dot_count", 353, hint)["reason"] == "printed dots found in the no-contact IR image: 353 dots within limit"
+    assert evaluate(th, "dot_count", 3, hint)["reason"].endswith(f"({hint})")
     assert not nan["passed"] and nan["value"] is None and "not measured" in nan["reason"]
     checks = [ok, leak]
     assert not accepted(checks) and accepted([ok]) and not accepted([])
