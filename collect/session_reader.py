@@ -27,7 +27,7 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import InputError
 from collect.json_files import JSON_READ_ERRORS
-from collect.numbers import real_number, real_numbers
+from collect.numbers import real_number, real_numbers, whole_number
 
 _REQUIRED = (
     *sf.FRAME_DATASETS,
@@ -507,7 +507,7 @@ def _positive_number(value) -> bool:
 
 
 def _positive_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value > 0
+    return whole_number(value) and value > 0
 
 
 def _is_object(value) -> bool:
@@ -640,7 +640,7 @@ def _check_depth_marks(path: str, f: h5py.File) -> dict[int, int] | None:
         value = enum
     numbers = list(value.values()) if isinstance(value, dict) else []
     if not (isinstance(value, dict) and set(value) == set(sf.PHASES) and len(set(numbers)) == len(numbers)
-            and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in numbers)):
+            and all(whole_number(v) and v <= 255 for v in numbers)):
         raise _bad(path, f"{sf.FRAMES_PHASE} attr '{sf.ATTR_PHASE_ENUM}'",
                    f"the phases {', '.join(sf.PHASES)}, each with its own value 0-255", value)
     return None if value == sf.PHASES else {stored: sf.PHASES[name] for name, stored in value.items()}
