@@ -259,7 +259,8 @@ class Session:
         n = self.n_frames
         #: metres per count of frames/depth
         self.depth_unit_m = _depth_unit_m(self.path, f[sf.FRAMES_DEPTH])
-        phase_map = _check_depth_marks(self.path, f)
+        _check_depth_invalid(self.path, f[sf.FRAMES_DEPTH])
+        phase_map = _phase_value_map(self.path, f[sf.FRAMES_PHASE])
         #: (N,) per-frame metadata, loaded eagerly (small)
         self.t_device = f[sf.FRAMES_T_DEVICE][:n]
         self.t_host = f[sf.FRAMES_T_HOST][:n]
@@ -622,16 +623,20 @@ def _depth_unit_m(path: str, depth: h5py.Dataset) -> float:
     return float(unit_m)
 
 
-def _check_depth_marks(path: str, f: h5py.File) -> dict[int, int] | None:
-    """InputError when ``frames/depth``'s ``invalid`` value is other than 0, or ``frames/phase``'s
-    ``enum`` does not name the format's five phases, each with its own value 0-255. Returns the map
-    from the file's phase values to ``PHASES``' where its enum numbers them otherwise (a file of
-    another writer; DESIGN.md fixes the names, not the numbers; was: refused, and before that read as
-    if numbered as ``PHASES``, press and hold swapped), else None. Either attribute may be absent."""
-    invalid = f[sf.FRAMES_DEPTH].attrs.get(sf.ATTR_INVALID)
+def _check_depth_invalid(path: str, depth: h5py.Dataset) -> None:
+    """InputError when ``frames/depth``'s ``invalid`` attribute is present and other than 0."""
+    invalid = depth.attrs.get(sf.ATTR_INVALID)
     if invalid is not None and not (np.ndim(invalid) == 0 and real_number(invalid) and invalid == 0):
         raise _bad(path, f"{sf.FRAMES_DEPTH} attr '{sf.ATTR_INVALID}'", "0 (this software reads 0 as no depth)", invalid)
-    enum = f[sf.FRAMES_PHASE].attrs.get(sf.ATTR_PHASE_ENUM)
+
+
+def _phase_value_map(path: str, phase: h5py.Dataset) -> dict[int, int] | None:
+    """The map from the file's ``frames/phase`` values to ``PHASES``' where its ``enum`` attribute
+    numbers them otherwise (a file of another writer; DESIGN.md fixes the names, not the numbers;
+    was: refused, and before that read as if numbered as ``PHASES``, press and hold swapped), else
+    None (also without the attribute). InputError when the enum does not name the format's five
+    phases, each with its own value 0-255."""
+    enum = phase.attrs.get(sf.ATTR_PHASE_ENUM)
     if enum is None:
         return None
     try:
