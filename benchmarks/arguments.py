@@ -149,11 +149,31 @@ def model_dir(text: str) -> str:
     return text
 
 
+def poses_per_object(text: str) -> int:
+    """``argparse`` type: contact poses per object of a ``bubble collect``, 1..``MAX_POSES_PER_OBJECT``."""
+    from collect.pose_planner import MAX_POSES_PER_OBJECT
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= MAX_POSES_PER_OBJECT:
+        raise argparse.ArgumentTypeError(f"expected poses per object within 1..{MAX_POSES_PER_OBJECT}, got {text!r}")
+    return value
+
+
 def run_main(main: Callable[[], int], name: str) -> NoReturn:
-    """``sys.exit(main())``; an ``InputError`` exits ``EXIT_BAD_INPUT`` (2) with its line, as ``bubble`` does."""
+    """``sys.exit(main())``; an ``InputError`` exits ``EXIT_BAD_INPUT`` (2) with its line, as ``bubble`` does,
+    and a ``bubble`` command that failed (``trainer.pretrain.BubbleCommandError``) with its last line: exit 2
+    when that command refused its input, else 1 (was: a traceback, exit 1)."""
+    from trainer.pretrain import BubbleCommandError
+
     try:
         code = main()
     except InputError as err:
         print(f"{name}: {err}", file=sys.stderr)
         code = EXIT_BAD_INPUT
+    except BubbleCommandError as err:
+        print(f"{name}: {err}", file=sys.stderr)
+        code = EXIT_BAD_INPUT if err.returncode == EXIT_BAD_INPUT else 1
     sys.exit(code)

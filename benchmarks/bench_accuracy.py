@@ -42,10 +42,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import (markdown_out, model_dir, name_list, object_names, positive_float, positive_int,  # noqa: E402
+from benchmarks.arguments import (markdown_out, model_dir, name_list, object_names, poses_per_object, positive_float,  # noqa: E402
                                  run_main, sensor_seed, sensor_seed_list, sim_speed, work_dir)
 from benchmarks.machine import finish, machine_info, machine_line, provisional_note  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from collect.errors import EXIT_FAULT  # noqa: E402
 from collect.session_info import session_summary  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS  # noqa: E402
@@ -304,11 +305,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--holdouts", type=object_names, default=",".join(BUILTIN_OBJECTS), help="objects to leave out, one run each")
     p.add_argument("--objects", type=object_names, default=",".join(BUILTIN_OBJECTS))
     p.add_argument("--sensor-seed", type=sensor_seed, default=11, help="sensor A of sections 1-2")
-    p.add_argument("--poses-per-object", type=positive_int, default=8, help="sensor A's session")
+    p.add_argument("--poses-per-object", type=poses_per_object, default=8, help="sensor A's session")
     p.add_argument("--cross-seeds", type=sensor_seed_list, default="21,22,23",
                    help="comma-separated seeds of the new sensors of sections 3-4")
-    p.add_argument("--calib-poses", type=positive_int, default=6, help="calibration poses per object (4 x 6: ~45 s of recording)")
-    p.add_argument("--test-poses", type=positive_int, default=3, help="test poses per object")
+    p.add_argument("--calib-poses", type=poses_per_object, default=6, help="calibration poses per object (4 x 6: ~45 s of recording)")
+    p.add_argument("--test-poses", type=poses_per_object, default=3, help="test poses per object")
     p.add_argument("--finetune-minutes", type=positive_float, default=CommissionConfig.finetune_minutes)
     p.add_argument("--base-model", type=model_dir, default="base", help="pretrained model (default: the packaged base model)")
     p.add_argument("--sim-speed", type=sim_speed, default=20.0, help="simulated clock speed of bubble collect")
@@ -377,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         "json": str(args.out.with_suffix(".json")),
     }
     write_json(args.out.with_suffix(".json"), result)
-    args.out.write_text(markdown(result))
+    write_text(args.out, markdown(result))
     print(f"wrote {args.out} and {args.out.with_suffix('.json').name} ({result['wall_min']:.1f} min)")
     return 0
 

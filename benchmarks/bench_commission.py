@@ -37,6 +37,7 @@ from benchmarks.arguments import model_dir, positive_float, run_main, sensor_see
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_config import CommissionConfig  # noqa: E402
 from calibrate.commission_events import Step, StepFinished, StepStarted  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from calibrate.commissioning import POSE_BY_POSE_KEY, pose_vs_true_key, run_commissioning  # noqa: E402
 from trainer.splits import TRAIN_FRACTION  # noqa: E402
 
@@ -282,7 +283,7 @@ def write_doc(all_rows: list[dict], args, info: dict) -> Path:
         "",
     ]
     path = ROOT / "docs" / "bench_commission.md"
-    path.write_text("\n".join(lines))
+    write_text(path, "\n".join(lines))
     return path
 
 

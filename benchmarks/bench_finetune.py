@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import (model_dir, object_names, positive_float, positive_int, run_main, sensor_seed,  # noqa: E402
+from benchmarks.arguments import (model_dir, object_names, poses_per_object, positive_float, run_main, sensor_seed,  # noqa: E402
                                  sim_speed, work_dir)
 from collect.errors import InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes", type=positive_float, default=TARGET_MINUTES)
     parser.add_argument("--eval-s", type=positive_float, default=15.0)
     parser.add_argument("--sensor-seed", type=sensor_seed, default=7)
-    parser.add_argument("--poses-per-object", type=positive_int, default=8)
+    parser.add_argument("--poses-per-object", type=poses_per_object, default=8)
     parser.add_argument("--objects", type=object_names, default=DEFAULT_OBJECTS_ARG)
     parser.add_argument("--sim-speed", type=sim_speed, default=20.0, help="simulated clock speed (lower on a busy machine)")
     parser.add_argument("--scratch", action="store_true", help="also train from scratch for the same time")

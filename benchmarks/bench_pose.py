@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_pose.py                      # speed + accuracy (simulates data)
     .venv/bin/python benchmarks/bench_pose.py --session S.h5 --model MODEL_DIR   # accuracy on these
-    .venv/bin/python benchmarks/bench_pose.py --speed-only
+    .venv/bin/python benchmarks/bench_pose.py --speed-only         # page in runs/, docs/ keep the full run's
     .venv/bin/python benchmarks/bench_pose.py --work runs/bp   # keep the sessions and models there (reused by a rerun)
 
 Speed (one core: BLAS/OpenMP threads pinned to 1 before numpy loads): pose estimates per second
@@ -16,7 +16,8 @@ recordings of its seed, and three sensors pooled gave 2.02 where the same three 
 1.61; docs/pose_unseen_object.md) with ``bubble collect --sim`` and fine-tunes the base model on each with ``bubble train``
 (held out: the mug, so the check runs on an object this sensor's fine-tune never saw, as in the paper;
 the base model it starts from was pretrained on other sensors pressing the mug among the other objects).
-Writes ``docs/bench_pose.md`` (``--out``).
+A session is recorded as ``session.partial.h5`` and renamed once whole; a ``--work`` model is reused
+only where it was fine-tuned on that session. Writes ``docs/bench_pose.md`` (``--out``).
 """
 
 from __future__ import annotations
@@ -40,12 +41,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.arguments import markdown_out, positive_float, run_main, sensor_seed_list, work_dir  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from collect.errors import InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.contact_patch import contact_points  # noqa: E402
 from calibrate.pose_estimation import Pose, ProximityPoseEstimator, quat_to_matrix, shape_from_object  # noqa: E402
 from hw_mocks.objects import load_object  # noqa: E402
+from trainer.dataset import file_sha256  # noqa: E402
 from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
+from trainer.pretrain import BubbleCommandError  # noqa: E402
 
 #: The built-in mug's primitive: a cylinder lying on its side, axis along object x.
 MUG = shape_from_object(load_object("mug").primitive)
@@ -120,17 +124,23 @@ def bench_speed(n_frames: int = 300) -> dict:
 
 
 def _bubble(*args: str) -> None:
-    cmd = [sys.executable, "-m", "calibrate.cli", *args]
-    print("+", " ".join(cmd[2:]), flush=True)
-    subprocess.run(cmd, check=True, cwd=ROOT)
+    """Run ``bubble args``, its output shown as it goes; ``BubbleCommandError`` when it fails (was: a
+    ``CalledProcessError`` traceback)."""
+    print("+ bubble", " ".join(args), flush=True)
+    code = subprocess.run([sys.executable, "-m", "calibrate.cli", *args], cwd=ROOT).returncode
+    if code != 0:
+        raise BubbleCommandError(f"bubble {args[0]} failed with exit {code} (its error is above)", code)
 
 
 def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Path, bool]:
     """Record a simulated session of all built-in objects and fine-tune the base model without the mug.
 
-    A session already in ``workdir``, and a finished model (its ``metadata.json`` follows the weights),
-    are reused, so that a rerun with the same ``--work`` checks the same data with the current code.
-    Returns the session, the model and whether both were reused."""
+    A session already in ``workdir``, and a finished model (its ``metadata.json`` follows the weights)
+    fine-tuned on it, are reused, so that a rerun with the same ``--work`` checks the same data with the
+    current code. The session is recorded as ``session.partial.h5`` and renamed once ``bubble collect``
+    has recorded the whole plan (was: recorded in place, and the part a fault or a stop had kept was
+    reused as a whole session by the next run). Returns the session, the model and whether both were
+    reused."""
     workdir.mkdir(parents=True, exist_ok=True)
     session = workdir / "session.h5"
     model = workdir / "model"
@@ -139,14 +149,19 @@ def simulated_inputs(workdir: Path, seed: int, minutes: float) -> tuple[Path, Pa
     if reused_session:
         print(f"reusing {session}", flush=True)
     else:
+        partial = session.with_suffix(".partial.h5")
+        partial.unlink(missing_ok=True)
         _bubble("collect", "--sim", "--objects", "mug,wine_glass,box,fingers", "--poses-per-object", "8",
-                "--seed", str(seed), "--out", str(session))
+                "--seed", str(seed), "--out", str(partial))
+        partial.replace(session)
     if reused_model:
         training = load_metadata(model).training
         if training["budget"]["minutes"] != minutes or training["split"].get("object") != "mug":
             raise InputError(f"{model} was fine-tuned for {training['budget']['minutes']} min with split "
                              f"{training['split']}, not --train-minutes {minutes:g} holding out the mug: use another "
                              "--work")
+        if [source["sha256"] for source in training["sources"]] != [file_sha256(session)]:
+            raise InputError(f"{model} was fine-tuned on other data than {session}: use another --work")
         print(f"reusing {model}", flush=True)
     else:
         _bubble("train", "--data", str(session), "--init", "base", "--holdout-object", "mug",
@@ -240,22 +255,31 @@ def write_markdown(out: Path, speed: dict, accuracy: dict | None, per_session: l
             "",
         ]
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
+    write_text(out, "\n".join(lines))
 
 
-def main(argv=None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--session", type=Path, help="simulated session with the mug (default: record one per --seeds)")
     ap.add_argument("--model", type=Path, help="model directory (default: fine-tune the base model)")
-    ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument("--speed-only", action="store_true",
+                    help="the fit's speed alone (its page goes to runs/bench_pose_speed.md unless --out is given)")
     ap.add_argument("--seeds", type=sensor_seed_list, default="0,1,2,3,4,5",
                     help="comma-separated seeds of the simulated sensors to record and fine-tune (default 0-5)")
     ap.add_argument("--train-minutes", type=positive_float, default=3.0)
     ap.add_argument("--work", type=work_dir, help="keep the recorded sessions and models here, or reuse those already there (default: a temporary folder)")
-    ap.add_argument("--out", type=markdown_out, default=ROOT / "docs" / "bench_pose.md")
+    ap.add_argument("--out", type=markdown_out,
+                    help="the page (default: docs/bench_pose.md; with --speed-only, runs/bench_pose_speed.md, so that a "
+                         "speed check leaves the committed page and its accuracy section)")
     args = ap.parse_args(argv)
+    args.out = args.out or (ROOT / "runs" / "bench_pose_speed.md" if args.speed_only else ROOT / "docs" / "bench_pose.md")
     if (args.session is None) != (args.model is None):
         ap.error("give both --session and --model, or neither")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     command = "python benchmarks/bench_pose.py " + " ".join(argv if argv is not None else sys.argv[1:])
     info = machine_info()
     speed = bench_speed()

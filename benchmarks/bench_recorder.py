@@ -1,7 +1,7 @@
 """Recorder benchmark: throughput headroom, CPU share, file size, dropped frames, collection time.
 
     .venv/bin/python benchmarks/bench_recorder.py                 # full run (~12 min), writes docs/bench_recorder.md
-    .venv/bin/python benchmarks/bench_recorder.py --minutes 1 --no-collect   # quick look
+    .venv/bin/python benchmarks/bench_recorder.py --minutes 1 --no-collect   # quick look (page in runs/)
 
 Sections:
 1. Compression: frames/s the ``SessionWriter`` sustains unpaced (producer pushes as fast as the
@@ -24,7 +24,10 @@ Sections:
    (the session's recording time, as ``bubble info`` reports it; target <= 60 s), frames, dropped
    frames, file size.
 
-Results go to docs/bench_recorder.md (markdown) and stdout.
+Results go to docs/bench_recorder.md (markdown) and stdout; a shorter recording than the target's
+``TARGET_MINUTES`` or ``--no-collect`` writes ``runs/bench_recorder_quick.md`` instead, unless ``--out``
+is given (was: the quick look replaced the committed page).
+A failed ``bubble collect`` is shown on the page and exits 1.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.arguments import markdown_out, positive_float, positive_int, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from collect import session_format as sf  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from collect.bench import BenchConfig  # noqa: E402
 from collect.session_info import session_summary  # noqa: E402
 from collect.session_reader import Session  # noqa: E402
@@ -183,6 +187,10 @@ def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
     return result
 
 
+#: Length (min) of the long recording that the zero-dropped-frames target asks for.
+TARGET_MINUTES = 10.0
+
+
 def bench_collection(tmp: Path) -> dict:
     out = tmp / "collect.h5"
     t0 = time.perf_counter()
@@ -190,7 +198,8 @@ def bench_collection(tmp: Path) -> dict:
                            "--seed", "0", "--quiet", "--out", str(out)], cwd=ROOT, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
-        return {"error": (proc.stderr or proc.stdout).strip().splitlines()[-1]}
+        last = ((proc.stderr or proc.stdout).strip().splitlines() or ["(no output)"])[-1]  # was: IndexError
+        return {"error": f"exit {proc.returncode}: {last}"}
     info = session_summary(out)
     return {
         "wall_s": wall,
@@ -296,14 +305,24 @@ def report(compression, long, collection, args, info: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--minutes", type=positive_float, default=10.0, help="long-recording length (default 10)")
+    parser.add_argument("--minutes", type=positive_float, default=TARGET_MINUTES,
+                        help=f"long-recording length (default {TARGET_MINUTES:g})")
     parser.add_argument("--throughput-frames", type=positive_int, default=900, help="frames per compression run")
     parser.add_argument("--repeats", type=positive_int, default=3, help="runs per filter (median reported)")
     parser.add_argument("--no-collect", action="store_true", help="skip the bubble collect --sim run")
-    parser.add_argument("--out", type=markdown_out, default=str(ROOT / "docs" / "bench_recorder.md"))
+    parser.add_argument("--out", type=markdown_out,
+                        help="the page (default: docs/bench_recorder.md; runs/bench_recorder_quick.md for a shorter "
+                             "recording or --no-collect)")
     args = parser.parse_args(argv)
+    quick = args.minutes < TARGET_MINUTES or args.no_collect
+    args.out = args.out or (ROOT / "runs" / "bench_recorder_quick.md" if quick else ROOT / "docs" / "bench_recorder.md")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     info = machine_info()
     frames, spec = render_frames(90)
     with tempfile.TemporaryDirectory() as tmp:
@@ -315,8 +334,10 @@ def main(argv: list[str] | None = None) -> None:
         collection = None if args.no_collect else bench_collection(tmp)
         print(collection, flush=True)
     text = report(compression, long, collection, args, info)
-    Path(args.out).write_text(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_text(args.out, text)
     print(text)
+    return 1 if collection is not None and "error" in collection else 0
 
 
 if __name__ == "__main__":

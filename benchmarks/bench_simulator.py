@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.arguments import markdown_out, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from hw_mocks.bubble_sim import BubbleSim  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS, BenchObject, fixture_plate, load_object  # noqa: E402
 from hw_mocks.preview import press_pose  # noqa: E402
@@ -155,7 +156,7 @@ def main(argv=None) -> int:
         )
     lines += ["| **real reference** | ~4.6 | ~1.9 | ~0.75 | ~1.0 | ~4.6 |", ""]
     text = "\n".join(lines) + "\n"
-    Path(args.out).write_text(text)
+    write_text(args.out, text)
     print(text)
     return 0
 

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from textual import events  # noqa: E402
 
-from benchmarks.arguments import markdown_out, model_dir, positive_float, positive_int, run_main  # noqa: E402
+from benchmarks.arguments import markdown_out, model_dir, poses_per_object, positive_float, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.commission_events import STEPS  # noqa: E402
 from calibrate.commission_config import validate_config  # noqa: E402
@@ -38,6 +38,7 @@ from calibrate.commissioning import CommissionConfig  # noqa: E402
 from calibrate.tui.app import BenchApp  # noqa: E402
 from calibrate.tui.frame_gap_gc import CHECK_INTERVAL_S, OLDER_EVERY, YOUNG_OBJECTS  # noqa: E402
 from calibrate.tui.flow_runner import BENCH_NICE, COMPUTE_NICE  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from collect.errors import InputError  # noqa: E402
 
 TARGET_MS = 100.0
@@ -247,13 +248,13 @@ def write_markdown(path: Path, stats: dict, args, info: dict) -> None:
           if args.base_model else []),
     ]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines))
+    write_text(path, "\n".join(lines))
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--finetune-minutes", type=positive_float, default=1.0)
-    parser.add_argument("--poses-per-object", type=positive_int, default=2)
+    parser.add_argument("--poses-per-object", type=poses_per_object, default=2)
     parser.add_argument("--interval", type=positive_float, default=0.3, help="s between key presses")
     parser.add_argument("--max-seconds", type=positive_float, default=600.0)
     parser.add_argument("--bench-nice", type=int, default=BENCH_NICE,

@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.arguments import markdown_out, positive_float, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
 from collect.bench import BenchConfig, open_bench  # noqa: E402
 
 
@@ -110,7 +111,7 @@ def main(argv=None) -> int:
         "(a loaded machine); the camera then delivers 45 fps of simulated time, fewer per wall second.",
         "",
     ]
-    args.out.write_text("\n".join(lines))
+    write_text(args.out, "\n".join(lines))
     print("\n".join(lines))
     return 0
 

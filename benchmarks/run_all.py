@@ -38,8 +38,12 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.arguments import name_list  # noqa: E402
+from benchmarks.arguments import name_list, run_main  # noqa: E402
+from benchmarks.bench_recorder import TARGET_MINUTES as RECORDER_TARGET_MINUTES  # noqa: E402
 from benchmarks.machine import finish, machine_info  # noqa: E402
+from collect.atomic_files import write_text  # noqa: E402
+from collect.errors import InputError  # noqa: E402
+from collect.json_files import JSON_READ_ERRORS, shown_json, write_json  # noqa: E402
 
 DOCS = ROOT / "docs"
 LOGS = ROOT / "runs" / "bench_logs"
@@ -166,7 +170,11 @@ def _pressure_rate_off(text: str) -> tuple[float | None, str]:
 
 def _recorder_dropped(text: str) -> tuple[float | None, str]:
     """Frames lost by the writer alone: missing from the file, out of sequence, or handed over too late
-    for the camera's queue to have kept them (the writer blocking its producer)."""
+    for the camera's queue to have kept them (the writer blocking its producer); not measured when the
+    page's recording is shorter than the target's (was: a 3-second look counted as met)."""
+    length = re.search(r"writer alone at \S+ fps for ([\d.]+) min", text)
+    if length and float(length.group(1)) < RECORDER_TARGET_MINUTES:
+        return None, f"the page's recording lasted {length.group(1)} min, not {RECORDER_TARGET_MINUTES:g}"
     produced, gaps = cell(text, "frames produced / in file", "value"), cell(text, "sequence gaps", "value")
     late = cell(text, "frames a camera's", "value")
     if not produced or not gaps or not late:
@@ -247,7 +255,8 @@ TARGETS = (
     Target("pressure board at ~100 Hz (within 5 %, either way)", "twins", "<=", 5, "%", _pressure_rate_off),
     Target("collection: 4 objects x 8 poses in <= 60 s of arm time", "recorder", "<=", 60, "s",
            _cell_value("arm time", "value")),
-    Target("recorder: zero dropped frames over a 10-minute recording", "recorder", "==", 0, "frames", _recorder_dropped),
+    Target(f"recorder: zero dropped frames over a {RECORDER_TARGET_MINUTES:g}-minute recording", "recorder", "==", 0,
+           "frames", _recorder_dropped),
     Target("recorder headroom: frames/s written over the camera's 45 fps (> 1x)", "recorder", ">=", 1, "x",
            _recorder_headroom),
     Target("inference >= 60 fps batch 1 at 224 x 224, default model", "inference", ">=", 60, "fps",
@@ -300,8 +309,9 @@ def target_rows(runs: dict) -> list[str]:
         value, detail = t.extract(text) if text else (None, "")
         source = f"[{bench.doc}]({bench.doc})"
         if value is None:
-            lines.append(f"| {t.goal} | not measured | **not measured**: run `python benchmarks/run_all.py --only "
-                         f"{t.benchmark}` | {source} |")
+            why = f" ({detail})" if detail else ""
+            lines.append(f"| {t.goal} | not measured{why} | **not measured**: run `python benchmarks/run_all.py "
+                         f"--only {t.benchmark}` | {source} |")
             continue
         base, base_detail = t.baseline(text) if t.baseline else (None, "")
         if t.verdict(value) and base is not None and t.verdict(base):
@@ -322,7 +332,18 @@ def target_rows(runs: dict) -> list[str]:
 # ---- running and assembling -----------------------------------------------------------------------
 
 def load_runs() -> dict:
-    return json.loads(RUNS_JSON.read_text()) if RUNS_JSON.is_file() else {}
+    """The runs recorded in ``RUNS_JSON`` (none before the first); InputError when it is not a JSON
+    object (was: a traceback, and every later run and ``--assemble-only`` failed alike)."""
+    if not RUNS_JSON.is_file():
+        return {}
+    fix = "restore it (git checkout) or delete it"
+    try:
+        runs = json.loads(RUNS_JSON.read_text())
+    except JSON_READ_ERRORS as err:
+        raise InputError(f"{RUNS_JSON} is not readable JSON ({err}): {fix}") from None
+    if not isinstance(runs, dict):
+        raise InputError(f"{RUNS_JSON} holds {shown_json(runs)}, not a JSON object of runs: {fix}")
+    return runs
 
 
 def run(bench: Benchmark, extra: tuple[str, ...] = ()) -> dict:
@@ -426,13 +447,13 @@ def main(argv: list[str] | None = None) -> int:
     if not args.assemble_only:
         for name in names:
             runs[name] = run(BY_NAME[name], extra)
-            RUNS_JSON.write_text(json.dumps(runs, indent=2) + "\n")
+            write_json(RUNS_JSON, runs)
             if runs[name]["exit"] != 0:
                 failed.append(name)
-    PAGE.write_text(assemble(runs))
+    write_text(PAGE, assemble(runs))
     print(f"wrote {PAGE.relative_to(ROOT)}" + (f"; failed: {', '.join(failed)} (see runs/bench_logs/)" if failed else ""))
     return 1 if failed else 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main, "run_all")

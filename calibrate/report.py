@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.acceptance import NOT_RUN, check_value_text, limit_text
-from collect.atomic_files import replacing
+from collect.atomic_files import write_text
 from collect.errors import HOST_FAULTS
 
 #: The paper's table columns: (metric key, header, format).
@@ -416,9 +416,8 @@ def render_html(data: ReportData) -> str:
 
 
 def write_report(data: ReportData, path: Path) -> Path:
-    """Render ``data`` to ``path`` (HTML, self-contained; atomically: ``collect.atomic_files.replacing``);
+    """Render ``data`` to ``path`` (HTML, self-contained; atomically: ``collect.atomic_files.write_text``);
     returns ``path``."""
     path = Path(path)
-    with replacing(path) as tmp:
-        tmp.write_text(render_html(data), encoding="utf-8")
+    write_text(path, render_html(data))
     return path

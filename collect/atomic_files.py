@@ -64,6 +64,12 @@ def replacing(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path``, whole or not at all (``replacing``)."""
+    with replacing(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
 def save_npz(path: str | Path, **arrays) -> None:
     """``np.savez_compressed`` of ``arrays`` to ``path``, whole or not at all (``replacing``; was: a
     full disk left a cut-off ``.npz``)."""

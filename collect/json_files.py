@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from collect.atomic_files import replacing
+from collect.atomic_files import write_text
 
 #: What reading a JSON file that a user may have damaged can raise: OSError (the file system),
 #: ValueError (not UTF-8, not JSON, or an int of more than 4300 digits) and RecursionError
@@ -50,7 +50,5 @@ def shown_json(value, limit: int = 40) -> str:
 
 def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
     """Write ``plain_json(value)`` to ``path`` (indent 2, trailing newline) atomically
-    (``collect.atomic_files.replacing``)."""
-    text = json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n"
-    with replacing(path) as tmp:
-        tmp.write_text(text)
+    (``collect.atomic_files.write_text``)."""
+    write_text(path, json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n")

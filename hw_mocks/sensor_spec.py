@@ -187,12 +187,11 @@ class SensorSpec:
 
     def to_yaml(self, path: str | Path) -> None:
         """Write the spec as YAML (round-trips through ``from_yaml``; atomically:
-        ``collect.atomic_files.replacing``)."""
-        from collect.atomic_files import replacing
+        ``collect.atomic_files.write_text``)."""
+        from collect.atomic_files import write_text
         from collect.yaml_files import dump_yaml
 
-        with replacing(path) as tmp:
-            tmp.write_text(dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None))
+        write_text(path, dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None))
 
     # ---- validation ----------------------------------------------------------------------------
     def validate(self, source: str = "sensor spec") -> None:

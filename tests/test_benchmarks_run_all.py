@@ -151,6 +151,103 @@ def test_input_error_exits_2_with_one_line(capsys):
     assert exit_info.value.code == 2 and capsys.readouterr().err == "bench_x: no such object 'cup'\n"
 
 
+def test_a_failed_bubble_command_exits_with_its_line(capsys):
+    """Was: a traceback (``RuntimeError`` or ``CalledProcessError``), exit 1, whatever the command's exit."""
+    from benchmarks.arguments import run_main
+    from trainer.pretrain import BubbleCommandError
+
+    for returncode, code in ((2, 2), (3, 1), (None, 1)):
+        def main() -> int:
+            raise BubbleCommandError("bubble collect --sim failed: bubble: error: no such object", returncode)
+
+        with pytest.raises(SystemExit) as exit_info:
+            run_main(main, "bench_x")
+        assert exit_info.value.code == code
+        assert capsys.readouterr().err == "bench_x: bubble collect --sim failed: bubble: error: no such object\n"
+
+
+def test_run_all_refuses_a_corrupt_runs_file_and_keeps_it(tmp_path, monkeypatch, capsys):
+    """Was: a JSONDecodeError traceback, from every later run and ``--assemble-only`` alike."""
+    runs = tmp_path / "benchmarks.json"
+    monkeypatch.setattr(run_all, "RUNS_JSON", runs)
+    monkeypatch.setattr(run_all, "PAGE", tmp_path / "benchmarks.md")
+    for text, says in (('{"simulator": {"exit": 0,', "is not readable JSON (Expecting"),
+                       ("[1, 2]", "holds [1, 2], not a JSON object of runs")):
+        runs.write_text(text)
+        with pytest.raises(SystemExit) as exit_info:
+            from benchmarks.arguments import run_main
+
+            run_main(lambda: run_all.main(["--assemble-only"]), "run_all")
+        line = capsys.readouterr().err
+        assert exit_info.value.code == 2 and says in line and line.count("\n") == 1, line
+        assert runs.read_text() == text and not (tmp_path / "benchmarks.md").exists()
+
+
+def test_a_recorder_page_shorter_than_the_target_is_not_measured(tmp_path, monkeypatch):
+    """Was: the page of ``bench_recorder.py --minutes 0.05`` graded the 10-minute target as met."""
+    monkeypatch.setattr(run_all, "DOCS", tmp_path)
+    monkeypatch.setattr(run_all, "TARGETS", (_target("recorder: zero dropped frames"),))
+    page = ("## Long recording: writer alone at 45 fps for {minutes} min\n\n| metric | value |\n|---|---|\n"
+            "| frames produced / in file | 27000 / 27000 |\n| sequence gaps / non-increasing timestamps | 0 / 0 |\n"
+            "| frames a camera's queue would have lost / latest hand-over | 0 / 3.1 ms |\n")
+    (tmp_path / "bench_recorder.md").write_text(page.format(minutes=10))
+    assert "| met |" in run_all.target_rows({})[2]
+    (tmp_path / "bench_recorder.md").write_text(page.format(minutes=0.05))
+    row = run_all.target_rows({})[2]
+    assert "**not measured**" in row and "the page's recording lasted 0.05 min, not 10" in row
+
+
+def test_partial_benchmark_runs_write_their_pages_in_runs():
+    """Was: ``bench_recorder.py --minutes 1 --no-collect`` (its docstring's quick look) and ``bench_pose.py
+    --speed-only`` replaced the committed pages, the latter without its accuracy section."""
+    from benchmarks import bench_pose, bench_recorder
+
+    for argv in (["--minutes", "1"], ["--no-collect"]):
+        assert bench_recorder.parse_args(argv).out == ROOT / "runs" / "bench_recorder_quick.md"
+    assert bench_recorder.parse_args([]).out == ROOT / "docs" / "bench_recorder.md"
+    assert bench_pose.parse_args(["--speed-only"]).out == ROOT / "runs" / "bench_pose_speed.md"
+    assert bench_pose.parse_args([]).out == ROOT / "docs" / "bench_pose.md"
+
+
+def test_a_failed_collection_of_the_recorder_benchmark_is_shown(monkeypatch, tmp_path):
+    """Was: an ``IndexError`` when ``bubble collect`` died without a line (killed), after the long recording."""
+    import subprocess
+
+    from benchmarks import bench_recorder
+
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, -9, "", ""))
+    assert bench_recorder.bench_collection(tmp_path) == {"error": "exit -9: (no output)"}
+
+
+def test_bench_pose_records_whole_sessions_and_reuses_only_their_models(tmp_path, monkeypatch):
+    """Was: ``bubble collect`` wrote ``session.h5`` in place: the part a fault had kept was taken by the
+    next run as a whole session, and a model was reused whatever it was fine-tuned on."""
+    from benchmarks import bench_pose
+    from collect.errors import InputError
+    from trainer.pretrain import BubbleCommandError
+
+    def collect_fails(*args):
+        if args[0] == "collect":
+            Path(args[args.index("--out") + 1]).write_bytes(b"the frames of a stopped run")
+            raise BubbleCommandError("bubble collect failed with exit 3 (its error is above)", 3)
+
+    monkeypatch.setattr(bench_pose, "_bubble", collect_fails)
+    with pytest.raises(BubbleCommandError):
+        bench_pose.simulated_inputs(tmp_path, 0, 3.0)
+    assert not (tmp_path / "session.h5").exists()
+    (tmp_path / "session.h5").write_bytes(b"another recording")
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "metadata.json").write_text("{}")
+
+    class Metadata:
+        training = {"budget": {"minutes": 3.0}, "split": {"kind": "object", "object": "mug"},
+                    "sources": [{"sha256": "0" * 64}]}
+
+    monkeypatch.setattr(bench_pose, "load_metadata", lambda model: Metadata)
+    with pytest.raises(InputError, match="was fine-tuned on other data than .*session.h5: use another --work"):
+        bench_pose.simulated_inputs(tmp_path, 0, 3.0)
+
+
 def test_commission_refuses_a_work_folder_holding_earlier_runs(tmp_path, capsys):
     """Was: a run folder there was resumed (the recorded verdict, no timings), or an unseen-mesh session crashed it."""
     from benchmarks import bench_commission
@@ -253,6 +350,9 @@ def test_a_benchmark_page_is_a_markdown_file_in_an_existing_folder(script, tmp_p
     ("bench_finetune", ["--sensor-seed", "-1"], "expected a sensor seed within 0..4294967295, got '-1'"),
     ("bench_finetune", ["--minutes", "0"], "expected a number above 0, got '0'"),  # was: ran
     ("bench_finetune", ["--objects", "mug,mug"], "object names must be unique, got mug twice"),
+    # was: a RuntimeError traceback from bubble collect, once a sensor was drawn
+    ("bench_finetune", ["--poses-per-object", "1001"], "expected poses per object within 1..1000, got '1001'"),
+    ("bench_accuracy", ["--calib-poses", "1001"], "expected poses per object within 1..1000"),
     ("bench_pose", ["--seeds", "-1"], "expected a sensor seed within 0..4294967295, got '-1'"),
     ("bench_pose", ["--train-minutes", "0"], "expected a number above 0"),
     ("bench_accuracy", ["--objects", "cup"], "unknown object 'cup'"),  # was: exit 1 from bubble collect

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from collect.atomic_files import write_text
+
 #: First lines of docs/bench_trainer.md, whose sections the trainer benchmarks write.
 BENCH_TRAINER_HEADER = "# Trainer benchmarks\n\nEach section is written by its benchmark script (rerun it to refresh).\n"
 
@@ -21,4 +23,4 @@ def update_section(path: Path, key: str, title: str, lines: list[str], header: s
         text = head + block + rest.split(end, 1)[1]
     else:
         text = text.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(text, encoding="utf-8")
+    write_text(path, text)

@@ -65,6 +65,16 @@ STOP_POLL_S = 0.2
 STOP_TIMEOUT_S = 60.0
 
 
+class BubbleCommandError(RuntimeError):
+    """A ``bubble`` command run by ``BubbleCommands`` that failed: its last error line in the message;
+    ``returncode``: its exit status (negative: killed by that signal), None when it never ended
+    (stopped before it started, or killed after ``COMMAND_TIMEOUT_S``)."""
+
+    def __init__(self, message: str, returncode: int | None = None) -> None:
+        super().__init__(message)
+        self.returncode = returncode
+
+
 class BubbleCommands:
     """Runs ``bubble`` commands in subprocesses, from the threads of ``collect``'s jobs, and stops the
     running ones together (``stop``)."""
@@ -75,11 +85,11 @@ class BubbleCommands:
         self._stopped = False
 
     def run(self, *argv: str) -> None:
-        """Run ``bubble argv``; raise RuntimeError with its last error line when it fails or hangs, or
-        when ``stop`` came first."""
+        """Run ``bubble argv``; raise ``BubbleCommandError`` with its last error line when it fails or
+        hangs, or when ``stop`` came first."""
         with self._lock:  # no command starts after ``stop``
             if self._stopped:
-                raise RuntimeError(f"bubble {argv[0]} not started: stopped")
+                raise BubbleCommandError(f"bubble {argv[0]} not started: stopped")
             proc = subprocess.Popen([sys.executable, "-m", "calibrate.cli", *argv], stdout=subprocess.PIPE,
                                     stderr=subprocess.PIPE, text=True)
             self._running.add(proc)
@@ -89,13 +99,14 @@ class BubbleCommands:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.communicate()
-                raise RuntimeError(f"bubble {argv[0]} timed out after {COMMAND_TIMEOUT_S:.0f} s") from None
+                raise BubbleCommandError(f"bubble {argv[0]} timed out after {COMMAND_TIMEOUT_S:.0f} s") from None
         finally:
             with self._lock:
                 self._running.discard(proc)
         if proc.returncode != 0:
             last = (err.strip().splitlines() or ["(no output)"])[-1]
-            raise RuntimeError(f"bubble {argv[0]} {argv[1] if len(argv) > 1 else ''} failed: {last}")
+            raise BubbleCommandError(f"bubble {argv[0]} {argv[1] if len(argv) > 1 else ''} failed: {last}",
+                                     proc.returncode)
 
     def stop(self) -> None:
         """Start no more commands, and stop the running ones as a Ctrl-C stops ``bubble`` (the arm
@@ -207,7 +218,7 @@ def run_collect(args: argparse.Namespace) -> int:
             for seed, future in futures.items():
                 try:
                     print(f"sensor seed {seed}: {result_unless_stopped(future, signalled)}", flush=True)
-                except RuntimeError as err:  # one bad simulated sensor does not stop the others
+                except BubbleCommandError as err:  # one bad simulated sensor does not stop the others
                     failed += 1
                     print(f"sensor seed {seed}: {err}", file=sys.stderr, flush=True)
             if signalled:  # after the last sensor's result; its KeyboardInterrupt was lost
