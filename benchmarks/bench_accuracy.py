@@ -50,6 +50,7 @@ from collect.atomic_files import write_text  # noqa: E402
 from collect.errors import EXIT_FAULT  # noqa: E402
 from collect.session_info import session_summary  # noqa: E402
 from hw_mocks.objects import BUILTIN_OBJECTS  # noqa: E402
+from hw_mocks.sensor_spec import simulated_serial  # noqa: E402
 from collect.json_files import write_json  # noqa: E402
 from trainer.cli import PAPER_COLUMNS  # noqa: E402
 from trainer.evaluation import evaluate_model  # noqa: E402
@@ -328,7 +329,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.work = (args.work or ROOT / "runs" / ("bench_accuracy_quick" if args.quick else "bench_accuracy")).resolve()
     args.out = args.out or (args.work if args.quick else ROOT / "docs") / "bench_accuracy.md"
     seen = base_model_serials(args.base_model)
-    reused = [seed for seed in args.cross_seeds if f"SB-SIM-{seed:06d}" in seen]
+    reused = [seed for seed in args.cross_seeds if simulated_serial(seed) in seen]
     if reused:
         p.error(f"the base model trained on sensor seeds {reused}: pick other --cross-seeds")
     return args

@@ -304,6 +304,11 @@ def _coerce(name: str, value, source: str):
         raise InputError(f"{source}: field '{name}' has a bad value {value!r}") from None
 
 
+def simulated_serial(seed: int, defect: str | None = None) -> str:
+    """Serial number of the simulated sensor ``draw_sensor(seed, defect)`` (``SB-SIM-000042``)."""
+    return f"SB-SIM-{int(seed):06d}" + ("" if defect is None else f"-{defect}")
+
+
 def draw_sensor(seed: int, defect: str | None = None) -> SensorSpec:
     """Draw a plausible manufactured sensor from ``seed`` (deterministic).
 
@@ -326,7 +331,7 @@ def draw_sensor(seed: int, defect: str | None = None) -> SensorSpec:
     fx = vary(120.0, 0.03)
     apex_distance = vary(0.093, 0.02)
     spec = SensorSpec(
-        serial=f"SB-SIM-{int(seed):06d}" + ("" if defect is None else f"-{defect}"),
+        serial=simulated_serial(seed, defect),
         width=width,
         height=height,
         fx=fx,

@@ -397,3 +397,13 @@ def test_bench_tui_refuses_what_the_flow_would_refuse_and_keeps_its_page(tmp_pat
     assert capsys.readouterr().err == ("bench_tui: poses per object must be 2..1000 (one or more is held out), "
                                        "got 1\n")
     assert page.read_text() == "earlier page"
+
+
+def test_accuracy_refuses_cross_seeds_the_base_model_trained_on(capsys):
+    """The check compares the base model's serials with ``simulated_serial`` (was: a copy of its format)."""
+    from benchmarks import bench_accuracy
+
+    serial = sorted(bench_accuracy.base_model_serials("base"))[0]
+    seed = int(serial.removeprefix("SB-SIM-"))
+    line = _refused(bench_accuracy.parse_args, ["--cross-seeds", str(seed)], capsys)
+    assert f"the base model trained on sensor seeds [{seed}]: pick other --cross-seeds" in line
