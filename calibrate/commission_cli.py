@@ -77,9 +77,12 @@ def run_config(args, run_dir: str | Path, bench=None):
     """The ``CommissionConfig`` of ``add_run_options``' options, for ``run_dir`` and ``bench`` (a real
     bench's ``BenchConfig``; None for the simulated one)."""
     from calibrate.commission_config import CommissionConfig
+    from trainer.cli import check_model_arg
 
     def path(text: str | None) -> Path | None:
         return None if text is None else Path(text)
+
+    check_model_arg(args.base_model, "--base-model")  # its text: as a path, ./base reads as 'base'
 
     # the real bench's plate holds the objects its file lists (was: the four built-ins pressed whatever it held)
     objects = args.objects if args.objects is not None else (
@@ -92,7 +95,7 @@ def run_config(args, run_dir: str | Path, bench=None):
         bench=bench,
         thresholds=path(args.thresholds),
         registry_dir=path(args.registry),
-        base_model=path(args.base_model),
+        base_model=None if args.base_model == "base" else path(args.base_model),
         finetune_minutes=args.finetune_minutes,
         total_minutes=args.total_minutes,
         objects=tuple(name.strip() for name in objects.split(",") if name.strip()),

@@ -137,6 +137,28 @@ def test_model_and_session_paths_of_the_wrong_kind(tmp_path, places, synthetic_s
     assert not (tmp_path / "m").exists()
 
 
+def test_a_model_folder_named_base_is_not_swapped_for_the_shipped_model(tmp_path, synthetic_session, capsys,
+                                                                        monkeypatch):
+    """Was: ``./base`` (or ``base/``) read as a path is ``base``: the shipped base model was evaluated, posed
+    or fine-tuned from instead, with exit 0, and ``train --out base`` wrote a model only that name reached."""
+    import shutil
+
+    from trainer.model_dir import BASE_MODEL_DIR
+
+    shutil.copytree(BASE_MODEL_DIR, tmp_path / "base")
+    monkeypatch.chdir(tmp_path)
+    says = f"a folder named base here reads as the shipped base model ('base'); give its full path, {tmp_path / 'base'}"
+    for argv, option in ((["evaluate", "--model", "./base", "--data", synthetic_session], "--model ./base"),
+                         (["pose", "--model", "base/", "--data", synthetic_session], "--model base/"),
+                         (["train", "--data", synthetic_session, "--init", "./base", "--out", "m"], "--init ./base"),
+                         (["commission", "--sim", "--base-model", "./base", "--out", "run"], "--base-model ./base")):
+        _refused(capsys, argv, f"{option}: {says}")
+    for out in ("base", "./base/"):
+        _refused(capsys, ["train", "--data", synthetic_session, "--out", out],
+                 f"--out {out}: 'base' names the shipped base model where a model is read (--init, --model)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["base", "synthetic.h5"]
+
+
 def test_empty_object_lists(tmp_path, synthetic_session, capsys):
     for argv in (["evaluate", "--model", "base", "--data", synthetic_session, "--objects", ","],
                  ["train", "--data", synthetic_session, "--objects", " , ", "--out", tmp_path / "m"]):

@@ -118,12 +118,17 @@ def _objects(text: str | None) -> list[str] | None:
 
 
 def check_model_arg(value: str | None, option: str) -> None:
-    """Raise InputError when a model option (``--model``, ``--init``) is empty or names a file: a model is a
-    directory."""
+    """Raise InputError when a model option (``--model``, ``--init``) is empty, names a file (a model
+    is a directory), or names a folder ``base`` in the working directory otherwise than by its full
+    path (``./base``, ``base/``: as a path it reads ``base``, the shipped base model's name, and was
+    silently swapped for that model)."""
     from collect.errors import InputError
 
     if value is not None and not value.strip():
         raise InputError(f"{option} is empty: name a model directory, or 'base' (the shipped base model)")
+    if value is not None and value != "base" and Path(value) == Path("base"):
+        raise InputError(f"{option} {value}: a folder named base here reads as the shipped base model ('base'); "
+                         f"give its full path, {Path(value).resolve()}")
     if value is not None and value != "base" and Path(value).is_file():
         raise InputError(f"{option} {value} is a file, not a model directory (give the directory that holds "
                          f"metadata.json)")
@@ -205,6 +210,9 @@ def run_train(args: argparse.Namespace) -> int:
     from trainer.training import TrainConfig, train_model
 
     out = Path(args.out)
+    if out == Path("base"):  # was: written, and then read back as the shipped model by --init/--model base
+        raise InputError(f"--out {args.out}: 'base' names the shipped base model where a model is read (--init, "
+                         "--model); name the folder otherwise")
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file, not a model directory")
     check_parent_dirs(out)
