@@ -171,15 +171,20 @@ def test_the_deadline_binds_before_the_first_step_and_in_a_resumed_run(session, 
 @pytest.mark.parametrize("change, named", [(dict(seed=1), "--seed"), (dict(holdout_object="box"), "split (--split"),
                                            (dict(frame_stride=2), "--frame-stride"), (dict(lr=1e-4), "--lr"),
                                            (dict(contact_weight=0.0), "--contact-weight"),
-                                           (dict(augment=False), "--no-augment")])
+                                           (dict(augment=False), "--no-augment"), (dict(width=0.25), "--width"),
+                                           (dict(epochs=3), "budget (--epochs, --minutes)"),
+                                           (dict(epochs=None, minutes=0.05), "budget (--epochs, --minutes)"),
+                                           (dict(epochs=None), "budget (--epochs, --minutes)")])
 def test_a_checkpoint_resumes_only_with_the_frames_it_trained_on(session, tmp_path, change, named):
     """Was: ``--resume --seed 1`` after a seed-0 start validated on poses the first part had trained on,
-    and wrote held-out metrics for them; and a resume with another recipe (learning rate, loss,
-    augmentation) was taken, the model's metadata recording the resumed run's alone."""
+    and wrote held-out metrics for them; a resume with another recipe (learning rate, loss,
+    augmentation) was taken, the model's metadata recording the resumed run's alone; another width
+    failed with torch's list of keys; and another budget (or none: the default 3 minutes) ended the
+    run at once or changed its learning-rate schedule."""
     out = tmp_path / "model"
     _interrupted_after_3_steps(session, out)
     with pytest.raises(InputError, match=f"the checkpoint in {out} was trained with other settings \\(.*{re.escape(named)}"):
-        train_model(_config([session], out, epochs=2, export_onnx=False, resume=True, **change))
+        train_model(_config([session], out, **{"epochs": 2, "export_onnx": False, "resume": True, **change}))
     assert has_checkpoint(out) and not (out / WEIGHTS_FILE).exists()
 
 

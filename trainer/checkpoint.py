@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -81,9 +82,12 @@ def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     write_json(model_dir / CHECKPOINT_STATE, state)
 
 
-def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer) -> dict:
-    """Restore network and optimizer from ``model_dir``; returns the saved progress dict.
-    ``InputError`` for files that cannot be read, hold other content, or are of two saves."""
+def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer,
+                    check: Callable[[dict], None] | None = None) -> dict:
+    """Restore network and optimizer from ``model_dir``; returns the saved progress dict. ``check``
+    is called with it before anything is restored (it may refuse the checkpoint's settings before
+    weights of another network fail to load). ``InputError`` for files that cannot be read, hold
+    other content, or are of two saves."""
     model_dir = Path(model_dir)
     try:
         tensors = load_file(str(model_dir / CHECKPOINT_WEIGHTS))
@@ -100,6 +104,8 @@ def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     if state.get("checkpoint_id") != weights_id:
         raise InputError(f"the checkpoint in {model_dir} is torn: {CHECKPOINT_WEIGHTS} and {CHECKPOINT_STATE} come "
                          "from two saves (the training was killed between them); train anew without --resume")
+    if check is not None:
+        check(progress)
     net_state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
     try:
         network.load_state_dict(net_state)

@@ -219,11 +219,17 @@ def split_frames(config: TrainConfig, frames: FrameSet) -> tuple[FrameSet, Frame
 def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, split_info: dict, world_size: int,
                 init_info: dict | None) -> dict:
     """What decides which frames train, which validate and in what order, and the recipe they train
-    with (the initial weights, by their SHA-256, the learning rate, the loss and the augmentation): a
-    checkpoint resumes only with the same (``_check_resume``; was: the recipe unchecked, so that a
-    resume without ``--init`` recorded ``init: null`` for a fine-tuned model)."""
+    with (the network, the initial weights, by their SHA-256, the budget, the learning rate, the loss
+    and the augmentation): a checkpoint resumes only with the same (``_check_resume``; was: the
+    recipe unchecked, so that a resume without ``--init`` recorded ``init: null`` for a fine-tuned
+    model, and the network and budget unchecked: another width failed to load the weights with
+    torch's list of keys, and another budget, or none, the default one, ended the run at once or
+    changed its learning-rate schedule, with a model recorded as trained on that budget alone)."""
     init = init_info["weights_sha256"] if init_info else None  # (``_build``'s)
     return plain_json({
+        "arch": config.arch,
+        "width": config.width,
+        "budget": {"epochs": config.epochs, "minutes": _budget_minutes(config)},
         "data": [s.sha256 for s in frames.sources],
         "val_data": [s.sha256 for s in val_frames.sources] if config.val_data else [],
         "split": {k: v for k, v in split_info.items() if k != "val_data"},  # its paths: the files are in "val_data"
@@ -241,13 +247,20 @@ def _frames_key(config: TrainConfig, frames: FrameSet, val_frames: FrameSet, spl
     })
 
 
+def _budget_minutes(config: TrainConfig) -> float | None:
+    """The training-time budget (min) of ``config``: its ``minutes``, ``DEFAULT_MINUTES`` when it
+    gives no budget, None for an ``epochs`` budget."""
+    return DEFAULT_MINUTES if config.epochs is None and config.minutes is None else config.minutes
+
+
 def _check_resume(out_dir: Path, saved: dict | None, current: dict) -> None:
     """Refuse to resume the checkpoint in ``out_dir`` with other data, split, seed, batches or recipe (was:
     resumed, then validated on frames the first part had trained on, with held-out metrics to match)."""
     if saved is None:
         raise InputError(f"the checkpoint in {out_dir} does not record which frames it trained on (an older "
                          "bubble); train anew, without --resume")
-    names = {"data": "--data", "val_data": "--val-data", "split": "split (--split, --holdout-object, --val-data)",
+    names = {"arch": "--arch", "width": "--width", "budget": "budget (--epochs, --minutes)",
+             "data": "--data", "val_data": "--val-data", "split": "split (--split, --holdout-object, --val-data)",
              "objects": "--objects", "frame_stride": "--frame-stride", "seed": "--seed", "batch_size": "--batch-size",
              "world_size": "number of processes", "init": "--init", "lr": "--lr",
              "inverse_depth_loss": "--inverse-depth-loss", "contact_weight": "--contact-weight",
@@ -400,11 +413,11 @@ def train_model(
 
     progress = {"epoch": 0.0, "step": 0, "train_s": 0.0, "history": [], "loss": float("nan")}
     if config.resume and has_checkpoint(out_dir):
-        progress = load_checkpoint(out_dir, network, optimizer)
-        _check_resume(out_dir, progress.get("frames_key"), frames_key)
+        progress = load_checkpoint(out_dir, network, optimizer,
+                                   check=lambda saved: _check_resume(out_dir, saved.get("frames_key"), frames_key))
         network.to(ctx.device)
 
-    minutes = DEFAULT_MINUTES if config.epochs is None and config.minutes is None else config.minutes
+    minutes = _budget_minutes(config)
     budget_s = None if minutes is None else 60.0 * minutes
     n_per_rank = len(train_t) // ctx.world_size
     if n_per_rank == 0:
