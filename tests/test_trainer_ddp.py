@@ -41,7 +41,35 @@ def test_more_processes_than_gpus_is_bad_input(monkeypatch):
     monkeypatch.setenv("RANK", "1")
     monkeypatch.setenv("LOCAL_RANK", "1")
     monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")
+    monkeypatch.setenv("MASTER_ADDR", "localhost")
+    monkeypatch.setenv("MASTER_PORT", "29500")
     with pytest.raises(InputError, match="2 processes per machine but 1 GPU"):
         DistContext.from_env()
+    assert not torch.distributed.is_initialized()
+
+
+@pytest.mark.parametrize("env, says", [
+    ({"WORLD_SIZE": "2"}, "WORLD_SIZE=2 without RANK, MASTER_ADDR, MASTER_PORT: start the processes with torchrun, "
+                          "or unset WORLD_SIZE to train in one process"),
+    ({"WORLD_SIZE": "x"}, "WORLD_SIZE=x: torchrun's variable must be an integer of 1 or more"),
+    ({"WORLD_SIZE": "2", "RANK": "2", "MASTER_ADDR": "localhost", "MASTER_PORT": "29500"},
+     "RANK=2: torchrun's variable must be an integer within 0..1"),
+    ({"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "-1", "MASTER_ADDR": "localhost", "MASTER_PORT": "29500"},
+     "LOCAL_RANK=-1: torchrun's variable must be an integer within 0..1"),
+])
+def test_torchruns_variables_set_otherwise_are_bad_input(monkeypatch, env, says):
+    """Was: a stray ``WORLD_SIZE`` gave a ``KeyError: 'RANK'`` or ``ValueError`` traceback, exit 1."""
+    import torch
+
+    from collect.errors import InputError
+    from trainer.distributed import DistContext
+
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(InputError) as err:
+        DistContext.from_env(prefer_cuda=False)
+    assert str(err.value).startswith(says), err.value
     assert not torch.distributed.is_initialized()
 

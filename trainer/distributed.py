@@ -20,6 +20,22 @@ import torch.distributed as dist
 from collect.errors import InputError
 
 
+def _env_int(name: str, default: int | None, lo: int, hi: int | None = None) -> int:
+    """The environment variable ``name`` as an integer within ``lo..hi`` (``default`` when unset)."""
+    text = os.environ.get(name)
+    if text is None and default is not None:
+        return default
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        value = None
+    if value is None or value < lo or (hi is not None and value > hi):
+        within = f"within {lo}..{hi}" if hi is not None else f"of {lo} or more"
+        raise InputError(f"{name}={text}: torchrun's variable must be an integer {within}; start the "
+                         "processes with torchrun, or unset WORLD_SIZE to train in one process")
+    return value
+
+
 @dataclass(frozen=True)
 class DistContext:
     """Where this process sits in the (possibly single-process) training job."""
@@ -40,14 +56,20 @@ class DistContext:
 
     @classmethod
     def from_env(cls, prefer_cuda: bool = True) -> "DistContext":
-        """Single-process context, or join torchrun's process group when ``WORLD_SIZE > 1``."""
-        world = int(os.environ.get("WORLD_SIZE", "1"))
+        """Single-process context, or join torchrun's process group when ``WORLD_SIZE > 1``.
+        ``InputError`` for torchrun's variables set otherwise than torchrun sets them (was: a
+        ``KeyError`` or ``ValueError`` traceback for a stray ``WORLD_SIZE``)."""
+        world = _env_int("WORLD_SIZE", 1, 1)
         cuda = prefer_cuda and torch.cuda.is_available()
         if world <= 1:
             return cls(device="cuda" if cuda else "cpu")
-        rank = int(os.environ["RANK"])
-        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+        missing = [name for name in ("RANK", "MASTER_ADDR", "MASTER_PORT") if not os.environ.get(name)]
+        if missing:
+            raise InputError(f"WORLD_SIZE={world} without {', '.join(missing)}: start the processes with torchrun, "
+                             "or unset WORLD_SIZE to train in one process")
+        rank = _env_int("RANK", None, 0, world - 1)
+        local_world = _env_int("LOCAL_WORLD_SIZE", world, 1, world)
+        local_rank = _env_int("LOCAL_RANK", 0, 0, local_world - 1)
         gpus = torch.cuda.device_count() if cuda else 0
         if cuda and local_world > gpus:  # set_device(local_rank) would fail in some ranks
             raise InputError(f"{local_world} processes per machine but {gpus} GPU(s): run torchrun with "
