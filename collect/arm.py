@@ -22,7 +22,9 @@ the robot's safety stops (``getSafetyStatusBits``: a protective stop is
 ``HardwareFault('protective-stop')``, an emergency or safeguard stop, a safety violation or fault
 ``HardwareFault('safety-stop')``) and the measured force against ``SafetyLimits.force_limit_n``.
 Each sample also kicks the controller's watchdog (``setWatchdog`` at ``watchdog_hz``, set when the
-monitor starts): should this host hang or the link die mid-move, the robot stops by itself
+monitor starts and again before every move: ur_rtde restarts the control program when it
+reconnects by itself, and a program stop removes every watchdog): should this host hang or the
+link die mid-move, the robot stops by itself
 instead of finishing an asynchronous move unsupervised. The kick is ``getStepTime()``, not
 ur_rtde's ``kickWatchdog()``: the watchdog watches the command register, which any command
 updates, and the control script that ur_rtde 1.6 uploads has no branch for ``kickWatchdog``'s
@@ -288,11 +290,8 @@ class Arm:
                 raise self._latest_fault or HardwareFault("arm-monitor", "arm: the state monitor has ended")
             return
         with self._ctl_lock:
-            armed = self._ctl.setWatchdog(self.watchdog_hz)
+            self._arm_watchdog()
             self._kicked_at = time.monotonic()
-        if not armed:  # ur_rtde returns False where the control script refused or timed out
-            raise self._refused("arm: the robot refused to arm its watchdog (setWatchdog); is its control script "
-                                "running?")
         self._monitor_ended = False
         self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
@@ -446,6 +445,14 @@ class Arm:
         except HardwareFault as fault:
             self._set_fault(fault)
 
+    def _arm_watchdog(self) -> None:
+        """Arm the controller's watchdog at ``watchdog_hz`` (``setWatchdog``); under ``_ctl_lock``.
+        Raises the refusal (``_refused``) where ur_rtde returns False (the control script refused or
+        timed out)."""
+        if not self._ctl.setWatchdog(self.watchdog_hz):
+            raise self._refused("arm: the robot refused to arm its watchdog (setWatchdog); is its control script "
+                                "running?")
+
     def _note_kick(self) -> None:
         """Count the time since the watchdog's previous kick (``longest_kick_gap_s``); under ``_ctl_lock``."""
         now = time.monotonic()
@@ -477,6 +484,10 @@ class Arm:
         with self._ctl_lock:
             if check_faults:
                 self.check()
+            # armed again before each move (was: once, and a program ur_rtde restarted as it reconnected
+            # by itself ran every later move without a watchdog)
+            self._arm_watchdog()
+            self._note_kick()
             accepted = self._ctl.moveL(target.tolist(), speed, accel, True)
         if not accepted:
             if check_faults:

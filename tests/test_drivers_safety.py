@@ -436,6 +436,21 @@ def test_the_robot_stops_by_itself_when_the_host_stops_kicking_its_watchdog():
         arm.close()
 
 
+def test_the_watchdog_is_armed_again_before_every_move():
+    """ur_rtde restarts the control program when it reconnects by itself, and a program stop removes
+    every watchdog: was armed once, in ``start``, and every later move ran without it."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    arm = Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        assert controller._watchdog_s == 1.0 / WATCHDOG_HZ
+        controller._watchdog_s = None  # the program restarted on a reconnect: no watchdog
+        arm.move_to([0.4, 0.0, 0.21, *DOWN])
+        assert controller._watchdog_s == 1.0 / WATCHDOG_HZ
+    finally:
+        arm.close()
+
+
 def test_every_motion_setting_and_scalar_limit_has_an_upper_bound():
     import dataclasses
 
