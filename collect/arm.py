@@ -60,7 +60,8 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,6 +102,10 @@ PROTECTIVE_STOP_BIT = 2
 #: The controller publishes its state at 125-500 Hz: a controller time (``getTimestamp``) that has
 #: not moved for this long (s, bench clock) is a dead link.
 STALE_STATE_S = 0.25
+#: Longest wait (s, real time) for another thread's command to the robot to return before a command
+#: or a stop gives up on the control link: ur_rtde waits up to 300 s for the "done" of a command
+#: (``stopL`` too), which a dead link that keeps its socket never brings.
+CONTROL_WAIT_S = 2.0
 
 
 def safety_stops(bits: int) -> list[str]:
@@ -289,7 +294,7 @@ class Arm:
             if self._monitor_ended:
                 raise self._latest_fault or HardwareFault("arm-monitor", "arm: the state monitor has ended")
             return
-        with self._ctl_lock:
+        with self._commanding():
             self._arm_watchdog()
             self._kicked_at = time.monotonic()
         self._monitor_ended = False
@@ -314,7 +319,9 @@ class Arm:
             self._watch()
         except HardwareFault as fault:  # the link lost mid-sample
             self._set_fault(fault)
-            self.stop()
+            # sent apart: on a dead link the stopL may wait for a "done" that never comes, and the
+            # motions wait for this thread's end to raise the fault (was: up to ur_rtde's 300 s)
+            threading.Thread(target=self.stop, name="arm-stop", daemon=True).start()
         except Exception as err:  # a dead monitor must not leave a motion unsupervised
             self._set_fault(HardwareFault("arm-monitor", f"arm: state monitor failed ({type(err).__name__}: {err})"))
             self.stop()
@@ -339,7 +346,7 @@ class Arm:
             elif self.clock() - controller_t_since > STALE_STATE_S:
                 raise HardwareFault("arm-disconnected", f"arm: the robot's state has not changed for {STALE_STATE_S:g} "
                                                         "s (its clock stopped): the link is dead")
-            with self._ctl_lock:
+            with self._commanding():
                 self._ctl.getStepTime()  # the watchdog's kick (module docstring)
                 self._note_kick()
             sample = self._read()
@@ -440,10 +447,25 @@ class Arm:
         thread, and never raises: a stop the robot cannot be sent (the link is gone) is recorded as
         the arm's fault, and the controller's watchdog stops the robot."""
         try:
-            with self._ctl_lock:
+            with self._commanding():
                 self._ctl.stopL(STOP_DECEL_M_S2, True)
         except HardwareFault as fault:
             self._set_fault(fault)
+
+    @contextmanager
+    def _commanding(self) -> Iterator[None]:
+        """Hold ``_ctl_lock`` (one command to the robot at a time) for the with-block; raises
+        ``HardwareFault('arm-disconnected')`` when another thread's command has held it for
+        ``CONTROL_WAIT_S`` (blocked on a dead link; was: every later command, the stop included,
+        waited on it)."""
+        if not self._ctl_lock.acquire(timeout=CONTROL_WAIT_S):
+            raise HardwareFault("arm-disconnected", f"arm: a command to the robot has not returned for "
+                                                    f"{CONTROL_WAIT_S:g} s: the control link is blocked (the "
+                                                    "controller's watchdog stops the robot)")
+        try:
+            yield
+        finally:
+            self._ctl_lock.release()
 
     def _arm_watchdog(self) -> None:
         """Arm the controller's watchdog at ``watchdog_hz`` (``setWatchdog``); under ``_ctl_lock``.
@@ -481,7 +503,7 @@ class Arm:
         and the moveL under the lock that orders commands, so that a stop of a fault recorded meanwhile
         (``abort``, from another thread) is sent after the move, never before it (was: the check outside
         it, and a stopL could precede the moveL it should have stopped)."""
-        with self._ctl_lock:
+        with self._commanding():
             if check_faults:
                 self.check()
             # armed again before each move (was: once, and a program ur_rtde restarted as it reconnected
@@ -603,7 +625,7 @@ class Arm:
                            f"the approach) before a contact move, above the {s.max_preload_n:.2f} N a free bubble may "
                            f"read (motion max_preload_n): the bubble touches something; force sensor not zeroed, "
                            f"arm not moved")
-        with self._ctl_lock:
+        with self._commanding():
             zeroed = self._ctl.zeroFtSensor()
         if not zeroed:  # the approach would stop on the old zero's offset (up to max_preload_n)
             raise self._refused("arm: the robot refused to zero its force sensor (zeroFtSensor); arm not moved")

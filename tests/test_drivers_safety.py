@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import threading
 import time
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from collect.arm import WATCHDOG_HZ, Arm, MotionSettings
+from collect.arm import CONTROL_WAIT_S, WATCHDOG_HZ, Arm, MotionSettings
 from collect.errors import HardwareFault, InputError
 from collect.safety import SafetyLimits, SafetyViolation, tilt_deg
 from collect.transforms import rotation_between_rad
@@ -486,6 +487,47 @@ def test_a_robot_state_that_stops_changing_is_a_dead_link():
         assert wait_until(lambda: np.linalg.norm(controller.tcp_speed()[:3]) == 0.0, 10.0), "the move went on"
         assert controller.tcp_pose()[2] < 0.25
     finally:
+        arm.close()
+
+
+class _DeadControl(FakeRTDEControl):
+    """A control link dead without closing its socket: once ``dead``, every ordinary command waits for a
+    "done" that never comes (ur_rtde gives up after 300 s; here until the test ends)."""
+
+    dead = threading.Event()
+    released = threading.Event()
+
+    def _ordinary(self) -> bool:
+        if self.dead.is_set():
+            self.released.wait(30.0)
+            return False
+        return super()._ordinary()
+
+
+def test_a_dead_link_ends_the_move_and_the_retract_without_waiting_on_a_blocked_stop():
+    """Was: the monitor's stopL waited on the dead link with the command lock held, and the move, its
+    stop and the retract after it waited on that lock: ur_rtde's 300 s, the camera and the pressure
+    board unwatched."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    receive = _FrozenLink(controller)
+    control = _DeadControl(controller)
+    control.dead, control.released = threading.Event(), threading.Event()
+    arm = Arm(control, receive, LIMITS, settings=MOTION, state_hz=200)
+    try:
+        arm.start()
+        moving = threading.Timer(0.5, lambda: (control.dead.set(), setattr(receive, "frozen", receive.getTimestamp())))
+        moving.start()
+        t0 = time.monotonic()
+        with pytest.raises(HardwareFault) as err:
+            arm.move_to([0.4, 0.0, 0.3, *DOWN], speed=0.02)  # 5 s long
+        assert err.value.kind == "arm-disconnected" and time.monotonic() - t0 < 0.5 + 3 * CONTROL_WAIT_S
+        t0 = time.monotonic()
+        with contextlib.suppress(HardwareFault):  # (here nothing to retract from: it stays put)
+            arm.retract()
+        arm.stop()
+        assert time.monotonic() - t0 < 2 * CONTROL_WAIT_S
+    finally:
+        control.released.set()
         arm.close()
 
 
