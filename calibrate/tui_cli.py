@@ -8,7 +8,7 @@ from datetime import datetime
 from pathlib import Path
 
 from calibrate.commission_cli import add_run_options, run_config
-from collect.stop_signals import exit_code, stop_signals_handled
+from collect.stop_signals import exit_code, raise_pending_stop, stop_signals_handled
 from collect.errors import InputError
 from collect.output_files import named_path
 
@@ -48,6 +48,7 @@ def run_tui(args) -> int:
         received.append(signum)
         app.call_later(app.action_quit)
 
+    raise_pending_stop()  # one that came while the imports above swallowed it (was: the UI opened all the same)
     with stop_signals_handled(quit_app):
         app.run()
     code = exit_code(received[0]) if received else (app.return_code or 0)  # a crashed app: non-zero

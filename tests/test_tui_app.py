@@ -299,6 +299,49 @@ def test_stop_key_stops_the_flow_from_any_tab(in_tmp):
     asyncio.run(scenario())
 
 
+def test_the_letter_keys_work_in_either_case(in_tmp):
+    """Was: lower-case alone: with Caps Lock on, ``S`` left the arm moving with no message, and ``C``,
+    ``Y`` and ``Q`` did nothing."""
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events())
+        app = BenchApp(make_config(), flow=flow)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("C")
+            assert isinstance(app.screen, ConfirmStart)
+            await pilot.press("Y")
+            assert await asyncio.to_thread(flow.emitted.wait, 30), "the flow did not start"
+            await pilot.press("S")
+            assert app.arm_state in ("stopping", "stopped")
+            await wait_for(lambda: app.result is not None, pilot)
+            assert flow.saw_stop and app.result.stopped
+            await pilot.press("Q")
+            await pilot.pause()
+            assert not app.is_running
+
+    asyncio.run(scenario())
+
+
+def test_a_stop_key_right_after_the_start_cancels_it(in_tmp):
+    """Keys that reach the app together (a busy UI): was, the dialog closed, the stop said "Nothing is
+    moving." before the start's answer was handled, and the arm then moved."""
+    from textual import events
+
+    async def scenario():
+        flow = ScriptedFlow(mid_run_events())
+        app = BenchApp(make_config(), flow=flow)
+        notes = []
+        app.notify = lambda message, **kw: notes.append(message)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            for key in ("c", "y", "s"):
+                app.post_message(events.Key(key, key))
+            await pilot.pause(0.5)
+            assert not app.running and app.arm_state == "idle" and not flow.emitted.is_set(), notes
+            assert notes[-1] == "Start cancelled: a stop key came with it; nothing moves.", notes
+
+    asyncio.run(scenario())
+
+
 def test_ctrl_p_opens_no_search_field_that_takes_the_stop_key(in_tmp):
     """ctrl+p (textual's command palette) opens nothing: its search field took ``s`` and space as
     text, so the stop key typed a letter instead of stopping the arm."""
@@ -351,11 +394,17 @@ def test_quit_mid_run_stops_first_and_exits_after_the_flow_returns(in_tmp):
     async def scenario():
         flow = ScriptedFlow(mid_run_events())
         app = BenchApp(make_config(), flow=flow)
+        messages = []  # what the app prints on stderr as it exits
+        exit_app = app.exit
+        app.exit = lambda *args, **kwargs: (messages.append(kwargs.get("message")), exit_app(*args, **kwargs))
         async with app.run_test(size=SIZE) as pilot:
             await start_and_wait(pilot, flow)
             await pilot.press("q")
             await wait_for(lambda: not app.is_running, pilot)
         assert flow.saw_stop and app.result.stopped
+        # was: exit 0 and no word, as if nothing had been interrupted
+        assert app.return_code == 130 and messages == [f"bubble tui: quit during the run, which stopped; its files "
+                                                       f"are in {app.config.run_dir}"]
 
     asyncio.run(scenario())
 

@@ -19,6 +19,7 @@ flow has returned.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -57,7 +58,7 @@ from calibrate.tui.widgets.registry_view import RegistryView
 from calibrate.tui.widgets.sensor_view import SensorView
 from calibrate.tui.widgets.steps_panel import StepsPanel
 from calibrate.tui.widgets.training_curve import TrainingCurve
-from collect.errors import HardwareFault, InputError
+from collect.errors import EXIT_INTERRUPTED, HardwareFault, InputError
 from hw_mocks.objects import object_name
 
 #: The banner's line when idle, and during a run until a stop, a fault or the outcome replaces it. It never
@@ -75,6 +76,8 @@ MIN_TERMINAL = (100, 30)
 #: How long quitting waits for a stopping flow before giving up on a clean close, s: then the app
 #: leaves (exit code 1) and the flow's process, orphaned, stops by itself.
 QUIT_WAIT_S = 60.0
+#: A stop key this long (s) before the start dialog's "yes" is handled cancels the start.
+STOP_CANCELS_START_S = 1.0
 
 #: textual's animation level unless the user sets ``TEXTUAL_ANIMATIONS``: none. The only animation
 #: here is the tab underline sliding for 0.3 s after each tab key, which recomposes the screen at up
@@ -112,16 +115,18 @@ class BenchApp(App):
     #: keys ``s`` and space included, so while it was open they typed instead of stopping the arm.
     ENABLE_COMMAND_PALETTE = False
 
+    #: The letter keys in either case (was: lower-case alone, and with Caps Lock on the stop key
+    #: ``S`` did nothing, with no message).
     BINDINGS = [
-        Binding("s", "stop", "STOP arm", priority=True),
+        Binding("s,S", "stop", "STOP arm", key_display="s", priority=True),
         Binding("space", "stop", "STOP arm", show=False, priority=True),
-        Binding("c", "commission", "Commission"),
+        Binding("c,C", "commission", "Commission", key_display="c"),
         Binding("1", "show_tab('tab-commission')", "Steps"),
         Binding("2", "show_tab('tab-sensor')", "Sensor"),
         Binding("3", "show_tab('tab-acceptance')", "Acceptance"),
         Binding("4", "show_tab('tab-registry')", "Registry"),
-        Binding("r", "reload_registry", "Reload registry", show=False),
-        Binding("q", "quit", "Quit"),
+        Binding("r,R", "reload_registry", "Reload registry", show=False),
+        Binding("q,Q", "quit", "Quit", key_display="q"),
         Binding("ctrl+c", "quit", "Quit", show=False, priority=True),
     ]
 
@@ -158,6 +163,7 @@ class BenchApp(App):
         self._worker: Worker | None = None
         self._quit_requested = False
         self._stop_requested = False  # this run was asked to stop: its flow's Verdict is no verdict
+        self._stop_key_at = -math.inf  # time.monotonic() of the latest stop key
         #: the checks of this run's Verdict, as acceptance.json lists them (those after a failed gate "not
         #: run"; ``CommissionResult.checks`` holds the checks made); None before it
         self._verdict_checks: list[dict] | None = None
@@ -301,8 +307,16 @@ class BenchApp(App):
         self.push_screen(ConfirmStart(details), callback=self._confirmed)
 
     def _confirmed(self, start: bool | None) -> None:
-        if start:
-            self.start_commissioning()
+        """The dialog's answer. A stop key within ``STOP_CANCELS_START_S`` before it cancels a start:
+        keys that reach the app together are not handled in order (the stop keys are priority
+        bindings, handled as they arrive), and a stop typed right after ``y`` could be handled before
+        it (was: "Nothing is moving.", and the arm then moved)."""
+        if not start:
+            return
+        if time.monotonic() - self._stop_key_at < STOP_CANCELS_START_S:
+            self.notify("Start cancelled: a stop key came with it; nothing moves.", severity="warning")
+            return
+        self.start_commissioning()
 
     def start_commissioning(self) -> None:
         """Start the flow (the confirmation dialog calls this)."""
@@ -337,6 +351,7 @@ class BenchApp(App):
 
     def action_stop(self) -> None:
         """Stop the arm now: the flow safe-stops, retracts and closes the session file."""
+        self._stop_key_at = time.monotonic()
         if isinstance(self.screen, ConfirmStart):
             self.screen.dismiss(False)
             return
@@ -552,8 +567,9 @@ class BenchApp(App):
         self._bench_open = False
         self._update_bench_panel(snapshot)
         self.registry.reload()
-        if self._quit_requested:
-            self.exit()
+        if self._quit_requested:  # the run this quit stopped: exit 130, as a Ctrl-C of bubble commission
+            self.exit(return_code=EXIT_INTERRUPTED, message=f"bubble tui: quit during the run, which stopped; its "
+                                                            f"files are in {self.config.run_dir}")
 
     def _arm_outcome(self) -> str:
         """What the run's safe stop did to the arm, for the banner."""

@@ -13,10 +13,10 @@ class ConfirmStart(ModalScreen[bool]):
     """Asks before the arm moves; dismisses with True (start) or False (cancel)."""
 
     BINDINGS = [
-        Binding("y", "answer(True)", "Start"),
-        Binding("n", "answer(False)", "Cancel"),
+        Binding("y,Y", "answer(True)", "Start", key_display="y"),
+        Binding("n,N", "answer(False)", "Cancel", key_display="n"),
         Binding("escape", "answer(False)", "Cancel", show=False),
-        Binding("q", "answer(False)", "Cancel", show=False),  # the app's quit key: back out first
+        Binding("q,Q", "answer(False)", "Cancel", show=False),  # the app's quit key: back out first
     ]
 
     def __init__(self, details: str) -> None:
