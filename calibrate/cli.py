@@ -13,16 +13,13 @@ No tracebacks for any of them.
 from __future__ import annotations
 
 import argparse
-import errno
 import importlib
-import os
 import signal
 import sys
 
 from collect.stop_signals import (INTERRUPTS, Terminated, exit_code, raise_interrupt, raise_pending_stop,
                                   stop_signals_handled)
 from collect.errors import (
-    DISK_FULL_ERRNOS,
     EXIT_BAD_INPUT,
     EXIT_BROKEN_PIPE,
     EXIT_FAULT,
@@ -32,6 +29,7 @@ from collect.errors import (
     HardwareFault,
     InputError,
     OneLineParser,
+    os_error_exit,
 )
 
 #: Modules providing ``register(subparsers)``, in the order their commands are listed.
@@ -96,19 +94,11 @@ def main(argv: list[str] | None = None, *, exits_after: bool = False) -> int:
     except KeyboardInterrupt:
         print("bubble: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except BrokenPipeError:  # the reader of stdout went away (`bubble info S.h5 | head`): nothing to say
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so that exit's flush does not fail
-        return EXIT_BROKEN_PIPE
-    except OSError as err:
-        if err.errno == errno.ENAMETOOLONG:  # a path given to the command, read before any recording
-            print(f"bubble: error: {err.filename}: a name in this path is longer than the file system's "
-                  "limit", file=sys.stderr)
-            return EXIT_BAD_INPUT
-        if err.errno not in DISK_FULL_ERRNOS:
+    except OSError as err:  # (``| head``, a name too long, a full disk)
+        code = os_error_exit(err, "bubble")
+        if code is None:
             raise
-        print(f"bubble: error: cannot write {err.filename or 'the output'}: {err.strerror}; free some space "
-              "or write elsewhere", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return code
 
 
 def run() -> None:

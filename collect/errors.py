@@ -65,3 +65,25 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D401 - argparse API
         self.exit(EXIT_BAD_INPUT, f"{self.tool}: error: {message}\n")
+
+
+def os_error_exit(err: OSError, tool: str) -> int | None:
+    """The exit code of the command line ``tool`` that ended on ``err``, its one line printed; None
+    for an error it does not explain (the caller re-raises it): the reader of stdout gone (``| head``:
+    ``EXIT_BROKEN_PIPE``, nothing printed, stdout pointed at /dev/null so that the exit's flush does
+    not fail), a name longer than the file system allows or a full disk (``EXIT_BAD_INPUT``)."""
+    import os
+    import sys
+
+    if isinstance(err, BrokenPipeError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
+    if err.errno == errno.ENAMETOOLONG:  # a path given to the command, read before any recording
+        print(f"{tool}: error: {err.filename}: a name in this path is longer than the file system's limit",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if err.errno in DISK_FULL_ERRNOS:
+        print(f"{tool}: error: cannot write {err.filename or 'the output'}: {err.strerror}; free some space or "
+              "write elsewhere", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return None

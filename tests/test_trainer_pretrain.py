@@ -159,6 +159,15 @@ def test_pretrain_collect_refuses_bad_options_before_recording(tmp_path, capsys)
     assert "is not a directory of sessions" in capsys.readouterr().err
 
 
+def test_pretrain_names_a_path_too_long_in_one_line(tmp_path, capsys):
+    """Was: an ``OSError`` traceback, exit 1 (this tool's code for a sensor that failed)."""
+    long = tmp_path / ("a" * 300)
+    for argv in (["collect", "--work", str(long)], ["train", "--work", str(long), "--out", str(tmp_path / "m")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err == f"pretrain: error: {long}: a name in this path is longer than the file system's limit\n", err
+
+
 def _help_by_option(argv, capsys) -> dict[str, str]:
     """``--help`` of ``python -m trainer.pretrain ARGV``: each option's help text, on one line."""
     with pytest.raises(SystemExit) as done:

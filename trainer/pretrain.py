@@ -38,7 +38,7 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 
 from collect.atomic_files import replacing
-from collect.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, OneLineParser
+from collect.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, OneLineParser, os_error_exit
 from collect.output_files import check_parent_dirs, named_path
 from collect.pose_planner import MAX_POSES_PER_OBJECT
 from collect.stop_signals import INTERRUPTS, Terminated, raise_interrupt, stop_signals_handled
@@ -464,6 +464,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("pretrain: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as err:  # as bubble's (was: a traceback, and exit 1, this tool's code for a failed sensor)
+        code = os_error_exit(err, "pretrain")
+        if code is None:
+            raise
+        return code
 
 
 if __name__ == "__main__":
