@@ -590,7 +590,8 @@ def test_a_new_training_refuses_a_folder_holding_a_file_it_writes(bubble, sessio
 def test_ctrl_c_while_the_model_is_written_is_reported(bubble, session, tmp_path, monkeypatch, capsys,
                                                        interrupt_handlers_restored):
     """Was: swallowed, "model written to", exit 0: the stop came after the last step, where nothing
-    looked at it. The model is whole; the command says so and exits 130."""
+    looked at it. The model is whole; the command says so, writes its --json result (was: not) and
+    exits 130."""
     import trainer.training
 
     save_model = trainer.training.save_model
@@ -601,11 +602,13 @@ def test_ctrl_c_while_the_model_is_written_is_reported(bubble, session, tmp_path
 
     monkeypatch.setattr(trainer.training, "save_model", ctrl_c_then_save)
     out = tmp_path / "m"
+    result = tmp_path / "train.json"
     assert bubble("train", "--data", session, "--out", out, "--width", "0.125", "--epochs", "0.2", "--no-onnx",
-                  "--threads", "1") == 130
+                  "--threads", "1", "--json", result) == 130
     assert capsys.readouterr().err.splitlines()[-1] == (f"bubble: interrupted after the training's last step: the "
                                                         f"model in {out} is complete")
     assert load_metadata(out).training["steps"] > 0
+    assert json.loads(result.read_text())["a1"] == load_metadata(out).metrics["a1"]
 
 
 def test_the_progress_bars_a1_of_a_validation_without_a_number():

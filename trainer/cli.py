@@ -287,10 +287,10 @@ def run_train(args: argparse.Namespace) -> int:
         return 0
     if result.stopped:
         return stop.interrupted(result, out, "bubble")
-    if stop.requested:  # the stop came after the last step, while the model was validated and written: it is whole
-        return stop.after_last_step(out, "bubble")
-    if args.json is not None:
+    if args.json is not None:  # the model is whole: its result too, a stop after the last step or not
         write_json_result(args.json, "bubble train", result.metrics)
+    if stop.requested:  # the stop came after the last step, while the model was validated and written: it is whole
+        return stop.after_last_step(out, "bubble")  # (was: before the --json result, which was not written)
     console.print(metrics_table(f"validation ({result.metrics['split']})", {"all": result.metrics}))
     console.print(f"model written to {result.model_dir} ({result.steps} steps, {result.train_s / 60:.1f} min training, "
                   f"peak RSS {result.peak_rss_mb:.0f} MB)")
