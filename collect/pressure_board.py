@@ -70,6 +70,13 @@ HPA_RANGE = (0.0, 1724.0)
 MAX_FROZEN_RUN = 100
 
 
+#: The fields of a reading line as the protocol writes them: ``seq`` without leading zeros, and hPa
+#: with two decimals. A line that XOR checks but reads otherwise is corrupt: two equal bytes lost
+#: keep the checksum (``P,1234,1065.31`` -> ``P,234,065.31``, 65.31 hPa), and ``int``/``float``
+#: alone took signs, ``_`` and exponents (was: such readings went into the stream and the leak test).
+READING_FIELDS = re.compile(r"(0|[1-9][0-9]{0,4}),(0|[1-9][0-9]{0,3})\.[0-9]{2}")
+
+
 def checksum(body: bytes) -> str:
     """Two-hex-digit XOR checksum of ``body``."""
     value = 0
@@ -93,7 +100,7 @@ def decode_line(line: bytes) -> list[str] | None:
         text = body.decode("ascii")
     except UnicodeDecodeError:
         return None
-    if not text.isprintable() or cs.decode("ascii", "replace").upper() != checksum(body):
+    if not text.isprintable() or cs.decode("ascii", "replace") != checksum(body):  # upper-case hex, as written
         return None
     return text.split(",")
 
@@ -188,11 +195,11 @@ class PressureBoard:
             self._bad()
             return
         if fields[0] == "P" and len(fields) == 3:
-            try:
+            if READING_FIELDS.fullmatch(f"{fields[1]},{fields[2]}"):
                 seq, hpa = int(fields[1]), float(fields[2])
-            except ValueError:
+            else:
                 seq, hpa = None, None
-            if seq is None or not HPA_RANGE[0] <= hpa <= HPA_RANGE[1]:  # also nan
+            if seq is None or seq >= SEQ_MODULO or not HPA_RANGE[0] <= hpa <= HPA_RANGE[1]:
                 self.stats["malformed"] += 1
                 self._bad()
                 return
