@@ -42,8 +42,7 @@ from benchmarks.arguments import name_list, run_main  # noqa: E402
 from benchmarks.bench_recorder import TARGET_MINUTES as RECORDER_TARGET_MINUTES  # noqa: E402
 from benchmarks.machine import finish, machine_info  # noqa: E402
 from collect.atomic_files import write_text  # noqa: E402
-from collect.errors import InputError  # noqa: E402
-from collect.json_files import JSON_READ_ERRORS, shown_json, write_json  # noqa: E402
+from collect.json_files import read_json_object, write_json  # noqa: E402
 from hw_mocks.pressure_firmware import RATE_HZ as PRESSURE_HZ  # noqa: E402
 
 DOCS = ROOT / "docs"
@@ -335,16 +334,7 @@ def target_rows(runs: dict) -> list[str]:
 def load_runs() -> dict:
     """The runs recorded in ``RUNS_JSON`` (none before the first); InputError when it is not a JSON
     object (was: a traceback, and every later run and ``--assemble-only`` failed alike)."""
-    if not RUNS_JSON.is_file():
-        return {}
-    fix = "restore it (git checkout) or delete it"
-    try:
-        runs = json.loads(RUNS_JSON.read_text())
-    except JSON_READ_ERRORS as err:
-        raise InputError(f"{RUNS_JSON} is not readable JSON ({err}): {fix}") from None
-    if not isinstance(runs, dict):
-        raise InputError(f"{RUNS_JSON} holds {shown_json(runs)}, not a JSON object of runs: {fix}")
-    return runs
+    return read_json_object(RUNS_JSON, "restore it (git checkout) or delete it") if RUNS_JSON.is_file() else {}
 
 
 def run(bench: Benchmark, extra: tuple[str, ...] = ()) -> dict:

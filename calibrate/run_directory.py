@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 from calibrate.commission_events import STEPS, Step
 from collect.atomic_files import is_leftover
 from collect.errors import InputError
-from collect.json_files import JSON_READ_ERRORS, plain_json, write_json
+from collect.json_files import JSON_READ_ERRORS, plain_json, read_json_object, write_json
 from collect.session_format import utc_now
 
 if TYPE_CHECKING:
@@ -140,12 +140,7 @@ class RunState:
     @classmethod
     def _read(cls, run_dir: Path, settings: dict) -> "RunState":
         path = run_dir / STATE_FILE
-        try:
-            data = json.loads(path.read_text())
-        except JSON_READ_ERRORS as err:
-            raise InputError(f"{path} is unreadable ({err}); use a new --out directory") from None
-        if not isinstance(data, dict):
-            raise InputError(f"{path} does not hold a JSON object; use a new --out directory")
+        data = read_json_object(path, "use a new --out directory")
         if data.get("version") != STATE_VERSION:
             raise InputError(f"{path} is from another version of bubble commission; use a new --out directory")
         if data.get(CHECKSUM_KEY) != _checksum(data):

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from collect.atomic_files import write_text
+from collect.errors import InputError
 
 #: What reading a JSON file that a user may have damaged can raise: OSError (the file system),
 #: ValueError (not UTF-8, not JSON, or an int of more than 4300 digits) and RecursionError
@@ -52,3 +53,15 @@ def write_json(path: str | Path, value, *, sort_keys: bool = False) -> None:
     """Write ``plain_json(value)`` to ``path`` (indent 2, trailing newline) atomically
     (``collect.atomic_files.write_text``)."""
     write_text(path, json.dumps(plain_json(value), indent=2, sort_keys=sort_keys) + "\n")
+
+
+def read_json_object(path: str | Path, fix: str) -> dict:
+    """The JSON object that the file ``path`` holds; ``InputError`` naming it, and ``fix`` (what to do),
+    when it cannot be read, is not JSON or holds another value."""
+    try:
+        data = json.loads(Path(path).read_bytes())  # json decodes the bytes (UTF-8, -16 or -32)
+    except JSON_READ_ERRORS as err:
+        raise InputError(f"{path} is unreadable ({err}); {fix}") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path} does not hold a JSON object; {fix}")
+    return data

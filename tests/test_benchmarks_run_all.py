@@ -171,8 +171,8 @@ def test_run_all_refuses_a_corrupt_runs_file_and_keeps_it(tmp_path, monkeypatch,
     runs = tmp_path / "benchmarks.json"
     monkeypatch.setattr(run_all, "RUNS_JSON", runs)
     monkeypatch.setattr(run_all, "PAGE", tmp_path / "benchmarks.md")
-    for text, says in (('{"simulator": {"exit": 0,', "is not readable JSON (Expecting"),
-                       ("[1, 2]", "holds [1, 2], not a JSON object of runs")):
+    for text, says in (('{"simulator": {"exit": 0,', "is unreadable (Expecting"),
+                       ("[1, 2]", "does not hold a JSON object; restore it (git checkout) or delete it")):
         runs.write_text(text)
         with pytest.raises(SystemExit) as exit_info:
             from benchmarks.arguments import run_main

@@ -340,6 +340,17 @@ def test_a_state_json_edited_by_hand_is_refused(faulted_then_resumed, tmp_path, 
     assert not (tmp_path / "registry").exists()
 
 
+@pytest.mark.parametrize("text, says", [("{", "is unreadable (Expecting"), ("[]", "does not hold a JSON object")])
+def test_a_state_json_that_is_no_json_object_is_refused(tmp_path, text, says):
+    from calibrate.run_directory import RunState
+
+    (tmp_path / "state.json").write_text(text)
+    with pytest.raises(InputError) as err:
+        RunState.open(tmp_path, {})
+    assert str(err.value).startswith(f"{tmp_path / 'state.json'} {says}") and str(err.value).endswith(
+        "; use a new --out directory")
+
+
 def test_stop_event_stops_the_arm_and_keeps_the_data(tmp_path):
     stop = threading.Event()
     events: list = []
