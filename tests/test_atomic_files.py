@@ -48,6 +48,22 @@ def test_a_report_cut_by_a_full_disk_leaves_the_earlier_report(tmp_path, monkeyp
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["report.html"]
 
 
+def test_a_benchmark_section_cut_by_a_full_disk_leaves_the_earlier_page(tmp_path, monkeypatch):
+    """Was: ``update_section`` rewrote the page in place (``Path.write_text``): a full disk or a kill left
+    it cut off, the other benchmarks' sections lost with it."""
+    from trainer.doc_sections import update_section
+
+    page = tmp_path / "bench_trainer.md"
+    update_section(page, "inference", "Inference", ["fps 61"], "# Trainer benchmarks\n")
+    update_section(page, "finetune", "Fine-tuning", ["a1 0.97"])
+    before = page.read_text()
+    _fill_disk_midway(monkeypatch)
+    with pytest.raises(OSError, match="No space left"):
+        update_section(page, "finetune", "Fine-tuning", ["a1 0.99 " * 50])
+    monkeypatch.undo()
+    assert page.read_text() == before and [p.name for p in tmp_path.iterdir()] == ["bench_trainer.md"]
+
+
 def test_leftovers_of_a_killed_writer_are_removed_and_nothing_else(tmp_path):
     (tmp_path / "model").mkdir()
     leftovers = [tmp_path / "acceptance.json.qnn9fi55.tmp", tmp_path / "model" / "model.onnx.a1b2c3d4.tmp"]
