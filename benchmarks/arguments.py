@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Callable, NoReturn
 
-from collect.errors import EXIT_BAD_INPUT, InputError
+from collect.errors import EXIT_BAD_INPUT, BubbleCommandError, InputError
 
 
 def int_list(text: str) -> list[int]:
@@ -36,13 +36,18 @@ def name_list(choices) -> Callable[[str], list[str]]:
     return parse
 
 
+def _integer(text: str) -> int | None:
+    """``text`` as an integer, None when it is not one."""
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
 def positive_int(text: str) -> int:
     """``argparse`` type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
+    value = _integer(text)
+    if value is None or value < 1:
         raise argparse.ArgumentTypeError(f"expected an integer of 1 or more, got {text!r}")
     return value
 
@@ -62,11 +67,8 @@ def sensor_seed(text: str) -> int:
     """``argparse`` type: a simulated sensor's seed, an integer within 0..``MAX_SEED``."""
     from hw_mocks.sensor_spec import MAX_SEED
 
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= MAX_SEED:
+    value = _integer(text)
+    if value is None or not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"expected a sensor seed within 0..{MAX_SEED}, got {text!r}")
     return value
 
@@ -153,21 +155,16 @@ def poses_per_object(text: str) -> int:
     """``argparse`` type: contact poses per object of a ``bubble collect``, 1..``MAX_POSES_PER_OBJECT``."""
     from collect.pose_planner import MAX_POSES_PER_OBJECT
 
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if not 1 <= value <= MAX_POSES_PER_OBJECT:
+    value = _integer(text)
+    if value is None or not 1 <= value <= MAX_POSES_PER_OBJECT:
         raise argparse.ArgumentTypeError(f"expected poses per object within 1..{MAX_POSES_PER_OBJECT}, got {text!r}")
     return value
 
 
 def run_main(main: Callable[[], int], name: str) -> NoReturn:
     """``sys.exit(main())``; an ``InputError`` exits ``EXIT_BAD_INPUT`` (2) with its line, as ``bubble`` does,
-    and a ``bubble`` command that failed (``trainer.pretrain.BubbleCommandError``) with its last line: exit 2
+    and a ``bubble`` command that failed (``collect.errors.BubbleCommandError``) with its last line: exit 2
     when that command refused its input, else 1 (was: a traceback, exit 1)."""
-    from trainer.pretrain import BubbleCommandError
-
     try:
         code = main()
     except InputError as err:

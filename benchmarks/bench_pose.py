@@ -42,14 +42,13 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.arguments import markdown_out, positive_float, run_main, sensor_seed_list, work_dir  # noqa: E402
 from collect.atomic_files import write_text  # noqa: E402
-from collect.errors import InputError  # noqa: E402
+from collect.errors import BubbleCommandError, InputError  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
 from calibrate.contact_patch import contact_points  # noqa: E402
 from calibrate.pose_estimation import Pose, ProximityPoseEstimator, quat_to_matrix, shape_from_object  # noqa: E402
 from hw_mocks.objects import load_object  # noqa: E402
 from trainer.dataset import file_sha256  # noqa: E402
 from trainer.model_dir import METADATA_FILE, load_metadata  # noqa: E402
-from trainer.pretrain import BubbleCommandError  # noqa: E402
 
 #: The built-in mug's primitive: a cylinder lying on its side, axis along object x.
 MUG = shape_from_object(load_object("mug").primitive)

@@ -25,7 +25,7 @@ Sections:
    frames, file size.
 
 Results go to docs/bench_recorder.md (markdown) and stdout; a shorter recording than the target's
-``TARGET_MINUTES`` or ``--no-collect`` writes ``runs/bench_recorder_quick.md`` instead, unless ``--out``
+(``run_all.RECORDER_TARGET_MINUTES``) or ``--no-collect`` writes ``runs/bench_recorder_quick.md`` instead, unless ``--out``
 is given (was: the quick look replaced the committed page).
 A failed ``bubble collect`` is shown on the page and exits 1.
 """
@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.arguments import markdown_out, positive_float, positive_int, run_main  # noqa: E402
 from benchmarks.machine import machine_info, provenance  # noqa: E402
+from benchmarks.run_all import RECORDER_TARGET_MINUTES as TARGET_MINUTES  # noqa: E402
 from collect import session_format as sf  # noqa: E402
 from collect.atomic_files import write_text  # noqa: E402
 from collect.bench import BenchConfig  # noqa: E402
@@ -185,10 +186,6 @@ def bench_long_recording(frames, spec, minutes: float, tmp: Path) -> dict:
         result[f"{name}_wait_p99_ms"], result[f"{name}_wait_max_ms"] = float(np.percentile(w, 99) * 1e3), max(w) * 1e3
     path.unlink()
     return result
-
-
-#: Length (min) of the long recording that the zero-dropped-frames target asks for.
-TARGET_MINUTES = 10.0
 
 
 def bench_collection(tmp: Path) -> dict:

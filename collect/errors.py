@@ -7,10 +7,13 @@
 * ``HardwareFault``: a device misbehaved (camera silent, serial garbage/unplug, protective stop,
   force limit). The run stops the arm, retracts, keeps what was recorded and exits with
   ``EXIT_FAULT`` (3); ``bubble commission`` turns it into a rejected run (exit 1).
+* ``BubbleCommandError``: a ``bubble`` command that a tool ran in a subprocess failed.
 """
 
 import argparse
 import errno
+import os
+import sys
 
 EXIT_OK = 0
 EXIT_REJECTED = 1
@@ -57,6 +60,16 @@ class StopRequested(Exception):
     """The operator's stop (``Arm.stop_on`` event, or a run's stop event between steps)."""
 
 
+class BubbleCommandError(RuntimeError):
+    """A ``bubble`` command that a tool ran in a subprocess (``trainer.pretrain.BubbleCommands``, the
+    benchmarks) failed: its last error line in the message; ``returncode``: its exit status (negative:
+    killed by that signal), None when it never ended (stopped before it started, or killed as hung)."""
+
+    def __init__(self, message: str, returncode: int | None = None) -> None:
+        super().__init__(message)
+        self.returncode = returncode
+
+
 class OneLineParser(argparse.ArgumentParser):
     """argparse that reports a usage error as one line, ``<tool>: error: <message>``, with exit code
     ``EXIT_BAD_INPUT`` (argparse's own code; it would print the usage text first)."""
@@ -72,9 +85,6 @@ def os_error_exit(err: OSError, tool: str) -> int | None:
     for an error it does not explain (the caller re-raises it): the reader of stdout gone (``| head``:
     ``EXIT_BROKEN_PIPE``, nothing printed, stdout pointed at /dev/null so that the exit's flush does
     not fail), a name longer than the file system allows or a full disk (``EXIT_BAD_INPUT``)."""
-    import os
-    import sys
-
     if isinstance(err, BrokenPipeError):
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE

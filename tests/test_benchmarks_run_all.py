@@ -154,7 +154,7 @@ def test_input_error_exits_2_with_one_line(capsys):
 def test_a_failed_bubble_command_exits_with_its_line(capsys):
     """Was: a traceback (``RuntimeError`` or ``CalledProcessError``), exit 1, whatever the command's exit."""
     from benchmarks.arguments import run_main
-    from trainer.pretrain import BubbleCommandError
+    from collect.errors import BubbleCommandError
 
     for returncode, code in ((2, 2), (3, 1), (None, 1)):
         def main() -> int:
@@ -224,7 +224,7 @@ def test_bench_pose_records_whole_sessions_and_reuses_only_their_models(tmp_path
     next run as a whole session, and a model was reused whatever it was fine-tuned on."""
     from benchmarks import bench_pose
     from collect.errors import InputError
-    from trainer.pretrain import BubbleCommandError
+    from collect.errors import BubbleCommandError
 
     def collect_fails(*args):
         if args[0] == "collect":

@@ -38,7 +38,8 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 
 from collect.atomic_files import replacing
-from collect.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, OneLineParser, os_error_exit
+from collect.errors import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, BubbleCommandError, InputError, OneLineParser,
+                            os_error_exit)
 from collect.output_files import check_parent_dirs, named_path
 from collect.pose_planner import MAX_POSES_PER_OBJECT
 from collect.stop_signals import INTERRUPTS, Terminated, raise_interrupt, stop_signals_handled
@@ -63,16 +64,6 @@ STOP_POLL_S = 0.2
 #: Longest a ``bubble`` command that ``collect`` stopped (its Ctrl-C) may take to close its files before
 #: it is killed (s).
 STOP_TIMEOUT_S = 60.0
-
-
-class BubbleCommandError(RuntimeError):
-    """A ``bubble`` command run by ``BubbleCommands`` that failed: its last error line in the message;
-    ``returncode``: its exit status (negative: killed by that signal), None when it never ended
-    (stopped before it started, or killed after ``COMMAND_TIMEOUT_S``)."""
-
-    def __init__(self, message: str, returncode: int | None = None) -> None:
-        super().__init__(message)
-        self.returncode = returncode
 
 
 class BubbleCommands:
