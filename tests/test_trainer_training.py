@@ -120,7 +120,8 @@ def test_interrupted_run_resumes_from_checkpoint(session, tmp_path):
 
 def test_a_checkpoint_of_two_saves_or_of_other_content_is_refused(session, tmp_path):
     """Was: a kill between the two files' writes resumed weights of step k with the progress of step
-    k-1 (one step over the budget); a checkpoint.json of other content gave a KeyError traceback."""
+    k-1 (one step over the budget); a checkpoint.json of other content gave a KeyError traceback, one
+    with a value of another type (an edited ``"step": null``) a traceback after the weights had loaded."""
     out = tmp_path / "model"
     _interrupted_after_3_steps(session, out)
     state_path = out / "checkpoint.json"
@@ -128,6 +129,10 @@ def test_a_checkpoint_of_two_saves_or_of_other_content_is_refused(session, tmp_p
     for content, message in (({**state, "checkpoint_id": "0" * 32}, "is torn: checkpoint.safetensors and "
                                                                       "checkpoint.json come from two saves"),
                              ({}, "does not hold the optimizer's settings and the training's progress"),
+                             ({**state, "progress": {**state["progress"], "step": None}},
+                              "does not hold the optimizer's settings"),
+                             ({**state, "progress": {**state["progress"], "history": [1]}},
+                              "does not hold the optimizer's settings"),
                              ([1], "does not hold the optimizer's settings")):
         state_path.write_text(json.dumps(content))
         with pytest.raises(InputError, match=message):

@@ -29,8 +29,9 @@ CHECKPOINT_WEIGHTS = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
 #: Every file a training writes into its model directory (a new training refuses a folder holding one).
 TRAINING_FILES = (WEIGHTS_FILE, METADATA_FILE, ONNX_FILE, CHECKPOINT_WEIGHTS, CHECKPOINT_STATE)
-#: What ``progress`` must hold for a resume (``trainer.training`` writes more).
-PROGRESS_KEYS = ("epoch", "step", "train_s", "history", "loss")
+#: What ``progress`` must hold for a resume, and of which JSON types (``trainer.training`` writes more).
+PROGRESS_TYPES = {"epoch": (int, float), "step": (int,), "train_s": (int, float), "history": (list,),
+                  "loss": (int, float)}
 
 
 def has_checkpoint(model_dir: str | Path) -> bool:
@@ -82,6 +83,14 @@ def save_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     write_json(model_dir / CHECKPOINT_STATE, state)
 
 
+def _holds_progress(progress) -> bool:
+    """Whether ``progress`` holds every ``PROGRESS_TYPES`` key with a value of its type (a bool is no
+    number here; was: an edited ``"step": null`` failed with a traceback after the weights had loaded)."""
+    return isinstance(progress, dict) and all(
+        key in progress and isinstance(progress[key], types) and not isinstance(progress[key], bool)
+        for key, types in PROGRESS_TYPES.items()) and all(isinstance(entry, dict) for entry in progress["history"])
+
+
 def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.optim.Optimizer,
                     check: Callable[[dict], None] | None = None) -> dict:
     """Restore network and optimizer from ``model_dir``; returns the saved progress dict. ``check``
@@ -97,8 +106,7 @@ def load_checkpoint(model_dir: str | Path, network: nn.Module, optimizer: torch.
     except (SafetensorError, *JSON_READ_ERRORS) as err:
         raise InputError(f"cannot read the checkpoint in {model_dir}: {err}") from None
     progress = state.get("progress") if isinstance(state, dict) else None
-    if (not isinstance(progress, dict) or not isinstance(state.get("param_groups"), list)
-            or any(key not in progress for key in PROGRESS_KEYS) or not isinstance(progress["history"], list)):
+    if not _holds_progress(progress) or not isinstance(state.get("param_groups"), list):
         raise InputError(f"cannot read the checkpoint in {model_dir}: its {CHECKPOINT_STATE} does not hold the "
                          "optimizer's settings and the training's progress; train anew without --resume")
     if state.get("checkpoint_id") != weights_id:
