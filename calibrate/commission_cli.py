@@ -15,7 +15,7 @@ import threading
 import time
 from pathlib import Path
 
-from collect.stop_signals import INTERRUPTS, exit_code, stop_signals_handled
+from collect.stop_signals import INTERRUPTS, exit_code, forget_pending_stop, stop_signals_handled
 from collect.cli import DEFAULT_OBJECTS_ARG, check_sim_options, progress_place
 from collect.errors import EXIT_OK, EXIT_REJECTED, InputError
 from collect.output_files import named_path
@@ -194,6 +194,9 @@ def run_commission(args) -> int:
     if result.stopped:
         print(f"STOPPED: data kept in {result.run_dir}; re-run the same command to resume", file=sys.stderr)
         return exit_code(outcome.get("signum", signal.SIGINT))
+    if "signum" in outcome:  # the flow had registered its verdict when the stop came: the verdict stands
+        print("bubble: the stop came after the verdict was reached; the verdict stands", file=sys.stderr)
+        forget_pending_stop()
     if result.accepted:
         print(f"ACCEPTED: report {result.report_path}")
         return EXIT_OK

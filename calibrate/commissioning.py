@@ -48,6 +48,8 @@ import math
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -523,7 +525,8 @@ class _Flow:
         try:
             result = run_pose_check(
                 str(self.run_dir / MODEL_DIR), self.run_dir / SESSION_FILE, "mug",
-                seed=self.config.seed, pose_ids=self.state.get(Step.VALIDATE).get("heldout_pose_ids", {}).get("mug"),
+                # none held out: no pose to check (was: None, every mug pose, those the model was fine-tuned on too)
+                seed=self.config.seed, pose_ids=self.state.get(Step.VALIDATE).get("heldout_pose_ids", {}).get("mug", []),
                 plots_dir=self.run_dir / PLOTS_DIR,
             )
         except InputError as err:  # no usable frame: the check fails, the run goes on to a verdict
@@ -577,8 +580,10 @@ class _Flow:
                       if s is not Step.VERDICT and self.state.done(s)},
             "finished": finished or utc_now(),
         }
-        write_json(self.run_dir / ACCEPTANCE_FILE, doc)
+        # the report first: a disk that fills between the two leaves no acceptance.json of this verdict
+        # beside an earlier report (was: an accepted acceptance.json, the report missing, nothing registered)
         write_run_report(self.run_dir, self.state, doc)
+        write_json(self.run_dir / ACCEPTANCE_FILE, doc)
         return doc
 
     def _write_host_fault_outcome(self, fault: HardwareFault) -> None:
@@ -636,7 +641,9 @@ class _Flow:
         if fault is None and not stopped:  # the verdict's entry id and registries stay, for _register_elsewhere
             self.state.record(Step.VERDICT, {"ok": accepted, "summary": "accepted" if accepted else reason,
                                              "reason": reason, "fault": fault})
-        else:  # a fault's entry is its own: the resumed run registers its verdict under a new id
+        elif fault is not None:  # a fault's entry is its own: the resumed run registers its verdict under a new id
+            # (a stop keeps the id of a registration killed before its verdict was recorded, which the re-run
+            # replaces; was: dropped, and the re-run added a second entry to the sensor's history)
             for key in (REGISTRATION_KEY, REGISTERED_IN_KEY):
                 self.state.data.pop(key, None)
             self.state.save()
@@ -664,7 +671,14 @@ class _Flow:
         from calibrate.sensor_registry import SensorRegistry
 
         connect = self.state.get(Step.CONNECT)
-        SensorRegistry(self.config.registry_dir).register(
+        registry = SensorRegistry(self.config.registry_dir)
+        if accepted:  # what the registry keeps of an accepted run (was: a model/ moved away since a FileNotFoundError
+            # traceback, and a validation.npz deleted left the earlier model's reference beside the new model)
+            for kept in (self.run_dir / MODEL_DIR, self.run_dir / VALIDATION_FILE):
+                if not kept.exists():
+                    raise InputError(f"cannot register the accepted sensor in {registry.root}: {kept} is gone (moved "
+                                     "or deleted since the run); put it back and run the same command again")
+        registry.register(
             self.state.data["serial"],
             entry_id=self.state.data[REGISTRATION_KEY],
             accepted=accepted,
@@ -734,17 +748,10 @@ class _Flow:
                 self.check_stop()
                 if step not in (Step.COLLECT, Step.FINETUNE):  # these announce their own ETA
                     self.emit(StepStarted(step, etas.get(step)))
-                try:
+                with self._full_disk_is_a_recorder_fault():
                     rec = handlers[step]()
                     rec.setdefault("ok", all(c["passed"] for c in rec.get("checks", [])))
                     self.state.record(step, rec)
-                except OSError as err:
-                    if err.errno not in DISK_FULL_ERRNOS:
-                        raise
-                    # this computer's disk, not the sensor: a recorder fault (exit 3, nothing registered;
-                    # was: exit 2, "bad input", after the arm had moved)
-                    raise HardwareFault(RECORDER_FAULT, f"cannot write {err.filename or self.run_dir}: "
-                                                        f"{err.strerror or err}") from None
                 gate_failure = _gate_failure(rec)
                 if step == Step.COLLECT or gate_failure is not None:
                     self.close_bench(safe_stop=False)  # before the step's end: its last snapshot shows the arm parked
@@ -752,7 +759,8 @@ class _Flow:
             self.close_bench(safe_stop=False)
             self.check_stop()  # a stop during the last step (was: acknowledged, then a verdict registered)
             self.emit(StepStarted(Step.VERDICT))
-            result = self.finish()
+            with self._full_disk_is_a_recorder_fault():  # (was: exit 2 and an accepted acceptance.json, unregistered)
+                result = self.finish()
             if not result.stopped:  # a stopped verdict step is not a failed one (its Verdict event says stopped)
                 self.emit(StepFinished(Step.VERDICT, result.accepted, "accepted" if result.accepted else result.reason))
             return result
@@ -770,6 +778,19 @@ class _Flow:
         except BaseException:
             self.close_bench(safe_stop=True)
             raise
+
+    @contextmanager
+    def _full_disk_is_a_recorder_fault(self) -> Iterator[None]:
+        """A full disk in the with-block is this computer's, not the sensor's: ``HardwareFault`` of the
+        recorder (exit 3, no verdict, nothing registered; was: exit 2, "bad input", after the arm had
+        moved). Other ``OSError`` pass through."""
+        try:
+            yield
+        except OSError as err:
+            if err.errno not in DISK_FULL_ERRNOS:
+                raise
+            raise HardwareFault(RECORDER_FAULT, f"cannot write {err.filename or self.run_dir}: "
+                                                f"{err.strerror or err}") from None
 
     def _finished_before(self) -> CommissionResult:
         """The verdict of a run that already finished in this directory, as its ``state.json`` recorded it

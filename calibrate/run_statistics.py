@@ -78,11 +78,9 @@ def nocontact_maps(estimator, reference_path: Path) -> dict:
     }
 
 
-def registry_reference(validation_path: Path) -> dict | None:
-    """The sensor registry's no-contact reference from ``validation.npz`` (None when there is none):
-    ``depth_m``, ``ir`` and ``valid_count``, the ``nocontact_maps`` arrays."""
-    if not validation_path.is_file():
-        return None
+def registry_reference(validation_path: Path) -> dict:
+    """The sensor registry's no-contact reference from ``validation.npz``: ``depth_m``, ``ir`` and
+    ``valid_count``, the ``nocontact_maps`` arrays."""
     with np.load(validation_path) as z:
         return {"depth_m": z["reference_depth"], "ir": z["reference_ir"], "valid_count": z["valid_count"]}
 

@@ -93,6 +93,18 @@ class SensorProfile:
 
 
 _TEXT = (lambda v: isinstance(v, str), "a string")
+
+
+def _aware_time(value) -> bool:
+    """Whether ``value`` is an ISO 8601 time with its UTC offset (as ``register`` writes them)."""
+    try:
+        return isinstance(value, str) and datetime.fromisoformat(value).tzinfo is not None
+    except ValueError:
+        return False
+
+
+#: A registration's time, which orders the history (a time without its offset cannot be compared).
+_TIME = (_aware_time, "an ISO 8601 time with its UTC offset")
 _ERROR = (lambda v: v is None or (real_number(v) and v >= 0), "a number >= 0 or null")
 #: Held-out metrics: (check, what it must be); NaN / inf are written as null.
 _METRICS = {"abs_rel": _ERROR, "rmse": _ERROR,
@@ -107,16 +119,16 @@ _PROFILE_FIELDS = {
     "camera_in_tcp": (lambda v: v is None or real_numbers(v, 6),
                       "6 finite numbers or null"),
     "simulated": (lambda v: isinstance(v, bool), "true or false"),
-    "last_commissioned": _TEXT,
+    "last_commissioned": _TIME,
     "last_reason": _TEXT,
-    "accepted_at": _TEXT,
+    "accepted_at": _TIME,
     "accepted_metrics": (lambda v: v is None or isinstance(v, dict), "an object of metrics or null"),
     "model": _TEXT,
     "model_source": _TEXT,
     "reference": _TEXT,
 }
 _HISTORY_FIELDS = {
-    "time": _TEXT,
+    "time": _TIME,
     "run_dir": _TEXT,
     "accepted": (lambda v: isinstance(v, bool), "true or false"),
     "reason": _TEXT,
@@ -244,6 +256,11 @@ class SensorRegistry:
         the same id (the same commissioning, registered again after its process was killed) is
         replaced, not repeated. Another process registering ``serial`` at the same time waits
         until this one is done, and the other way round.
+
+        The history is kept in time order, and a commissioning older than one already registered
+        (an old run folder registered in another registry, at its verdict's time) only joins the
+        history: the status, the last acceptance and the kept model stay the newer ones' (was: the
+        old run's model replaced the newer one a robot loads).
         """
         sdir = self._sensor_dir(serial)
         sdir.mkdir(parents=True, exist_ok=True)
@@ -259,13 +276,16 @@ class SensorRegistry:
                 **metrics,
                 **({"id": entry_id} if entry_id is not None else {}),
             }
+            history = [e for e in prior.get("history", []) if entry_id is None or e.get("id") != entry_id]
+            latest = all(datetime.fromisoformat(e["time"]) <= when for e in history)
+            keeps_model = accepted and ("accepted_at" not in prior or datetime.fromisoformat(prior["accepted_at"]) <= when)
             profile = dict(prior)
-            profile.update(serial=serial, status="accepted" if accepted else "rejected",
-                           last_commissioned=entry["time"], last_reason=reason)
-            if accepted or "accepted_at" not in prior:  # the camera calibration of the model kept, if any
+            if latest:
+                profile.update(serial=serial, status="accepted" if accepted else "rejected",
+                               last_commissioned=entry["time"], last_reason=reason)
+            if keeps_model or (latest and "accepted_at" not in prior):  # the camera calibration of the model kept
                 profile.update(intrinsics=intrinsics, camera_in_tcp=camera_in_tcp, simulated=bool(simulated))
-            if accepted:
-                _store_accepted(sdir, model_dir, reference)
+            if keeps_model:
                 if model_dir is not None:
                     profile["model"] = "model"
                     profile["model_source"] = str(Path(model_dir).resolve())
@@ -273,10 +293,12 @@ class SensorRegistry:
                     profile["reference"] = "reference.npz"
                 profile["accepted_at"] = entry["time"]
                 profile["accepted_metrics"] = metrics
-            history = [e for e in prior.get("history", []) if entry_id is None or e.get("id") != entry_id]
-            profile["history"] = history + [entry]
+            profile["history"] = sorted(history + [entry], key=lambda e: datetime.fromisoformat(e["time"]))
             check_profile(profile, sdir / PROFILE)  # what the next reader would refuse is not written
-            write_json(sdir / "acceptance.json", acceptance)
+            if keeps_model:
+                _store_accepted(sdir, model_dir, reference)
+            if latest:
+                write_json(sdir / "acceptance.json", acceptance)
             write_json(sdir / PROFILE, profile)
             return SensorProfile(serial, sdir, profile)
 

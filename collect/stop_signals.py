@@ -141,6 +141,15 @@ def raise_pending_stop() -> None:
         raise_interrupt(_stops_before_exit[0])
 
 
+def forget_pending_stop() -> None:
+    """Let a command whose work saw the stop signal and ended before it mattered keep its own exit
+    code: ``raise_pending_stop`` raises nothing after this (``bubble commission``: a Ctrl-C while the
+    verdict was registered leaves the verdict standing, exit 0 or 1; was: an accepted sensor,
+    registered, exited 130 "interrupted", a rejected one 1)."""
+    if _stops_before_exit:
+        _stops_before_exit.clear()
+
+
 @contextmanager
 def stop_signals_deferred(signals: tuple = INTERRUPTS) -> Iterator[None]:
     """Hold each of ``signals`` that arrives during the block, and deliver the first of them again

@@ -680,6 +680,9 @@ def test_a_run_killed_after_it_registered_replaces_its_entry_when_run_again(faul
         run_commissioning(config, lambda e: None)
     monkeypatch.undo()
     assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 3
+    stop = threading.Event()
+    stop.set()  # a re-run stopped at once keeps the entry's id (was: dropped, and the next run added a fourth entry)
+    assert run_commissioning(config, lambda e: None, stop).stopped
     assert run_commissioning(config, lambda e: None).accepted
     (profile,) = SensorRegistry(config.registry_dir).survey().profiles
     assert [h["accepted"] for h in profile.history] == [False, True, True]
@@ -705,6 +708,39 @@ def test_a_finished_run_run_again_with_another_registry_is_registered_there_once
     after = json.loads((run_dir / "state.json").read_text())["registered_in"]
     assert after == [str(config.registry_dir.resolve()), str(elsewhere.registry_dir.resolve())]
     assert sorted(p.read_bytes() for p in config.registry_dir.rglob("*") if p.is_file()) == before
+
+
+def test_a_finished_run_whose_model_was_moved_is_not_registered_elsewhere(faulted_then_resumed, tmp_path):
+    """Was: a FileNotFoundError traceback, and an empty sensor folder left in the other registry."""
+    config = faulted_then_resumed["config"]
+    run_dir = tmp_path / "run"
+    shutil.copytree(config.run_dir, run_dir)
+    shutil.rmtree(run_dir / "model")
+    elsewhere = dataclasses.replace(config, run_dir=run_dir, registry_dir=tmp_path / "lab_registry")
+    with pytest.raises(InputError, match=re.escape(
+            f"cannot register the accepted sensor in {elsewhere.registry_dir}: {run_dir / 'model'} is gone (moved or "
+            "deleted since the run); put it back and run the same command again")):
+        run_commissioning(elsewhere, lambda e: None)
+    assert not elsewhere.registry_dir.exists()
+
+
+def test_a_stop_after_the_verdict_leaves_the_verdicts_exit_code(tmp_path, monkeypatch, capsys, interrupt_handlers_restored):
+    """A Ctrl-C while the flow registers its verdict (the flow no longer stops then): was exit 130,
+    "bubble: interrupted", for an accepted sensor registered all the same (a rejected one: 1)."""
+    import calibrate.commissioning
+    from calibrate.commissioning import CommissionResult
+
+    def verdict_then_stop(config, on_event, stop_event):
+        os.kill(os.getpid(), signal.SIGINT)
+        assert stop_event.wait(5)
+        return CommissionResult(True, [], config.run_dir, config.run_dir / "report.html")
+
+    monkeypatch.setattr(calibrate.commissioning, "run_commissioning", verdict_then_stop)
+    assert main(["commission", "--sim", "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert out == f"ACCEPTED: report {tmp_path / 'run' / 'report.html'}\n"
+    assert err == ("bubble: stopping the arm and closing the run ...\n"
+                   "bubble: the stop came after the verdict was reached; the verdict stands\n")
 
 
 def test_a_stop_during_the_last_step_is_honoured_before_the_verdict(faulted_then_resumed, tmp_path):
@@ -903,6 +939,55 @@ def test_a_full_disk_outside_the_recorder_is_a_recorder_fault(tmp_path, capsys, 
     err = capsys.readouterr().err
     assert err == f"bubble: fault: recorder: cannot write {config.run_dir / 'leak_test.npz'}: No space left on device\n"
     assert not config.registry_dir.exists() or SensorRegistry(config.registry_dir).survey().profiles == []
+
+
+def test_a_full_disk_as_the_verdict_is_written_is_a_recorder_fault(faulted_then_resumed, tmp_path, monkeypatch):
+    """Was: exit 2 ("bad input"), acceptance.json written as accepted before the report failed, and
+    nothing registered."""
+    import errno
+
+    import calibrate.report
+
+    config = _finished_run_without_its_verdict(faulted_then_resumed, tmp_path)
+    write_text = calibrate.report.write_text
+    failures = [OSError(errno.ENOSPC, "No space left on device", str(config.run_dir / "report.html"))]
+
+    def full_once(*args, **kwargs):
+        if failures:
+            raise failures.pop()
+        return write_text(*args, **kwargs)
+
+    monkeypatch.setattr(calibrate.report, "write_text", full_once)
+    with pytest.raises(HardwareFault, match="cannot write .*report.html: No space left on device") as fault:
+        run_commissioning(config, lambda e: None)
+    assert fault.value.kind == "recorder"
+    outcome = json.loads((config.run_dir / "acceptance.json").read_text())
+    assert not outcome["accepted"] and outcome["reason"].startswith("no verdict: this computer's fault (recorder)")
+    assert len(SensorRegistry(config.registry_dir).survey().profiles[0].history) == 2
+    assert "verdict" not in json.loads((config.run_dir / "state.json").read_text())["steps"]
+
+
+def test_the_pose_check_judges_held_out_mug_poses_only(tmp_path, monkeypatch):
+    """A split that held out no mug pose (one recorded) leaves the pose check without a frame to judge
+    (was: ``pose_ids`` None, and it judged the poses the model was fine-tuned on)."""
+    import calibrate.pose_check
+    from calibrate.acceptance import load_thresholds
+    from calibrate.commissioning import _Flow
+    from calibrate.run_directory import RunState
+
+    asked = []
+
+    def no_frame_among(model, data, object_name, *, pose_ids, **kwargs):
+        asked.append(pose_ids)
+        raise InputError(f"no hold frame of {object_name} among pose_ids {pose_ids}")
+
+    monkeypatch.setattr(calibrate.pose_check, "run_pose_check", no_frame_among)
+    config = tiny_config(tmp_path, objects=("mug", "box"))
+    flow = _Flow(config, lambda e: None, threading.Event(), load_thresholds(config.thresholds), None)
+    for held_out, expected in (({"box": [2]}, []), ({"box": [2], "mug": [1]}, [1])):
+        flow.state = RunState(tmp_path / "state.json", {"steps": {"validate": {"heldout_pose_ids": held_out}}})
+        record = flow.step_pose_check()
+        assert asked[-1] == expected and not any(c["passed"] for c in record["checks"])
 
 
 def test_a_stop_during_the_validation_ends_the_run_there(faulted_then_resumed, tmp_path, monkeypatch):

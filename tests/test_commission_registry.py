@@ -6,6 +6,7 @@ import json
 import shutil
 import threading
 from contextlib import nullcontext
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,46 @@ def test_accepted_then_rejected_keeps_accepted_model(tmp_path):
     assert p2.history[0]["a1"] == 0.97
     np.testing.assert_array_equal(reg.reference("SB-1")["depth_m"], ref["depth_m"])
     assert json.loads((p2.path / "acceptance.json").read_text()) == rej
+
+
+def test_an_older_commissioning_registered_later_only_joins_the_history(tmp_path):
+    """An old run folder registered in another registry at its verdict's time, after a newer run: was
+    the newer model replaced by the old one, the status and last acceptance turned back, and the
+    history out of order."""
+    reg = SensorRegistry(tmp_path / "reg")
+    day = [datetime(2026, 11, d, 9, 30, tzinfo=timezone.utc) for d in (1, 2, 3)]
+
+    def register(accepted, tag, when):
+        acceptance = {"accepted": accepted, "a1": 0.97, "checks": [], "tag": tag}
+        return reg.register("SB-1", accepted=accepted, run_dir=tmp_path / f"run-{tag}", intrinsics=INTR,
+                            camera_in_tcp=None, simulated=True, acceptance=acceptance, entry_id=tag,
+                            model_dir=_model_dir(tmp_path, tag) if accepted else None,
+                            reference={"depth_m": np.full((4, 5), when.day, np.float32)} if accepted else None,
+                            when=when, reason="" if accepted else "leak")
+
+    register(True, "new", day[1])
+    for accepted, tag, when in ((False, "old-rejected", day[0]), (True, "old-accepted", day[0])):
+        profile = register(accepted, tag, when)
+        assert profile.status == "accepted" and profile.data["last_commissioned"] == day[1].isoformat()
+        assert profile.data["accepted_at"] == day[1].isoformat()
+        assert json.loads((profile.model_dir / "model.json").read_text())["tag"] == "new"
+        assert reg.reference("SB-1")["depth_m"][0, 0] == 2
+        assert json.loads((profile.path / "acceptance.json").read_text())["tag"] == "new"
+    assert [h["id"] for h in profile.history] == ["old-rejected", "old-accepted", "new"]
+    profile = register(False, "newest", day[2])  # a newer one still updates the status, not the kept model
+    assert profile.status == "rejected" and json.loads((profile.model_dir / "model.json").read_text())["tag"] == "new"
+    assert [h["id"] for h in profile.history][-1] == "newest"
+
+
+def test_a_profile_time_without_its_offset_is_refused(tmp_path, capsys):
+    reg = SensorRegistry(tmp_path / "reg")
+    profile = reg.register("SB-1", accepted=False, run_dir=tmp_path / "run", intrinsics=INTR, camera_in_tcp=None,
+                           simulated=True, acceptance={"accepted": False, "checks": []}, reason="leak")
+    data = json.loads((profile.path / "profile.json").read_text())
+    data["history"][0]["time"] = "2026-11-01T09:30:00"
+    (profile.path / "profile.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=r"'history\[0\]\.time' must be an ISO 8601 time with its UTC offset"):
+        reg.get("SB-1")
 
 
 def test_listing_lookup_and_bad_names(tmp_path):

@@ -100,13 +100,18 @@ def test_the_pose_and_run_tables_read_as_text_not_json(tmp_path):
     assert "Sq.Rel (m)" in text and "[0." not in text
 
 
-def test_the_heading_writes_a_failed_a1_as_its_check_does(tmp_path):
-    """Was: 3 decimals in the heading, a rejected 0.94996 (limit 0.95) shown as 0.950."""
+def test_the_heading_and_the_metrics_table_write_a_failed_value_as_its_check_does(tmp_path):
+    """Was: 3 decimals in the heading, a rejected 0.94996 (limit 0.95) shown as 0.950; then in the
+    metrics table still, and a rejected RMSE of 1.5004 mm (limit 1.5) as 1.500."""
     data = _full_report_data(False)
-    data.checks = [evaluate(load_thresholds(), "heldout_a1", 0.94996)]
-    data.heldout_metrics = {**data.heldout_metrics, "a1": 0.94996}
+    data.checks = [evaluate(load_thresholds(), "heldout_a1", 0.94996),
+                   evaluate(load_thresholds(), "heldout_rmse_mm", 1.5004)]
+    data.heldout_metrics = {**data.heldout_metrics, "a1": 0.94996, "rmse": 0.0015004}
     text = write_report(data, tmp_path / "report.html").read_text()
     assert "held-out &delta;&lt;1.05 = 0.94996</p>" in text and "= 0.950<" not in text
+    held_out_row = text[text.index("<tr><th>fine-tuned model vs ToF, held-out poses</th>"):].split("</tr>")[0]
+    assert "<td>0.94996</td>" in held_out_row and "<td>1.5004</td>" in held_out_row
+    assert "<td>0.990</td>" in held_out_row  # a cell no check judges keeps the table's 3 decimals
 
 
 def test_nocontact_maps_of_a_prediction_off_by_a_known_error(tmp_path, make_synthetic_session):
