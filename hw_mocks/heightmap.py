@@ -1,8 +1,9 @@
 """Top-down height field of a mesh: the upper envelope the bubble can press on from above.
 
 ``Heightmap.from_mesh(vertices, faces)`` rasterizes the upward-facing triangles onto a regular
-x/y grid (vectorized z-buffer, max over triangles). Cells with no surface hold ``floor_z``
-(below the fixture plate), so bilinear look-ups at silhouettes give steep walls, not holes.
+x/y grid (vectorized z-buffer, max over triangles). Cells with no surface hold ``floor``
+(``FLOOR_DEPTH`` below the mesh's lowest point, so below the fixture plate it rests on), so bilinear
+look-ups at silhouettes give steep walls, not holes.
 Look-ups take object-frame x/y in metres and return z in metres.
 """
 
@@ -14,18 +15,22 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-#: Height of cells with no surface above them (m, object frame): well below the fixture plate.
-FLOOR_Z = -0.05
+#: How far below the mesh's lowest point (m) the cells with no surface above them lie: well below
+#: the fixture plate (was: at z = -0.05 m of the object frame, above the plate under a part whose
+#: origin is at its centre).
+FLOOR_DEPTH = 0.05
 
 
 @dataclass(frozen=True)
 class Heightmap:
-    """``heights (Ny,Nx) float32 m`` over cell centres ``x0 + i*res, y0 + j*res`` (object frame)."""
+    """``heights (Ny,Nx) float32 m`` over cell centres ``x0 + i*res, y0 + j*res`` (object frame);
+    ``floor`` (m): the height of the cells with no surface."""
 
     heights: np.ndarray
     x0: float
     y0: float
     res: float
+    floor: float
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, res: float = 5e-4) -> "Heightmap":
@@ -34,7 +39,8 @@ class Heightmap:
         lo = tri[:, :, :2].reshape(-1, 2).min(axis=0) - 3 * res
         hi = tri[:, :, :2].reshape(-1, 2).max(axis=0) + 3 * res
         nx, ny = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
-        heights = np.full(ny * nx, FLOOR_Z, dtype=np.float64)
+        floor = float(tri[:, :, 2].min()) - FLOOR_DEPTH
+        heights = np.full(ny * nx, floor, dtype=np.float64)
 
         e1 = tri[:, 1, :2] - tri[:, 0, :2]
         e2 = tri[:, 2, :2] - tri[:, 0, :2]
@@ -70,7 +76,7 @@ class Heightmap:
             o = owner[inside]
             z = tri[o, 0, 2] + u[inside] * (tri[o, 1, 2] - tri[o, 0, 2]) + v[inside] * (tri[o, 2, 2] - tri[o, 0, 2])
             np.maximum.at(heights, cj[inside] * nx + ci[inside], z)
-        return cls(heights.reshape(ny, nx).astype(np.float32), float(lo[0]), float(lo[1]), float(res))
+        return cls(heights.reshape(ny, nx).astype(np.float32), float(lo[0]), float(lo[1]), float(res), floor)
 
     @functools.cached_property
     def top(self) -> float:
@@ -91,11 +97,11 @@ class Heightmap:
     @property
     def covered(self) -> np.ndarray:
         """``(Ny,Nx) bool``: cells with surface above them."""
-        return self.heights > FLOOR_Z + 1e-6
+        return self.heights > self.floor + 1e-6
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height (m) at object-frame ``x, y`` (same shape, float32);
-        ``FLOOR_Z`` off the grid."""
+        ``floor`` off the grid."""
         mx = ((np.asarray(x, dtype=np.float32) - self.x0) / self.res).astype(np.float32, copy=False)
         my = ((np.asarray(y, dtype=np.float32) - self.y0) / self.res).astype(np.float32, copy=False)
         shape, n = mx.shape, mx.size
@@ -105,7 +111,7 @@ class Heightmap:
             rows = -(-n // 1024)
             mx = np.pad(mx.ravel(), (0, rows * 1024 - n)).reshape(rows, 1024)
             my = np.pad(my.ravel(), (0, rows * 1024 - n)).reshape(rows, 1024)
-        out = cv2.remap(self.heights, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=FLOOR_Z)
+        out = cv2.remap(self.heights, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=self.floor)
         return out.ravel()[:n].reshape(shape)
 
     def normals(self) -> np.ndarray:

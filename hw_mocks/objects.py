@@ -1,7 +1,8 @@
 """Bench objects: the built-in test objects and user meshes, mounted on the fixture plate.
 
-Object frame: metres, +z up, origin on the fixture (the plate top, below the object). The arm
-presses the bubble onto an object from above (along base -z), anywhere on its upper surface.
+Object frame: metres, +z up; the fixture holds the object's origin, and the object rests on the plate
+top by its lowest point (a built-in's origin is on the plate top, below the object). The arm presses
+the bubble onto an object from above (along base -z), anywhere on its upper surface.
 
 Built-ins (after the paper's objects; each lies in a cradle so that its upper surface is the
 interesting one):
@@ -12,9 +13,10 @@ interesting one):
 * ``box``: 70 x 50 x 40 mm box, flat on the plate. Primitive: box.
 * ``fingers``: a flat hand, palm down: a 50 x 82 x 16 mm palm and four 17 mm thick rounded fingers along +x.
 
-A mesh file (STL/OBJ/PLY, metres, +z up, origin on the fixture) must be watertight and stand on its
-origin: its lowest point at z = 0 and the origin under its footprint, within ``MESH_PLACEMENT_TOL_M``.
-Its duplicate and zero-area triangles are dropped and, when it is inside out, its faces turned over.
+A mesh file (STL/OBJ/PLY, metres, +z up) must be watertight, and its origin must lie within its
+bounding box (within ``MESH_PLACEMENT_TOL_M``): a part exported standing on its origin, or around its
+centre as ``trimesh.creation`` makes them (was: refused), rests on the plate all the same. Its
+duplicate and zero-area triangles are dropped and, when it is inside out, its faces turned over.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ PLATE_LENGTH_M = 1.0
 #: Largest and smallest extent (m) of a mesh file's object; the lower bound allows float32's rounding
 #: of an STL's coordinates (a 5 mm part reads as 4.9999997 mm).
 MESH_SIZE_RANGE_M = (0.005 * (1 - 1e-6), 0.5)
-#: How far (m) a mesh file's lowest point may lie from z = 0, and its origin outside its footprint.
+#: How far (m) a mesh file's origin may lie outside its bounding box.
 MESH_PLACEMENT_TOL_M = 1e-3
 
 
@@ -54,7 +56,7 @@ MESH_PLACEMENT_TOL_M = 1e-3
 class BenchObject:
     """One object on the bench.
 
-    ``mesh``: ``trimesh.Trimesh`` in the object frame (m, +z up, origin on the fixture).
+    ``mesh``: ``trimesh.Trimesh`` in the object frame (m, +z up, origin held by the fixture).
     ``fixture_pose``: ``(6,) [m, rotvec]`` object frame in the base frame.
     ``primitive``: graspable shape in the object frame for the pose check, or None, e.g.
     ``{"type": "cylinder", "radius": m, "height": m, "center": [x,y,z] m, "axis": [ax,ay,az]}``.
@@ -276,8 +278,8 @@ def load_object(name_or_path: str | Path) -> BenchObject:
     """A built-in object by name or a watertight mesh file by path, at the object-frame origin.
 
     Raises ``InputError`` for an unknown name, a missing/unreadable file, a mesh file named as a
-    built-in, or a mesh that is empty, not watertight, not finite, of the wrong size or not standing
-    on its origin (module docstring).
+    built-in, or a mesh that is empty, not watertight, not finite, of the wrong size or with its
+    origin outside its bounding box (module docstring).
     """
     key = str(name_or_path)
     if key in _BUILDERS:
@@ -318,18 +320,19 @@ def load_object(name_or_path: str | Path) -> BenchObject:
             raise InputError(f"mesh {path} is not watertight (it must be a closed surface)")
     if not mesh.is_winding_consistent or mesh.volume < 0:  # inside out, or some faces turned
         mesh.fix_normals()
-    (x0, y0, z0), (x1, y1, _) = mesh.bounds
-    tol = MESH_PLACEMENT_TOL_M
-    if abs(z0) > tol or not (x0 - tol <= 0 <= x1 + tol and y0 - tol <= 0 <= y1 + tol):
-        raise InputError(f"mesh {path} spans x {x0:.4g}..{x1:.4g}, y {y0:.4g}..{y1:.4g}, z from {z0:.4g} m: its "
-                         "origin must be on the fixture, under the object (lowest point at z = 0, +z up)")
+    (x0, y0, z0), (x1, y1, z1) = mesh.bounds
+    if np.any(mesh.bounds[0] > MESH_PLACEMENT_TOL_M) or np.any(mesh.bounds[1] < -MESH_PLACEMENT_TOL_M):
+        raise InputError(f"mesh {path} spans x {x0:.4g}..{x1:.4g}, y {y0:.4g}..{y1:.4g}, z {z0:.4g}..{z1:.4g} m: its "
+                         "origin must lie within the part (the fixture holds it, and the pose check turns the part "
+                         "about it)")
     return BenchObject(name=object_name(path), mesh=mesh, primitive=None)
 
 
 def fixture_plate(objects: list[BenchObject]) -> list[BenchObject]:
     """Mount ``objects`` side by side along base y on one plate (centred at x = ``PLATE_X``, y = 0,
     plate top z = ``PLATE_Z``), separated by ``PLATE_GAP`` of free space; returns placed copies.
-    Each object's footprint centre sits on the row line x = ``PLATE_X``. ``InputError`` when the row is
+    Each object's footprint centre sits on the row line x = ``PLATE_X``, and its lowest point on the
+    plate top. ``InputError`` when the row is
     longer than the plate (``PLATE_LENGTH_M``)."""
     if not objects:
         return []
@@ -344,7 +347,7 @@ def fixture_plate(objects: list[BenchObject]) -> list[BenchObject]:
     for obj, b, w in zip(objects, bounds, widths):
         cx = 0.5 * (b[0, 0] + b[1, 0])
         cy = 0.5 * (b[0, 1] + b[1, 1])
-        pose = [PLATE_X - cx, y_edge + w / 2 - cy, PLATE_Z, 0.0, 0.0, 0.0]
+        pose = [PLATE_X - cx, y_edge + w / 2 - cy, PLATE_Z - b[0, 2], 0.0, 0.0, 0.0]
         placed.append(obj.placed(pose))
         y_edge += w + PLATE_GAP
     return placed

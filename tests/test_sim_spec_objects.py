@@ -12,7 +12,7 @@ import yaml
 
 from collect.errors import InputError
 from hw_mocks.bubble_sim import BubbleSim
-from hw_mocks.objects import BUILTIN_OBJECTS, PLATE_GAP, fixture_plate, load_object
+from hw_mocks.objects import BUILTIN_OBJECTS, PLATE_GAP, PLATE_Z, fixture_plate, load_object
 from hw_mocks.sensor_spec import SensorSpec, draw_sensor
 
 
@@ -180,14 +180,26 @@ def _brick(tmp_path, name, shift=(0.0, 0.0, 0.005), extents=(0.03, 0.02, 0.01), 
 
 
 @pytest.mark.parametrize("name, shift, message", [
-    ("centred.stl", (0.0, 0.0, 0.0), r"spans x -0.015..0.015, y -0.01..0.01, z from -0.005 m: its origin must be on the "
-                                     r"fixture"),  # was: sunk halfway into the plate
-    ("floating.stl", (0.0, 0.0, 5.0), r"z from 4.995 m: its origin"),  # was: pressed 5 m above the plate
+    ("floating.stl", (0.0, 0.0, 5.0), r"spans x -0.015..0.015, y -0.01..0.01, z 4.995..5.005 m: its origin must lie "
+                                      r"within the part"),  # was: pressed 5 m above the plate
     ("aside.stl", (3.0, 3.0, 0.005), r"spans x 2.985..3.015"),  # was: a pose check 50 mm off, turned about a far origin
 ])
-def test_a_mesh_must_stand_on_its_origin(tmp_path, name, shift, message):
+def test_a_meshs_origin_must_lie_within_it(tmp_path, name, shift, message):
     with pytest.raises(InputError, match=message):
         load_object(_brick(tmp_path, name, shift))
+
+
+def test_a_mesh_exported_around_its_centre_rests_on_the_plate(tmp_path):
+    """``trimesh.creation``'s parts are centred on their origin: was refused ("its origin must be on
+    the fixture"); rests on the plate by its lowest point, as the same part standing on its origin."""
+    centred, standing = (fixture_plate([load_object(_brick(tmp_path, name, shift))])[0]
+                         for name, shift in (("centred.stl", (0.0, 0.0, 0.0)), ("standing.stl", (0.0, 0.0, 0.005))))
+    assert centred.fixture_pose[2] == pytest.approx(PLATE_Z + 0.005)
+    np.testing.assert_allclose(centred.bounds_base(), standing.bounds_base(), atol=1e-9)
+    assert centred.bounds_base()[0][2] == pytest.approx(PLATE_Z)
+    # its height field too, the cells beside it included (was: their floor at z = -0.05 m of the object
+    # frame, 45 mm below the plate beside a 1 cm part standing on its origin, 50 mm beside this one)
+    np.testing.assert_allclose(centred.heightmap.heights + 0.005, standing.heightmap.heights, atol=1e-6)
 
 
 def test_the_commission_benchmarks_unseen_meshes_stand_on_their_origin(tmp_path):
