@@ -28,6 +28,7 @@ from collect import session_format as sf
 from collect.errors import InputError
 from collect.json_files import JSON_READ_ERRORS
 from collect.numbers import real_number, real_numbers, whole_number
+from collect.transforms import interpolate_poses
 
 _REQUIRED = (
     *sf.FRAME_DATASETS,
@@ -409,15 +410,18 @@ class Session:
     def tcp_pose(self, idx) -> np.ndarray:
         """Arm TCP pose at frame time ``(n,6) float64`` [x,y,z m, rotation vector rad], base frame.
 
-        Interpolated from ``arm/*`` on the host clock when the file has no ``frames/tcp_pose``.
+        Interpolated from ``arm/*`` on the host clock when the file has no ``frames/tcp_pose``
+        (``collect.transforms.interpolate_poses``).
         """
         if self._tcp_pose is not None:
             return self._tcp_pose[idx]
         arm = self.arm()
         if len(arm.t) == 0:
             raise InputError(f"{self.path}: no arm poses recorded")
-        t = np.atleast_1d(self.t_host[idx])
-        pose = np.stack([np.interp(t, arm.t, arm.tcp_pose[:, k]) for k in range(6)], axis=-1)
+        back = np.flatnonzero(np.diff(arm.t) < 0)
+        if back.size:  # (was: np.interp's answer for unsorted times, a pose of anywhere)
+            raise InputError(f"{self.path}: corrupt session, {sf.ARM_T} goes back in time at row {int(back[0]) + 1}")
+        pose = interpolate_poses(self.t_host[idx], arm.t, arm.tcp_pose)
         return pose if np.ndim(self.t_host[idx]) else pose[0]
 
     def arm(self) -> ArmStream:

@@ -16,6 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from collect import session_format as sf
 from collect import session_writer
@@ -517,6 +518,28 @@ def test_tcp_pose_from_the_arm_stream_when_frames_lack_it(synthetic_session):
     with Session.open(synthetic_session) as s:
         np.testing.assert_allclose(s.tcp_pose(np.arange(s.n_frames)), stored, atol=1e-9)
         np.testing.assert_allclose(s.tcp_pose(5), stored[5], atol=1e-9)
+
+
+def test_tcp_pose_turns_the_short_way_between_arm_samples_near_a_half_turn(synthetic_session):
+    """The tool pointing down is a half turn, whose rotation vector a UR reports with either sign:
+    was each component interpolated alone, and halfway between two samples 0.2 deg apart, of
+    opposite vectors, no turn at all."""
+    with h5py.File(synthetic_session, "a") as f:
+        del f[sf.FRAMES_TCP_POSE]
+        poses = f[sf.ARM_TCP_POSE][:]
+        poses[1::2, 3:] = [-(np.pi - 2e-3), 0.0, 0.0]  # every other sample 0.23 deg off a half turn, flipped
+        poses[0::2, 3:] = [np.pi - 1e-3, 0.0, 0.0]
+        f[sf.ARM_TCP_POSE][:] = poses
+        t_arm = f[sf.ARM_T][:] - 0.5 / 45.0  # each frame (45 fps, sampled with the arm) halfway between two samples
+        f[sf.ARM_T][:] = t_arm
+    with Session.open(synthetic_session) as s:
+        down = Rotation.from_rotvec([np.pi, 0.0, 0.0])
+        turns = Rotation.from_rotvec(s.tcp_pose(np.arange(s.n_frames))[:, 3:])
+        assert np.all((down.inv() * turns).magnitude() < 3e-3)
+    with h5py.File(synthetic_session, "a") as f:
+        f[sf.ARM_T][:] = t_arm[::-1]
+    with Session.open(synthetic_session) as s, pytest.raises(InputError, match="arm/t goes back in time at row 1"):
+        s.tcp_pose(0)
 
 
 def test_bad_object_leaves_no_file_behind(tmp_path):
