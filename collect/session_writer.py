@@ -77,6 +77,9 @@ COMPRESS_THREADS = 2
 
 #: Rows per chunk of the 1-D/2-D per-sample datasets (timestamps, poses, streams).
 ROW_CHUNK = 512
+#: Filters of those per-sample datasets: the images' (compressed by h5py as rows are appended; was:
+#: none, against the format's "chunked per frame, compressed").
+ROW_COMPRESSION = IMAGE_COMPRESSION
 
 #: Queue capacity in items (frames + stream samples); ~10 s of frames at 45 fps with streams.
 QUEUE_ITEMS = 2048
@@ -710,7 +713,7 @@ def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool, com
         (sf.PRESSURE_T, np.float64, "s"),
         (sf.PRESSURE_HPA, np.float64, "hPa"),
     ):
-        ds = f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(ROW_CHUNK,), dtype=dtype)
+        ds = f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(ROW_CHUNK,), dtype=dtype, **ROW_COMPRESSION)
         if unit:
             ds.attrs[sf.ATTR_UNIT] = unit
     f[sf.FRAMES_PHASE].attrs[sf.ATTR_PHASE_ENUM] = json.dumps(sf.PHASES)
@@ -719,7 +722,8 @@ def _create_datasets(f: h5py.File, height: int, width: int, simulated: bool, com
         (sf.ARM_TCP_POSE, "m, rad (rotation vector)"),
         (sf.ARM_TCP_WRENCH, "N, N m"),
     ):
-        ds = f.create_dataset(name, shape=(0, 6), maxshape=(None, 6), chunks=(ROW_CHUNK, 6), dtype=np.float64)
+        ds = f.create_dataset(name, shape=(0, 6), maxshape=(None, 6), chunks=(ROW_CHUNK, 6), dtype=np.float64,
+                              **ROW_COMPRESSION)
         ds.attrs[sf.ATTR_UNIT] = unit
     if simulated:
         true = f.create_dataset(sf.SIM_TRUE_DEPTH, dtype=np.float32, **image, **compression)

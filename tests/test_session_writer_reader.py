@@ -520,6 +520,14 @@ def test_tcp_pose_from_the_arm_stream_when_frames_lack_it(synthetic_session):
         np.testing.assert_allclose(s.tcp_pose(5), stored[5], atol=1e-9)
 
 
+def test_every_per_frame_and_stream_dataset_is_compressed(synthetic_session):
+    """The format's "chunked per frame, compressed": was true of the images only."""
+    with h5py.File(synthetic_session, "r") as f:
+        for name in (*sf.FRAME_DATASETS, sf.FRAMES_TCP_POSE, sf.SIM_TRUE_DEPTH, *sf.ARM_DATASETS,
+                     *sf.PRESSURE_DATASETS):
+            assert (f[name].compression, f[name].shuffle) == ("gzip", True), name
+
+
 def test_tcp_pose_turns_the_short_way_between_arm_samples_near_a_half_turn(synthetic_session):
     """The tool pointing down is a half turn, whose rotation vector a UR reports with either sign:
     was each component interpolated alone, and halfway between two samples 0.2 deg apart, of
