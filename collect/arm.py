@@ -281,6 +281,7 @@ class Arm:
         self._stop_request: threading.Event | None = None
         self._monitor_loop = LoopThread(self._monitor, "arm-monitor")
         self._monitor_ended = False  # the monitor thread returned (a fault, or close)
+        self._monitor_stops_arm = False  # it returned on a fault, and sends the stop itself
         self._kicked_at: float | None = None  # time.monotonic() of the watchdog's last kick (or arming)
         #: longest time (s, host clock, as the robot's watchdog counts) the watchdog went without a kick
         self.longest_kick_gap_s = 0.0
@@ -291,13 +292,15 @@ class Arm:
         fault the monitor ended on when it returned by itself (a lost link, a failed read): no motion
         is sent without it (was: sent, unwatched, and raised only at its first sample, unstopped)."""
         if self._monitor_loop.running:
-            if self._monitor_ended:
-                raise self._latest_fault or HardwareFault("arm-monitor", "arm: the state monitor has ended")
+            with self._cond:  # the monitor records its end and its fault together (``_end_monitor``)
+                ended, fault = self._monitor_ended, self._latest_fault
+            if ended:
+                raise fault or HardwareFault("arm-monitor", "arm: the state monitor has ended")
             return
         with self._commanding():
             self._arm_watchdog()
             self._kicked_at = time.monotonic()
-        self._monitor_ended = False
+        self._monitor_ended = self._monitor_stops_arm = False
         self._monitor_loop.start()
         self._next_sample(timeout_s=2.0)
 
@@ -318,17 +321,34 @@ class Arm:
         try:
             self._watch()
         except HardwareFault as fault:  # the link lost mid-sample
-            self._set_fault(fault)
-            # sent apart: on a dead link the stopL may wait for a "done" that never comes, and the
-            # motions wait for this thread's end to raise the fault (was: up to ur_rtde's 300 s)
-            threading.Thread(target=self.stop, name="arm-stop", daemon=True).start()
+            self._stop_apart()
+            self._end_monitor(fault)
         except Exception as err:  # a dead monitor must not leave a motion unsupervised
-            self._set_fault(HardwareFault("arm-monitor", f"arm: state monitor failed ({type(err).__name__}: {err})"))
-            self.stop()
+            self._stop_apart()
+            self._end_monitor(HardwareFault("arm-monitor", f"arm: state monitor failed ({type(err).__name__}: {err})"))
         finally:
-            with self._cond:
-                self._monitor_ended = True  # on a fault: the motions waiting for a sample raise it
-                self._cond.notify_all()
+            self._end_monitor(None)
+
+    def _stop_apart(self) -> None:
+        """The monitor's stop, from a thread of its own: on a dead link its stopL waits for a "done" that
+        never comes (ur_rtde: 300 s). Returns once that thread holds the command lock (or has given up
+        on it, ``CONTROL_WAIT_S``): every command after it queues behind it and gives up in turn (was:
+        a motion's or the safe stop's stopL that took the lock first waited out the 300 s)."""
+        queued = threading.Event()
+        threading.Thread(target=self._send_stop, args=(queued,), name="arm-stop", daemon=True).start()
+        queued.wait()
+
+    def _end_monitor(self, fault: HardwareFault | None) -> None:
+        """Record that the monitor has ended, on ``fault`` (None: asked to stop; else it sends the stop
+        itself), in one step with the fault: a motion that sees the fault sees the monitor gone, and
+        sends nothing (was: recorded apart, and a retract started between the two sent its moveL to be
+        watched by no one). The motions waiting for a sample raise the fault."""
+        with self._cond:
+            if fault is not None:
+                self._set_fault(fault)
+                self._monitor_stops_arm = True
+            self._monitor_ended = True
+            self._cond.notify_all()
 
     def _watch(self) -> None:
         next_t = time.monotonic()
@@ -446,11 +466,20 @@ class Arm:
         """Start decelerating the TCP to rest (asynchronous stopL); safe to call at any time, from any
         thread, and never raises: a stop the robot cannot be sent (the link is gone) is recorded as
         the arm's fault, and the controller's watchdog stops the robot."""
+        self._send_stop(None)
+
+    def _send_stop(self, queued: threading.Event | None) -> None:
+        """``stop``; sets ``queued`` once it holds the command lock, or has given up on it."""
         try:
             with self._commanding():
+                if queued is not None:
+                    queued.set()
                 self._ctl.stopL(STOP_DECEL_M_S2, True)
         except HardwareFault as fault:
             self._set_fault(fault)
+        finally:
+            if queued is not None:
+                queued.set()
 
     @contextmanager
     def _commanding(self) -> Iterator[None]:
@@ -538,7 +567,10 @@ class Arm:
         try:
             return self._supervise(target, guard, ignore_faults, known_fault, budget)
         except BaseException:  # whatever ends the move (was: a lost sample left it running unwatched)
-            self.stop()
+            with self._cond:
+                stopped = self._monitor_stops_arm
+            if not stopped:  # (on a dead link, this thread's stopL would wait out ur_rtde's 300 s)
+                self.stop()
             raise
 
     def _supervise(self, target: np.ndarray, guard, ignore_faults: bool, known_fault: HardwareFault | None,
