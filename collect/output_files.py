@@ -1,5 +1,6 @@
 """Checks of the files a command is about to write, made before any work: a command never
-overwrites a recording, a model or any other file that is not an earlier result of its own kind,
+overwrites a recording, a model or any other file that is not an earlier result of its own kind
+or an empty placeholder (``is_placeholder``: what ``tempfile.mkstemp`` or ``touch`` leave),
 never starts on a path with a name the file system cannot take (255 bytes on the usual ones; 242
 for the name of a file written through a temporary file, ``collect.atomic_files.replacing``), and
 two commands never write one output folder at once (``output_folder_lock``)."""
@@ -37,21 +38,23 @@ def named_path(text: str) -> str:
     return text
 
 
+def is_placeholder(path) -> bool:
+    """Whether ``path`` is an empty regular file (``tempfile.mkstemp``'s, ``touch``'s), which an output
+    may replace: it holds nothing to lose (was: refused as any other existing file)."""
+    path = Path(path)
+    return path.is_file() and not path.is_symlink() and path.stat().st_size == 0
+
+
 def check_json_output(path, command: str) -> None:
     """Raise InputError unless ``path`` (a ``--json`` result of ``command``) can be written: it names
-    a file, its directory exists and is writable, and the path is new or holds an earlier result of
-    the same command (which is replaced)."""
+    a file, the folders on the way exist as folders or can be made (``write_json_result`` makes them;
+    was: refused), and the path is new, a placeholder (``is_placeholder``) or holds an earlier result
+    of the same command (which is replaced)."""
     path = Path(path)
-    _check_name_lengths(path, replaced=True)
-    parent = path.parent.resolve()
-    if parent.exists() and not parent.is_dir():  # was: "directory … does not exist" of a file
-        raise InputError(f"cannot write {path}: {parent} is a file, not a directory")
-    if not parent.is_dir():
-        raise InputError(f"cannot write {path}: directory {parent} does not exist")
-    _check_can_create_in(parent, path)
+    check_parent_dirs(path, replaced=True)
     if path.is_dir():
         raise InputError(f"cannot write {path}: it is a directory")
-    if path.exists() and _written_by(path) != command:
+    if path.exists() and not is_placeholder(path) and _written_by(path) != command:
         raise InputError(f"{path} exists and is not an earlier `{command} --json` result; refusing to overwrite it")
 
 
@@ -61,10 +64,10 @@ PNG_WRITER_KEY = "Software"
 
 def check_png_output(path, command: str) -> None:
     """Raise InputError when ``path`` exists and is not a PNG image that ``command`` wrote (its
-    ``PNG_WRITER_KEY`` text is ``command``): an earlier image of the same command is replaced, no
-    other file (images of versions that did not mark them neither)."""
+    ``PNG_WRITER_KEY`` text is ``command``) nor a placeholder (``is_placeholder``): an earlier image
+    of the same command is replaced, no other file (images of versions that did not mark them neither)."""
     path = Path(path)
-    if path.exists() and _png_written_by(path) != command:
+    if path.exists() and not is_placeholder(path) and _png_written_by(path) != command:
         raise InputError(f"{path} exists and is not an earlier `{command}` image; refusing to overwrite it")
 
 
@@ -82,7 +85,9 @@ def _png_written_by(path: Path) -> str | None:
 
 def write_json_result(path, command: str, values: dict) -> None:
     """Write ``values`` (JSON data, see ``plain_json``) as ``command``'s ``--json`` result, marked
-    with ``WRITTEN_BY`` first (``check_json_output`` checked ``path`` before the work)."""
+    with ``WRITTEN_BY`` first (``check_json_output`` checked ``path`` before the work), making the
+    folders on the way."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_json(path, {WRITTEN_BY: command, **values})
 
 

@@ -64,7 +64,7 @@ import numpy as np
 from collect import session_format as sf
 from collect.errors import RECORDER_FAULT, HardwareFault, InputError
 from collect.json_files import plain_json
-from collect.output_files import check_parent_dirs, exclusive_lock
+from collect.output_files import check_parent_dirs, exclusive_lock, is_placeholder
 from collect.session_reader import h5_error_text, in_use_error, open_h5
 from collect.stop_signals import stop_signals_deferred
 
@@ -650,8 +650,10 @@ def _append_rows(dataset: h5py.Dataset, values: np.ndarray) -> None:
 
 
 def check_output_path(path, resume: bool) -> None:
-    """Raise InputError unless ``path`` can be recorded to: a new file in an existing, writable
-    directory, or (``resume``) an existing file. Cheap; call it before opening any device."""
+    """Raise InputError unless ``path`` can be recorded to: a new file or a placeholder
+    (``collect.output_files.is_placeholder``: an empty file, as ``tempfile.mkstemp`` leaves) where the
+    folders on the way exist or can be made (``_create`` makes them; was: refused), or (``resume``)
+    an existing file. Cheap; call it before opening any device."""
     path = os.fspath(path)
     if os.path.isdir(path):
         raise InputError(f"{path} is a directory, not a session file; name a file in it, e.g. "
@@ -663,22 +665,16 @@ def check_output_path(path, resume: bool) -> None:
         if not os.access(path, os.R_OK | os.W_OK):
             raise InputError(f"cannot resume {path}: the file is not writable")
         return
-    if os.path.exists(path):
+    if os.path.exists(path) and not is_placeholder(path):
         raise InputError(f"{path} already exists; use --resume to append to it or choose another output")
-    parent = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(parent):
-        if os.path.exists(parent):
-            raise InputError(f"cannot create {path}: {parent} is a file, not a directory")
-        raise InputError(f"cannot create {path}: directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"cannot create {path}: directory {parent} is not writable")
-    check_parent_dirs(path)  # what permission bits do not tell (root on a read-only or virtual file system)
+    check_parent_dirs(path)  # a folder on the way that is a file, or one that takes no new file
 
 
 def _create(path: str) -> h5py.File:
     check_output_path(path, resume=False)
     try:
-        return h5py.File(path, "w-", libver=LIBVER)
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        return h5py.File(path, "w" if is_placeholder(path) else "w-", libver=LIBVER)
     except OSError as err:
         raise InputError(f"cannot create {path}: {err.strerror or err}") from None
 

@@ -44,11 +44,15 @@ def _new_sensor(args: argparse.Namespace) -> int:
     from collect.output_files import check_parent_dirs
     from hw_mocks.sensor_spec import draw_sensor
 
+    from collect.output_files import is_placeholder
+
     spec = draw_sensor(args.seed, args.defect)
     out = Path(args.out)
     if out.is_dir():
         raise InputError(f"--out {out} is a directory; name the spec file to write, e.g. {out / 'sensor.yaml'}")
-    if out.exists():  # a spec describes the sensor a recording was made with: never replace one silently
+    # a spec describes the sensor a recording was made with: never replace one silently (a placeholder,
+    # or the very spec this command writes, run again, is no other sensor's; was: refused too)
+    if out.exists() and not is_placeholder(out) and not _holds_spec(out, spec):
         raise InputError(f"{out} already exists; choose another --out or delete it first")
     check_parent_dirs(out, replaced=True)
     try:
@@ -58,6 +62,14 @@ def _new_sensor(args: argparse.Namespace) -> int:
         raise InputError(f"cannot write {out}: {err.strerror or err}") from None
     print(f"sensor {spec.serial} -> {out}")
     return 0
+
+
+def _holds_spec(path: Path, spec) -> bool:
+    """Whether the file ``path`` holds ``spec`` (a ``SensorSpec``) as ``to_yaml`` writes it, byte for byte."""
+    try:
+        return path.is_file() and path.read_bytes() == spec.yaml_text().encode("utf-8")
+    except OSError:
+        return False
 
 
 def _preview(args: argparse.Namespace) -> int:

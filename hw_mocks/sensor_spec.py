@@ -185,13 +185,17 @@ class SensorSpec:
             raise InputError(f"sensor spec {path} is not valid YAML: {yaml_error_text(err)}") from None
         return cls.from_dict(data, source=f"sensor spec {path}")
 
-    def to_yaml(self, path: str | Path) -> None:
-        """Write the spec as YAML (round-trips through ``from_yaml``; atomically:
-        ``collect.atomic_files.write_text``)."""
-        from collect.atomic_files import write_text
+    def yaml_text(self) -> str:
+        """The spec as YAML text (round-trips through ``from_yaml``)."""
         from collect.yaml_files import dump_yaml
 
-        write_text(path, dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None))
+        return dump_yaml(self.to_dict(), sort_keys=False, default_flow_style=None)
+
+    def to_yaml(self, path: str | Path) -> None:
+        """Write ``yaml_text`` to ``path`` (atomically: ``collect.atomic_files.write_text``)."""
+        from collect.atomic_files import write_text
+
+        write_text(path, self.yaml_text())
 
     # ---- validation ----------------------------------------------------------------------------
     def validate(self, source: str = "sensor spec") -> None:

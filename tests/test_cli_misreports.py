@@ -59,6 +59,24 @@ def test_output_that_is_a_directory_or_under_a_file(tmp_path, places, capsys):
     assert list(folder.iterdir()) == [] and plain.read_text() == "x"
 
 
+def test_json_and_image_outputs_may_be_placeholders_in_folders_yet_to_be_made(tmp_path, synthetic_session, capsys):
+    """An empty file (``tempfile.mkstemp``'s) and a folder not made yet: was "exists and is not an
+    earlier ... result" and "directory ... does not exist"."""
+    placeholder = tmp_path / "placeholder.json"
+    placeholder.touch()
+    deeper = tmp_path / "results" / "pose.json"
+    image = tmp_path / "placeholder.png"
+    image.touch()
+    assert main(["evaluate", "--model", "base", "--data", str(synthetic_session), "--json", str(placeholder)]) == 0
+    assert main(["pose", "--model", "base", "--data", str(synthetic_session), "--json", str(deeper)]) == 0
+    assert json.loads(placeholder.read_text())["written_by"] == "bubble evaluate"
+    assert json.loads(deeper.read_text())["written_by"] == "bubble pose"
+    spec = tmp_path / "s.yaml"
+    assert main(["sim", "new-sensor", "--seed", "1", "--out", str(spec)]) == 0
+    assert main(["sim", "preview", "--sensor", str(spec), "--object", "box", "--out", str(image)]) == 0
+    assert image.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc: a folder that takes no new file")
 def test_output_in_a_folder_that_takes_no_file_is_refused_before_any_work(tmp_path, synthetic_session, capsys):
     """Permission bits do not tell whether a file can be created (root; a read-only or virtual file
@@ -298,7 +316,7 @@ def test_a_resumed_segment_is_listed_only_when_it_records_a_frame(tmp_path):
         (lambda d: d["history"][0].__setitem__("abs_rel", -0.5), "'history[0].abs_rel' must be a number >= 0 or null, got -0.5"),
         (lambda d: d.__setitem__("intrinsics", {"fx": "x"}), "'intrinsics' must be an object of finite numbers (a list of them for 'distortion') or null"),
         (lambda d: d.__setitem__("status", ["accepted"]), "'status' must be 'accepted' or 'rejected'"),
-        (lambda d: d.__setitem__("last_commissioned", 5), "'last_commissioned' must be a string, got 5"),
+        (lambda d: d.__setitem__("last_commissioned", 5), "'last_commissioned' must be an ISO 8601 time with its UTC offset, got 5"),
         (lambda d: d.__setitem__("simulated", "no"), "'simulated' must be true or false"),
         (lambda d: d["history"][0].pop("time"), "'history[0]' has no 'time'"),
         (lambda d: d["history"][0].pop("run_dir"), "'history[0]' has no 'run_dir'"),

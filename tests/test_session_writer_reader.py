@@ -416,8 +416,14 @@ def test_bad_output_paths(tmp_path):
     with pytest.raises(InputError, match="already exists; use --resume"):
         _writer(path)
     assert path.stat().st_size == size
-    with pytest.raises(InputError, match="does not exist"):
-        _writer(tmp_path / "nowhere" / "s.h5")
+    with _writer(tmp_path / "new" / "folders" / "s.h5"):  # made on the way (was: "directory … does not exist")
+        pass
+    placeholder = tmp_path / "placeholder.h5"  # an empty file, as tempfile.mkstemp leaves (was: "already exists")
+    placeholder.touch()
+    with _writer(placeholder) as w:
+        w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, -1, 0, np.zeros(6))
+    with Session.open(placeholder) as s:
+        assert s.n_frames == 1
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="file is a file, not a directory"):
         _writer(tmp_path / "file" / "s.h5")

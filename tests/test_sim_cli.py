@@ -60,6 +60,12 @@ def test_bad_input_exits_2(tmp_path, capsys):
     spec_text = spec_path.read_text()
     _fails_with_one_line(capsys, ["sim", "new-sensor", "--seed", "2", "--out", str(spec_path)], "already exists")
     assert spec_path.read_text() == spec_text  # the spec a recording was made with is never replaced
+    # the same command again finds its own spec there, and an empty placeholder holds none (was: refused)
+    assert main(["sim", "new-sensor", "--seed", "1", "--out", str(spec_path)]) == 0 and spec_path.read_text() == spec_text
+    placeholder = tmp_path / "placeholder.yaml"
+    placeholder.touch()
+    assert main(["sim", "new-sensor", "--seed", "1", "--out", str(placeholder)]) == 0
+    assert placeholder.read_text() == spec_text
 
 
 def test_sim_help_names_the_subcommands_and_the_press_default(capsys):
