@@ -12,7 +12,8 @@ import torch
 from calibrate.cli import main
 from collect.errors import InputError
 from trainer.inference import DepthEstimator
-from trainer.model_dir import METADATA_FILE, WEIGHTS_FILE, ModelMetadata, load_metadata, load_network, save_model
+from trainer.model_dir import (BASE_MODEL_DIR, METADATA_FILE, WEIGHTS_FILE, ModelMetadata, load_metadata, load_network,
+                               save_model)
 from trainer.networks import build_network
 from trainer.onnx_export import export_and_select_runtime, export_onnx
 from trainer.preprocessing import InputGeometry, IRNormalization
@@ -308,6 +309,15 @@ def test_an_onnx_file_of_another_input_size_is_refused_in_a_folder_without_hashe
 def test_the_base_model_runs_its_recorded_onnx_export():
     """The committed base model's metadata.json records the hashes of its model.onnx and weights."""
     assert DepthEstimator.load("base").runtime == "onnx"
+
+
+def test_the_base_models_metadata_is_strict_json():
+    """JSON has no NaN (jq and JavaScript refuse it): was a ``"loss": NaN`` in its history, written
+    before ``plain_json``."""
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+
+    json.loads((BASE_MODEL_DIR / METADATA_FILE).read_text(), parse_constant=refuse)
 
 
 def test_ir_outside_the_uint16_range_is_refused_naming_the_frame(model_dir):
