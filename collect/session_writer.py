@@ -845,9 +845,6 @@ def _check_resumable(session, serial: str, intrinsics: dict, camera_in_tcp, simu
     if not np.allclose(session.camera_in_tcp, np.asarray(camera_in_tcp, dtype=float).reshape(6), rtol=0.0, atol=1e-9):
         raise InputError(f"cannot resume {path}: it was recorded with the camera at another pose in the tool "
                          f"(camera_in_tcp); record into a new file")
-    # streams that the readers refuse are not extended (was: NaN in pressure/hpa resumed, and the longer
-    # file still refused by bubble info)
-    session.check_streams()
     stored = session.collection_plan()
     if plan_text is not None and stored is None and bool(np.any(session.pose_id >= 0)):
         raise InputError(f"cannot resume {path}: it holds contact poses but no collection plan to check this run's "

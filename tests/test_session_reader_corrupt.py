@@ -224,6 +224,18 @@ def test_nan_in_true_depth_names_its_frame_row(tmp_path, small_session, idx):
         session.true_depth(idx)
 
 
+@pytest.mark.parametrize("stream", [sf.PRESSURE_HPA, sf.ARM_TCP_POSE])
+def test_nan_in_a_stream_is_refused_by_every_command_that_reads_the_file(tmp_path, small_session, capsys, stream):
+    """Was: refused by bubble info and a resume only; evaluate (train, pose) took the file, exit 0."""
+    path = tmp_path / "nan.h5"
+    shutil.copy(small_session, path)
+    with h5py.File(path, "r+") as f:
+        f[stream][3] = np.nan
+    capsys.readouterr()
+    assert main(["evaluate", "--model", "base", "--data", str(path)]) == 2
+    assert capsys.readouterr().err == f"bubble: error: {path}: corrupt session, NaN/inf in {stream} (row 3)\n"
+
+
 def test_a_depth_unit_given_only_as_text_is_read(tmp_path, small_session):
     """The format's contract names the unit in attrs ("e.g. 1e-4 m"): a file that gives only that text
     is read in its unit (was: read in the recorder's 1e-5 m, ten times too shallow)."""
