@@ -13,7 +13,8 @@
 * recorder thread: takes every camera frame, stamps it with the object / pose / phase that was
   under way at the frame's capture time (``t_host`` on the bench clock; the main thread logs each
   phase start on that clock, so frames that wait in the camera queue keep their true phase) and
-  with the arm sample nearest that time (125 Hz or faster: within 4 ms), and queues it to the
+  with the arm's pose at that time (interpolated between the samples around it, 125 Hz or faster;
+  a frame newer than every sample drained so far takes the latest), and queues it to the
   writer together with the arm state samples and pressure readings that arrived meanwhile. It also reports progress (<= 10 Hz and on every phase
   change) and watches the camera (stall) and the pressure board (unplug, timeout): a fault there
   aborts the arm's running motion at once (``Arm.abort``), which raises it in the main thread.
@@ -53,6 +54,7 @@ from collect.errors import RECORDER_FAULT, HardwareFault, InputError, StopReques
 from collect.pose_planner import CollectionPlan, PlanSettings, plan_collection
 from collect.session_writer import SessionWriter
 from collect.stop_signals import INTERRUPTS, acknowledge_stop, stop_signals_handled
+from collect.transforms import interpolate_poses
 
 log = logging.getLogger(__name__)
 
@@ -242,14 +244,17 @@ class _Recorder(threading.Thread):
             return stamp
 
     def _arm_pose_at(self, t: float) -> np.ndarray:
-        """TCP pose (6,) of the arm sample nearest bench time ``t`` (samples are in time order)."""
-        nearest = None
+        """TCP pose (6,) at bench time ``t``: between the two arm samples around it
+        (``collect.transforms.interpolate_poses``; was: the nearest one, up to half a sample period
+        off), else the sample nearest it (samples are in time order)."""
+        after = None
         for sample in reversed(self._recent_arm):
-            if nearest is None or abs(sample.t - t) < abs(nearest.t - t):
-                nearest = sample
             if sample.t <= t:
-                break
-        return nearest.tcp_pose if nearest is not None else self.bench.arm.state().tcp_pose
+                if after is None:  # newer than every sample drained so far
+                    return sample.tcp_pose
+                return interpolate_poses(t, [sample.t, after.t], [sample.tcp_pose, after.tcp_pose])[0]
+            after = sample
+        return after.tcp_pose if after is not None else self.bench.arm.state().tcp_pose
 
     def run(self) -> None:
         try:
@@ -290,6 +295,7 @@ class _Recorder(threading.Thread):
                 return
             if frame.t_host > self.halted_at:
                 return
+            self._write_streams()  # the arm samples around it (was: none after the halt, a stale pose)
             self._write_frame(frame)
 
     def write_remaining_streams(self) -> None:
