@@ -355,7 +355,8 @@ class Bench:
     arm: ``collect.arm.Arm``; camera: ``ToFCamera``; pressure: ``PressureBoard``;
     objects: placed ``BenchObject``s; home_pose (6,); simulated: bool; sim: the ``SimBench``
     (simulated only); clock: the bench clock (s) shared by every timestamp.
-    After ``start()``: intrinsics (dict), sensor_serial (the pressure board's ``ID?``).
+    After ``start()``: intrinsics (dict), sensor_serial (the pressure board's ``ID?``), started_at
+    (the bench clock as the devices started, s: before any of their timestamps).
     """
 
     def __init__(self, *, arm: Arm, camera: ToFCamera, pressure: PressureBoard, objects, home_pose,
@@ -371,12 +372,14 @@ class Bench:
         self.clock = arm.clock
         self.intrinsics: dict = {}
         self.sensor_serial = ""
+        self.started_at: float | None = None
         self.limits = arm.limits
         self._unretracted = ""  # why the last safe stop could not retract ("" after a retract)
         self._held = held or contextlib.ExitStack()  # released by close(): the arm lock of a real bench
 
     def start(self) -> None:
         """Open the pressure board, start the camera and the arm monitor; read serial and intrinsics."""
+        self.started_at = self.clock()
         self.pressure.open()
         self.sensor_serial = self.pressure.identify()
         self.camera.start()

@@ -104,6 +104,7 @@ def session_metadata(bench, objects) -> dict:
         "camera_in_tcp": list(spec.camera_in_tcp) if spec is not None else list(NOMINAL_CAMERA_IN_TCP),
         "simulated": bool(bench.simulated),
         "objects": object_records(objects),
+        "host_clock_start": bench.started_at,
     }
 
 

@@ -277,6 +277,11 @@ class SessionWriter:
         compression: h5py filter keywords of the image datasets of a new file (default
             ``IMAGE_COMPRESSION``); a resumed file keeps its own.
         min_free_bytes: free space kept on the file's disk (default ``MIN_FREE_BYTES``).
+        host_clock_start: the host clock's reading before any time this writer is given (a bench's
+            ``started_at``): a resumed segment's host-clock shift is fixed from it (default: from the
+            first time appended; was always so, the arm's first sample, seconds after the pressure
+            board's first reading on a real bench, whose readings then went back in time in a
+            segment resumed after a reboot).
 
     Raises:
         InputError: less than ``min_free_bytes`` free on the file's disk, the file exists (without
@@ -301,6 +306,7 @@ class SessionWriter:
         flush_interval_s: float = 0.5,
         compression: dict | None = None,
         min_free_bytes: int | None = None,
+        host_clock_start: float | None = None,
     ):
         self.path = os.fspath(path)
         self.min_free_bytes = MIN_FREE_BYTES if min_free_bytes is None else int(min_free_bytes)
@@ -343,6 +349,8 @@ class SessionWriter:
         self.referenced_objects = frozenset(_referenced_objects(phase, self._file[sf.FRAMES_OBJECT][()], pose_id))
         self.stats.frames_flushed = self.n_frames_at_open
         self._host_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_HOST, sf.ARM_T, sf.PRESSURE_T), RESUME_GAP_S)
+        if host_clock_start is not None:
+            self._host_clock(host_clock_start)  # fixes the shift
         self._device_clock = _ContinuedClock(_last_value(self._file, sf.FRAMES_T_DEVICE), RESUME_GAP_S)
         self._seq = _ContinuedClock(_last_value(self._file, sf.FRAMES_SEQ), 1, restarted_only=False)
         #: frame index where this resumed segment starts, listed in ``resumed_at_frames`` with the

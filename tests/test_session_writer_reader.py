@@ -22,7 +22,7 @@ from collect import session_format as sf
 from collect import session_writer
 from collect.errors import HardwareFault, InputError
 from collect.session_reader import Session
-from collect.session_writer import SessionWriter
+from collect.session_writer import RESUME_GAP_S, SessionWriter
 
 H, W = 24, 32
 INTRINSICS = {"fx": 30.0, "fy": 30.0, "cx": 15.5, "cy": 11.5, "width": W, "height": H}
@@ -329,6 +329,28 @@ def test_resume_adds_new_objects_and_checks_meshes(tmp_path):
         assert s.object_names == ["mug", "box"] and s.objects[1].mesh_sha256 == "cd" * 32
     with pytest.raises(InputError, match="another mesh"):
         _writer(path, resume=True, objects=[dict(OBJECT, mesh_sha256="ef" * 32)])
+
+
+def test_a_segment_resumed_after_a_reboot_continues_every_stream_from_the_benchs_start(tmp_path):
+    """The host clock restarted (a reboot), and the pressure board started seconds before the arm,
+    whose samples the recorder appends first: was the arm's first sample that fixed the shift, and
+    the earlier pressure readings went back in time, before the first segment's end."""
+    path = tmp_path / "s.h5"
+    with _writer(path) as w:
+        for i in range(3):
+            w.append_arm(4999.0 + i / 2, np.zeros(6), np.zeros(6))
+            w.append_pressure(4999.0 + i / 2, 1065.0)
+            w.append_frame(*_frame(i), 10.0 + i, 4999.0 + i / 2, i, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    with SessionWriter(path, **_metadata("S1", False, (OBJECT,)), resume=True,
+                       host_clock_start=94.0) as w:  # the bench started at 94 s
+        w.append_arm(100.0, np.zeros(6), np.zeros(6))
+        for t in (95.0, 97.0, 99.5, 100.5):
+            w.append_pressure(t, 1065.0)
+        w.append_frame(*_frame(9), 3.0, 100.6, 0, 0, -1, sf.PHASE_FREE, np.zeros(6))
+    with Session.open(path) as s:
+        assert (np.diff(s.pressure().t) > 0).all() and (np.diff(s.arm().t) > 0).all()
+        assert s.pressure().t[3] == pytest.approx(5000.0 + RESUME_GAP_S + 1.0)  # 1 s after the bench's start
+        assert s.t_host[-1] == pytest.approx(5000.0 + RESUME_GAP_S + 6.6)
 
 
 @pytest.mark.parametrize("stream", [sf.PRESSURE_HPA, sf.ARM_TCP_WRENCH])
