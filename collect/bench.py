@@ -340,13 +340,20 @@ class SimBenchConfig(BenchConfig):
         limits = workspace_limits(objects, self.limits)
         start = None if self.start_pose is None else limits.check_pose(self.start_pose)
         scene = SimBench(spec, objects, seed=self.seed, faults=faults, speed=self.speed, start_pose=start)
-        scene.start()
-        firmware = PressureFirmware(scene, seed=self.seed)
-        firmware.start()
-        arm = Arm(FakeRTDEControl(scene.arm), FakeRTDEReceive(scene.arm), limits, settings=self.motion,
-                  clock=scene.clock, state_hz=self.state_hz)
-        return Bench(arm=arm, camera=SimToFCamera(scene, self.seed), pressure=PressureBoard(firmware.port, clock=scene.clock),
-                     objects=objects, home_pose=scene.home_pose, simulated=True, sim=scene, firmware=firmware)
+        with contextlib.ExitStack() as started:  # stopped again when the bench cannot be made (was: a camera
+            # whose import failed left the physics and firmware threads running in the process, for good)
+            scene.start()
+            started.callback(scene.stop)
+            firmware = PressureFirmware(scene, seed=self.seed)
+            firmware.start()
+            started.callback(firmware.stop)
+            arm = Arm(FakeRTDEControl(scene.arm), FakeRTDEReceive(scene.arm), limits, settings=self.motion,
+                      clock=scene.clock, state_hz=self.state_hz)
+            bench = Bench(arm=arm, camera=SimToFCamera(scene, self.seed),
+                          pressure=PressureBoard(firmware.port, clock=scene.clock), objects=objects,
+                          home_pose=scene.home_pose, simulated=True, sim=scene, firmware=firmware)
+            started.pop_all()
+            return bench
 
 
 class Bench:
