@@ -264,7 +264,7 @@ class SensorRegistry:
         """
         sdir = self._sensor_dir(serial)
         sdir.mkdir(parents=True, exist_ok=True)
-        when = when or datetime.now(timezone.utc)
+        when = (when or datetime.now(timezone.utc)).astimezone(timezone.utc)  # a naive time: this computer's
         with output_folder_lock(sdir):
             prior = self._read_profile(sdir) if self._has_profile(sdir) else {"serial": serial, "history": []}
             metrics = {k: acceptance.get(k) for k in _METRICS if k in acceptance}

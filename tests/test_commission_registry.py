@@ -76,6 +76,8 @@ def test_an_older_commissioning_registered_later_only_joins_the_history(tmp_path
     profile = register(False, "newest", day[2])  # a newer one still updates the status, not the kept model
     assert profile.status == "rejected" and json.loads((profile.model_dir / "model.json").read_text())["tag"] == "new"
     assert [h["id"] for h in profile.history][-1] == "newest"
+    naive = register(False, "naive", datetime(2026, 11, 4, 9, 30))  # no offset: this computer's time, stored in UTC
+    assert naive.history[-1]["time"].endswith("+00:00")
 
 
 def test_a_profile_time_without_its_offset_is_refused(tmp_path, capsys):
