@@ -31,7 +31,6 @@ def register(subparsers) -> None:
         "130 stopped by Ctrl-C (143 SIGTERM, 129 SIGHUP). Re-running with the same --out resumes from "
         "the last completed step.",  # was: 0, 1 and 2 only
     )
-    p.add_argument("--bench", type=named_path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
     p.add_argument("--out", type=named_path, required=True, metavar="RUN_DIR", help="run directory (created; resumed if it exists)")
     add_run_options(p)
     p.add_argument("--quiet", action="store_true", help="print only the verdict")
@@ -53,6 +52,7 @@ def add_run_options(p) -> None:
     from calibrate.commission_config import CommissionConfig
 
     p.add_argument("--sim", action="store_true", help="use the simulated bench (no hardware)")
+    p.add_argument("--bench", type=named_path, metavar="BENCH.yaml", help="real bench settings (arm host, camera, serial port)")
     p.add_argument("--sensor", type=named_path, metavar="SPEC.yaml", help="simulated sensor spec (default: drawn from --seed)")
     p.add_argument("--thresholds", type=named_path, metavar="YAML", help="acceptance thresholds overriding the packaged ones")
     p.add_argument("--registry", type=named_path, metavar="DIR", help="sensor registry directory (default: $BUBBLE_REGISTRY or the user data dir)")
@@ -73,11 +73,21 @@ def add_run_options(p) -> None:
     p.add_argument("--sim-speed", type=float, default=CommissionConfig.sim_speed, help="simulated clock speed-up (simulated bench)")
 
 
-def run_config(args, run_dir: str | Path, bench=None):
-    """The ``CommissionConfig`` of ``add_run_options``' options, for ``run_dir`` and ``bench`` (a real
-    bench's ``BenchConfig``; None for the simulated one)."""
+def run_config(args, run_dir: str | Path):
+    """The ``CommissionConfig`` of ``add_run_options``' options, for ``run_dir``: the simulated bench
+    (``--sim``) or the real bench of ``--bench`` (``InputError`` for both, and for sim-only options
+    without ``--sim``)."""
     from calibrate.commission_config import CommissionConfig
     from trainer.cli import check_model_arg
+
+    bench = None
+    if args.bench is not None:
+        if args.sim:
+            raise InputError("--bench describes real hardware; drop it or --sim")
+        from collect.bench import BenchConfig
+
+        bench = BenchConfig.from_yaml(args.bench)
+    check_sim_options(args)
 
     def path(text: str | None) -> Path | None:
         return None if text is None else Path(text)
@@ -157,15 +167,7 @@ class ProgressPrinter:
 def run_commission(args) -> int:
     from calibrate.commissioning import run_commissioning
 
-    bench = None
-    if args.bench is not None:
-        if args.sim:
-            raise InputError("--bench describes real hardware; drop it or --sim")
-        from collect.bench import BenchConfig
-
-        bench = BenchConfig.from_yaml(args.bench)
-    check_sim_options(args)
-    config = run_config(args, args.out, bench)
+    config = run_config(args, args.out)
     stop, done = threading.Event(), threading.Event()
     printer = (lambda e: None) if args.quiet else ProgressPrinter()
     outcome: dict = {}

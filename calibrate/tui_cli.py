@@ -17,7 +17,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "tui",
         help="terminal UI: bench state, live sensor view, commissioning with stop key",
-        description="Terminal UI that drives the bench. Keys: c commission (asks first), s/space STOP the arm, "
+        description="Terminal UI that drives the bench: the simulated one (--sim) or a real one (--bench "
+        "BENCH.yaml, as bubble commission). Keys: c commission (asks first), s/space STOP the arm, "
         "1-4 tabs, r reload registry, q quit (stops the arm and closes the session first).",
     )
     p.add_argument("--out", type=named_path, metavar="RUN_DIR", help="run directory (default: runs/<date-time>)")
@@ -29,10 +30,7 @@ def run_tui(args) -> int:
     from calibrate.commission_config import validate_config
     from hw_mocks.sensor_spec import SensorSpec
 
-    if not args.sim:
-        raise InputError("the terminal UI drives the simulated bench only: add --sim (on real hardware, "
-                         "commission with bubble commission --bench BENCH.yaml)")
-    if args.sensor is not None:  # the flow loads it in its own process: its errors before the UI starts
+    if args.sensor is not None and args.sim:  # the flow loads it in its own process: its errors before the UI starts
         SensorSpec.from_yaml(args.sensor)
     config = run_config(args, args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S"))
     validate_config(config)  # every setting `bubble commission` checks, before the UI starts

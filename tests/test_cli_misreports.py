@@ -438,14 +438,17 @@ def test_commission_on_a_real_bench_presses_the_objects_its_file_lists(tmp_path)
     `objects` listed (where no object is mounted too); `bubble collect --bench` took the file's."""
     from calibrate.cli import build_parser
     from calibrate.commission_cli import run_config
-    from collect.bench import DEFAULT_OBJECTS, BenchConfig
+    from collect.bench import DEFAULT_OBJECTS
 
-    bench = BenchConfig.create("ur", robot_ip="192.168.1.10", serial_port="/dev/ttyACM0", objects=("box", "mug"))
+    bench = tmp_path / "b.yaml"
+    bench.write_text("type: ur\nrobot_ip: 192.168.1.10\nserial_port: /dev/ttyACM0\nobjects: [box, mug]\n"
+                     "home_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n")
     parse = build_parser().parse_args
-    assert run_config(parse(["commission", "--bench", "b.yaml", "--out", "r"]), "r", bench).objects == ("box", "mug")
-    assert run_config(parse(["commission", "--bench", "b.yaml", "--objects", "mug", "--out", "r"]), "r",
-                      bench).objects == ("mug",)
-    assert run_config(parse(["commission", "--sim", "--out", "r"]), "r").objects == tuple(DEFAULT_OBJECTS)
+    for command in ("commission", "tui"):  # the terminal UI takes a real bench too (was: --sim only)
+        config = run_config(parse([command, "--bench", str(bench), "--out", "r"]), "r")
+        assert config.objects == ("box", "mug") and not config.simulated and config.bench.robot_ip == "192.168.1.10"
+        assert run_config(parse([command, "--bench", str(bench), "--objects", "mug", "--out", "r"]), "r").objects == ("mug",)
+        assert run_config(parse([command, "--sim", "--out", "r"]), "r").objects == tuple(DEFAULT_OBJECTS)
 
 
 def test_training_on_frames_without_valid_depth_says_so(tmp_path, make_synthetic_session, capsys):

@@ -198,7 +198,9 @@ def test_step_lines_are_fixed_width_columns():
         (["--sim", "--total-minutes", "-1"], "total minutes must be positive"),
         (["--sim", "--sensor", "missing.yaml"], "cannot read sensor spec missing.yaml: No such file or directory"),
         (["--sim", "--sensor", "."], "cannot read sensor spec .: Is a directory"),
-        (["--sim-fault", "camera-stall@3"], "drives the simulated bench only: add --sim"),
+        (["--sim-fault", "camera-stall@3"], "--sensor, --sim-fault and --sim-speed need --sim"),
+        ([], "the real bench needs its settings (--bench BENCH.yaml), or use --sim"),  # was: the simulated one only
+        (["--sim", "--bench", "b.yaml"], "--bench describes real hardware; drop it or --sim"),
         (["--sim", "--objects", " , "], "no objects to press"),
         (["--sim", "--sim-speed", "0"], "simulation speed 0.0 must be within 0.1..100"),
         (["--sim", "--registry", "reg.yaml"], "sensor registry reg.yaml is not a directory"),
