@@ -216,12 +216,23 @@ def _fmt(value: float, limits: tuple = ()) -> str:
     """``value`` to 4 significant digits, or to as many more as it takes to read on the same side of each
     of ``limits`` as ``value`` is (was: only not as a limit itself, and a passing 1030.45 hPa read
     ``1030`` beside a minimum of 1030.4; before that a failed a1 of 0.94996 read 0.95 beside ``>= 0.95``)."""
-    limits = tuple(x for x in limits if x is not None)
     for digits in range(4, 17):
         text = f"{value:.{digits}g}"
-        if all((float(text) > x) == (value > x) and (float(text) < x) == (value < x) for x in limits):
+        if reads_on_the_same_side(float(text), value, limits):
             return text
     return repr(value)
+
+
+def reads_on_the_same_side(shown: float, value: float, limits: tuple) -> bool:
+    """Whether ``shown`` (``value`` rounded for display) lies on the same side of each of ``limits``
+    (None: no limit) as ``value`` does, or on the limit where ``value`` is."""
+    return all((shown > x) == (value > x) and (shown < x) == (value < x) for x in limits if x is not None)
+
+
+def check_limits(check: dict) -> tuple:
+    """The limits of a check (an ``evaluate`` result): its threshold, or both ends of its range."""
+    thr = check["threshold"]
+    return tuple(thr) if isinstance(thr, (list, tuple)) else (thr,)
 
 
 def limit_text(limit: float) -> str:
@@ -236,8 +247,7 @@ def check_value_text(check: dict) -> str:
     those would round it onto its limit; '-' when it was not measured."""
     if check["value"] is None:
         return "-"
-    thr = check["threshold"]
-    return _fmt(check["value"], tuple(thr) if isinstance(thr, (list, tuple)) else (thr,))
+    return _fmt(check["value"], check_limits(check))
 
 
 def evaluate(thresholds: Thresholds, name: str, value: float | None, note: str = "") -> dict:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.acceptance import NOT_RUN, check_value_text, limit_text
+from calibrate.acceptance import NOT_RUN, check_limits, check_value_text, limit_text, reads_on_the_same_side
 from collect.atomic_files import write_text
 from collect.errors import HOST_FAULTS
 
@@ -104,11 +104,9 @@ def _fmt_metric(fmt: str, value, check: dict | None = None) -> str:
     if value is None or not np.isfinite(value):
         return "&ndash;"
     text = f"{value * 1000:.3f}" if fmt == "mm" else fmt.format(value)
-    if check is not None and check["value"] is not None:
-        thr, judged = check["threshold"], check["value"]
-        if any((float(text) > x) != (judged > x) or (float(text) < x) != (judged < x)
-               for x in (thr if isinstance(thr, (list, tuple)) else (thr,))):
-            return check_value_text(check)
+    if (check is not None and check["value"] is not None
+            and not reads_on_the_same_side(float(text), check["value"], check_limits(check))):
+        return check_value_text(check)
     return text
 
 

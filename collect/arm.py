@@ -466,20 +466,18 @@ class Arm:
         """Start decelerating the TCP to rest (asynchronous stopL); safe to call at any time, from any
         thread, and never raises: a stop the robot cannot be sent (the link is gone) is recorded as
         the arm's fault, and the controller's watchdog stops the robot."""
-        self._send_stop(None)
+        self._send_stop(threading.Event())
 
-    def _send_stop(self, queued: threading.Event | None) -> None:
+    def _send_stop(self, queued: threading.Event) -> None:
         """``stop``; sets ``queued`` once it holds the command lock, or has given up on it."""
         try:
             with self._commanding():
-                if queued is not None:
-                    queued.set()
+                queued.set()
                 self._ctl.stopL(STOP_DECEL_M_S2, True)
         except HardwareFault as fault:
             self._set_fault(fault)
         finally:
-            if queued is not None:
-                queued.set()
+            queued.set()
 
     @contextmanager
     def _commanding(self) -> Iterator[None]:

@@ -41,10 +41,8 @@ def register(subparsers) -> None:
 
 
 def _new_sensor(args: argparse.Namespace) -> int:
-    from collect.output_files import check_parent_dirs
+    from collect.output_files import check_parent_dirs, is_placeholder
     from hw_mocks.sensor_spec import draw_sensor
-
-    from collect.output_files import is_placeholder
 
     spec = draw_sensor(args.seed, args.defect)
     out = Path(args.out)
