@@ -50,6 +50,27 @@ def test_held_out_poses_do_not_depend_on_how_many_frames_were_recorded(make_synt
     assert len(fewer) < len(frames) and held_out(fewer) == held_out(frames)
 
 
+def test_sessions_of_one_pose_plan_hold_out_the_same_poses_whatever_their_order(make_synthetic_session, tmp_path):
+    """Two recordings of one plan (two sensors, the same ``bubble collect --seed``) press the same poses
+    under the same ids: a pose held out of one trains in neither (was: each session drew its own, and
+    every held-out contact frame had its pose trained in the other session)."""
+    a = make_synthetic_session(tmp_path / "a.h5", poses_per_object=5, seed=1, sensor_serial="SYN-A")
+    b = make_synthetic_session(tmp_path / "b.h5", poses_per_object=5, seed=2, sensor_serial="SYN-B")
+
+    def split(paths):
+        frames = load_frames(paths)
+        train, val = split_in_class(frames, by="poses", seed=3)
+        path = np.array([frames.sources[s].path for s in frames.session], dtype=object)
+        poses = [{(p, o, int(i)) for p, o, i in zip(path[idx], frames.object_name[idx], frames.pose_id[idx]) if i >= 0}
+                 for idx in (train, val)]
+        return poses, {(o, i) for _, o, i in poses[0]}, {(o, i) for _, o, i in poses[1]}
+
+    (trained, held_out), trained_poses, held_out_poses = split([a, b])
+    assert held_out_poses and not trained_poses & held_out_poses
+    assert {(p, o, i) for p, o, i in held_out if p == str(a)} == {(str(a), o, i) for o, i in held_out_poses}
+    assert split([b, a])[0] == [trained, held_out]  # the order of --data changes nothing
+
+
 def test_holdout_object_split(synthetic_session):
     frames = load_frames([synthetic_session])
     train, val = split_holdout_object(frames, "box")

@@ -267,6 +267,21 @@ def test_generous_deadline_leaves_the_budget_alone(session, tmp_path):
             train_model(_config([session], tmp_path / "bad", deadline_s=bad))
 
 
+def test_the_metadata_names_the_sessions_trained_on_not_those_that_only_validated(session, tmp_path):
+    """A session of the held-out object alone validates only: it is under ``val_sources`` and its sensor
+    is not among those trained on (was: listed as trained on, with every frame counted, so that
+    ``bubble evaluate`` on that sensor's data said nothing of a model that never saw it)."""
+    from conftest import make_synthetic_session
+
+    box_only = make_synthetic_session(tmp_path / "box.h5", objects=("box",), sensor_serial="SYN-0002", **SMALL)
+    result = train_model(_config([session, box_only], tmp_path / "model", holdout_object="box", epochs=1))
+    training = load_metadata(result.model_dir).training
+    assert [s["sensor_serial"] for s in training["sources"]] == ["SYN-0001"]
+    assert training["sources"][0]["n_frames"] == training["n_train_frames"]
+    assert [s["sensor_serial"] for s in training["val_sources"]] == ["SYN-0002"]
+    assert training["sensor_serials"] == ["SYN-0001"]
+
+
 def test_a_session_given_twice_is_refused(session, tmp_path):
     """Twice in the training data its frames would weigh double; in the validation data as well, the
     model would be validated on frames it trained on. A link to the file is the same session."""

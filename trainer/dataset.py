@@ -11,7 +11,7 @@ validity, contact patches) at the network's input geometry. A calibration set (~
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +90,11 @@ class FrameSet:
             reference_index=self.reference_index[idx],
             sources=self.sources,
         )
+
+    def sources_used(self) -> list[SessionSource]:
+        """The sources that hold frames of this set, in order, each with ``n_frames`` its frames here."""
+        counts = np.bincount(self.session, minlength=len(self.sources))
+        return [replace(source, n_frames=int(n)) for source, n in zip(self.sources, counts) if n]
 
     def contact(self) -> np.ndarray:
         """``(N,H,W) bool``: pixels whose ToF depth is pushed in from the frame's no-contact

@@ -8,10 +8,14 @@
 
 Free frames (no contact, pose -1) are split at random by frame in ``frames`` and ``poses``;
 with a held-out object the other objects' free frames train and the held-out object's are left out.
-Each (session, object) draws from its own generator, seeded by ``seed``, the session's index and
-the object's name, and its free frames from another: which poses are held out depends on those and
-on the object's pose ids only, not on how many frames the recording holds (was: one generator for
-all, so a re-recording of the same plan with a few frames more or less held out other poses).
+The held-out poses of an object are drawn once for every session, from a generator seeded by
+``seed`` and the object's name, over the pose ids any session pressed it in: sessions recorded from
+one pose plan (``bubble collect --seed``, the same for every sensor) press the same poses under the
+same ids, so a pose held out of one trains in none (was: each session drew its own, and a pose held
+out of one session trained in another of the same plan). Which poses are held out depends on those
+ids alone, not on how many frames the recording holds nor on the order of the sessions. The frames
+of the ``frames`` split, and the free frames, are drawn per (session, object), seeded by ``seed``,
+the session file's SHA-256 and the object's name.
 """
 
 from __future__ import annotations
@@ -38,25 +42,23 @@ def _split_groups(groups: np.ndarray, rng, fraction: float) -> np.ndarray:
 
 
 def split_in_class(frames: FrameSet, by: str = "poses", seed: int = 0, fraction: float = TRAIN_FRACTION):
-    """``(train_idx, val_idx)`` int64 arrays: within each (session, object), 70/30 of frames or poses."""
+    """``(train_idx, val_idx)`` int64 arrays: 70/30 of each object's contact poses, the same in every
+    session (``poses``), or of the frames of each (session, object) (``frames``); free frames by frame."""
     if by not in SPLITS:
         raise InputError(f"unknown split {by!r}; choose one of {', '.join(SPLITS)}")
     train = np.zeros(len(frames), dtype=bool)
-    keys = {(int(s), str(o)) for s, o in zip(frames.session, frames.object_name)}
-    for s, o in sorted(keys):
-        members = np.flatnonzero((frames.session == s) & (frames.object_name == o))
-        key = (int(seed), s, zlib.crc32(o.encode()))
-        if by == "frames":
-            mask = _split_groups(np.arange(len(members)), np.random.default_rng(key), fraction)
-        else:
-            contact = frames.pose_id[members] >= 0
-            mask = np.zeros(len(members), dtype=bool)
-            if contact.any():
-                mask[contact] = _split_groups(frames.pose_id[members][contact], np.random.default_rng(key), fraction)
-            if (~contact).any():
-                mask[~contact] = _split_groups(np.arange(int((~contact).sum())), np.random.default_rng((*key, 1)),
-                                               fraction)
-        train[members] = mask
+    by_frame = frames.pose_id < 0 if by == "poses" else np.ones(len(frames), dtype=bool)
+    for o in sorted(set(frames.object_name)):
+        of_object = frames.object_name == o
+        by_pose = np.flatnonzero(of_object & ~by_frame)
+        if len(by_pose):
+            rng = np.random.default_rng((int(seed), zlib.crc32(o.encode())))
+            train[by_pose] = _split_groups(frames.pose_id[by_pose], rng, fraction)
+        for s, source in enumerate(frames.sources):
+            members = np.flatnonzero(of_object & by_frame & (frames.session == s))
+            if len(members):
+                rng = np.random.default_rng((int(seed), int(source.sha256[:16], 16), zlib.crc32(o.encode()), 1))
+                train[members] = _split_groups(np.arange(len(members)), rng, fraction)
     return np.flatnonzero(train), np.flatnonzero(~train)
 
 

@@ -396,10 +396,13 @@ def train_model(
         if not bool(in_depth_range(tensors.depth, metadata.min_depth, metadata.max_depth).any()):
             raise no_depth_in_range(f"no {role} frame", metadata.min_depth, metadata.max_depth,
                                     "train on" if role == "training" else "validate with")
-    sources = [s.to_dict() for s in frames.sources]
-    val_sources = [s.to_dict() for s in val_frames.sources] if config.val_data else []
+    # the sessions that train, each with its training frames, and those that validate only (was: every
+    # --data session, so that one that only validated, the held-out object's, counted as trained on)
+    trained_on = train_frames.sources_used()
+    sources = [s.to_dict() for s in trained_on]
+    val_sources = [s.to_dict() for s in val_frames.sources_used() if s.sha256 not in {t.sha256 for t in trained_on}]
     frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size, init_info)
-    serials = sorted({s.sensor_serial for s in frames.sources})
+    serials = sorted({s.sensor_serial for s in trained_on})
     objects = sorted(set(train_frames.object_name) - {""})
     del frames, train_frames, val_frames  # the native copies; training uses the tensors only
     live_idx = np.linspace(0, len(val_t) - 1, min(config.eval_frames, len(val_t))).round().astype(int)
