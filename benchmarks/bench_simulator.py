@@ -145,7 +145,7 @@ def main(argv=None) -> int:
         "noise are new, and no sweep runs. The target is judged on the 90th percentile of the moving frames",
         "in contact, the frames that cost most.",
         "",
-        "## Physics vs the real Soft-bubble (10 mm sphere pressed 5 mm)",
+        "## Physics vs the real Soft-bubble (10 mm-radius sphere pressed 5 mm)",
         "",
         "| sensor seed | pressure rise hPa | hPa per cm^3 dent | dent offset by bulging | N per hPa | force N |",
         "|---|---|---|---|---|---|",
