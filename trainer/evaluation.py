@@ -29,12 +29,14 @@ def predict_frames(estimator: DepthEstimator, ir: np.ndarray) -> np.ndarray:
 
 
 def compare_with_truth(pred: np.ndarray, tof: np.ndarray, truth: np.ndarray, min_depth: float, max_depth: float) -> dict:
-    """ToF and model against the true depth (all ``(N,H,W) float32 m``; ToF 0 = dropout).
+    """ToF and model against the true depth (all ``(N,H,W) float32 m``). The ToF is valid where its
+    depth lies strictly inside ``(min_depth, max_depth)`` (``in_depth_range``); a dropout is a pixel
+    where it does not (0, no return, or a reading out of that range).
 
     * ``tof``: ToF vs truth where the ToF is valid;
     * ``model_on_tof_valid``: model vs truth on the same pixels (the fair comparison);
     * ``model``: model vs truth on every pixel with a true depth in range;
-    * ``model_on_tof_dropout``: model vs truth where the ToF gave nothing;
+    * ``model_on_tof_dropout``: model vs truth on the ToF's dropouts;
     * ``tof_coverage``: share of the in-range true pixels where the ToF is valid.
     """
     in_range = in_depth_range(truth, min_depth, max_depth)
