@@ -49,15 +49,15 @@ def split_in_class(frames: FrameSet, by: str = "poses", seed: int = 0, fraction:
     train = np.zeros(len(frames), dtype=bool)
     by_frame = frames.pose_id < 0 if by == "poses" else np.ones(len(frames), dtype=bool)
     for o in sorted(set(frames.object_name)):
-        of_object = frames.object_name == o
+        of_object, name_key = frames.object_name == o, zlib.crc32(o.encode())
         by_pose = np.flatnonzero(of_object & ~by_frame)
         if len(by_pose):
-            rng = np.random.default_rng((int(seed), zlib.crc32(o.encode())))
+            rng = np.random.default_rng((int(seed), name_key))
             train[by_pose] = _split_groups(frames.pose_id[by_pose], rng, fraction)
         for s, source in enumerate(frames.sources):
             members = np.flatnonzero(of_object & by_frame & (frames.session == s))
             if len(members):
-                rng = np.random.default_rng((int(seed), int(source.sha256[:16], 16), zlib.crc32(o.encode()), 1))
+                rng = np.random.default_rng((int(seed), int(source.sha256[:16], 16), name_key, 1))
                 train[members] = _split_groups(np.arange(len(members)), rng, fraction)
     return np.flatnonzero(train), np.flatnonzero(~train)
 

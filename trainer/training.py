@@ -399,8 +399,9 @@ def train_model(
     # the sessions that train, each with its training frames, and those that validate only (was: every
     # --data session, so that one that only validated, the held-out object's, counted as trained on)
     trained_on = train_frames.sources_used()
+    trained_files = {s.sha256 for s in trained_on}
     sources = [s.to_dict() for s in trained_on]
-    val_sources = [s.to_dict() for s in val_frames.sources_used() if s.sha256 not in {t.sha256 for t in trained_on}]
+    val_sources = [s.to_dict() for s in val_frames.sources_used() if s.sha256 not in trained_files]
     frames_key = _frames_key(config, frames, val_frames, split_info, ctx.world_size, init_info)
     serials = sorted({s.sensor_serial for s in trained_on})
     objects = sorted(set(train_frames.object_name) - {""})
