@@ -266,9 +266,9 @@ class _Recorder(threading.Thread):
                 frame = self.bench.camera.get_frame(FRAME_TIMEOUT_S)
                 self._write_streams()
                 self._write_frame(frame)
-                self.bench.pressure.check()
+                self._check_pressure()
                 self._report()
-            self._drain_frames()
+            self._drain_frames(self.halted_at)
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
             if isinstance(err, Exception) and not isinstance(err, HardwareFault):
                 # a frame of another shape, a failing progress callback: the arm must not go on
@@ -284,17 +284,30 @@ class _Recorder(threading.Thread):
             except BaseException as err:  # noqa: BLE001
                 self.fail(err)
 
-    def _drain_frames(self) -> None:
-        """After the halt: record the frames the camera captured before it (``halted_at``) that are
-        still in its queue, a recorder that lagged behind on a loaded machine (was: dropped, and with
-        them the frames of a fault's last moments: a protective stop's retract had none on file).
-        Ends at the first later frame, or when none comes within ``FRAME_TIMEOUT_S``."""
+    def _check_pressure(self) -> None:
+        """The pressure board's fault checks. On its fault the arm is stopped at once, then the frames
+        the camera captured until the fault was found are recorded: the camera still works (was: those
+        a recorder lagging on a loaded machine had not taken yet were dropped, up to its queue's 0.18 s)."""
+        try:
+            self.bench.pressure.check()
+        except HardwareFault as fault:
+            found_at = self.bench.clock()
+            if self.fail(fault):
+                self.bench.arm.abort(fault)  # the running motion stops now and raises it
+            self._drain_frames(found_at)
+            raise
+
+    def _drain_frames(self, until: float) -> None:
+        """After the halt (or a pressure fault): record the frames the camera captured until bench time
+        ``until`` (s) that are still in its queue, a recorder that lagged behind on a loaded machine
+        (was: dropped, and with them the frames of a fault's last moments: a protective stop's retract
+        had none on file). Ends at the first later frame, or when none comes within ``FRAME_TIMEOUT_S``."""
         while True:
             try:
                 frame = self.bench.camera.get_frame(FRAME_TIMEOUT_S)
             except HardwareFault:  # none left: a camera silent now is nothing the run still needs
                 return
-            if frame.t_host > self.halted_at:
+            if frame.t_host > until:
                 return
             self._write_streams()  # the arm samples around it (was: none after the halt, a stale pose)
             self._write_frame(frame)

@@ -581,8 +581,7 @@ def test_a_frame_is_stamped_with_the_arm_pose_at_its_time_also_when_drained_afte
     recorder._write_frame(CameraFrame(image, image, 0.5033, 0.5033, 22))  # between two samples
     arm.pending = samples(1.0, 1.2)  # arrive after the halt, with the frames drained then
     bench.camera = Camera([CameraFrame(image, image, t, t, int(t * 45)) for t in (1.05, 1.10, 1.15)])
-    recorder.halted_at = 1.2
-    recorder._drain_frames()
+    recorder._drain_frames(1.2)  # the halt's time
     assert [t for t, _ in writer.stamped] == [0.5033, 1.05, 1.10, 1.15]
     for t_host, pose in writer.stamped:
         assert pose[2] == pytest.approx(0.1 * t_host, abs=1e-9)

@@ -253,6 +253,46 @@ def test_the_frames_captured_before_a_runs_end_are_recorded_by_a_recorder_that_l
         assert halts[0] - 4 * period_s < s.t_host[-1] < halts[0] + period_s, (s.t_host[-3:], halts)
 
 
+def test_the_frames_captured_before_a_pressure_fault_are_recorded_by_a_recorder_that_lags(tmp_path, monkeypatch):
+    """The pressure board fails while the recorder is behind the camera: the arm stops at once, and
+    the frames the camera captured until the fault was found are recorded (was: those still in the
+    camera's queue were dropped, up to 0.18 s of them; the fault-kind test saw the last frame 0.11 s
+    before the fault beside another test worker)."""
+    from collect.session_writer import SessionWriter
+
+    append_frame = SessionWriter.append_frame
+    found = []
+
+    def slow_append_frame(writer, *args, **kwargs):
+        time.sleep(0.03)  # slower than the camera's 45 fps
+        return append_frame(writer, *args, **kwargs)
+
+    monkeypatch.setattr(SessionWriter, "append_frame", slow_append_frame)
+    out = tmp_path / "s.h5"
+    with open_bench(_config()) as bench:
+        check = bench.pressure.check
+
+        def noted_check() -> None:
+            try:
+                check()
+            except HardwareFault:
+                found.append(bench.clock())
+                raise
+
+        def progress(phase, **_):
+            if phase == "hold" and not bench.sim.faults:
+                bench.sim.faults.append(SimFault("serial-unplug", bench.clock() + 0.3))
+
+        monkeypatch.setattr(bench.pressure, "check", noted_check)
+        plan = plan_bench_collection(bench, PlanSettings(poses_per_object=1, seed=1, hold_s=8.0))
+        with pytest.raises(HardwareFault, match="vanished"), open_collection_writer(out, bench, plan, resume=False) as writer:
+            run_collection(bench, plan, writer, progress)
+        period_s = 1.0 / bench.sim.spec.fps
+    with Session.open(out) as s:
+        # up to the fault's finding, but for a frame or two the full queue dropped
+        assert found[0] - 4 * period_s < s.t_host[-1] < found[0] + period_s, (s.t_host[-3:], found)
+
+
 def test_a_display_that_blocks_holds_up_neither_the_recording_nor_its_fault_checks(tmp_path, monkeypatch):
     """The progress display blocks from the hold on (a terminal paused with Ctrl-S): the camera goes
     silent and the arm is stopped as always (was: the recorder waited in the display, and the arm
