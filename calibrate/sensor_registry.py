@@ -220,12 +220,15 @@ class SensorRegistry:
 
     def __init__(self, root: Path | str | None = None):
         self.root = Path(root).expanduser() if root is not None else default_registry_dir()
-        for folder in (self.root, *self.root.parents):  # the registry, or the nearest folder it would be made in
-            if folder.exists():
-                if not folder.is_dir():
-                    raise InputError(f"sensor registry {self.root} is not a directory" if folder == self.root else
-                                     f"sensor registry {self.root} cannot be made: {folder} is a file")
-                break
+        try:
+            for folder in (self.root, *self.root.parents):  # the registry, or the nearest folder it would be made in
+                if folder.exists():
+                    if not folder.is_dir():
+                        raise InputError(f"sensor registry {self.root} is not a directory" if folder == self.root else
+                                         f"sensor registry {self.root} cannot be made: {folder} is a file")
+                    break
+        except OSError as err:  # inside a folder this user cannot enter (was: a traceback, exit 1)
+            raise InputError(f"cannot read the sensor registry {self.root}: {err.strerror}") from None
 
     def _sensor_dir(self, serial: str) -> Path:
         if not SENSOR_SERIAL_RE.fullmatch(serial or ""):

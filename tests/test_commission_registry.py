@@ -333,6 +333,18 @@ def test_registry_locations_that_cannot_be_read_or_made_are_one_line(tmp_path, m
     assert main(["sensors", "--registry", str(tmp_path / "reg")]) == 2
     assert capsys.readouterr().err == f"bubble: error: cannot read the sensor registry {tmp_path / 'reg'}: Permission denied\n"
     monkeypatch.undo()
+    real_exists = Path.exists
+
+    def locked_above(path):  # what stat says of a path inside a folder without the search permission
+        if tmp_path / "locked" in (path, *path.parents):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_exists(path)
+
+    monkeypatch.setattr(Path, "exists", locked_above)  # was: a traceback from the registry's constructor, exit 1
+    assert main(["sensors", "--registry", str(tmp_path / "locked" / "reg")]) == 2
+    assert capsys.readouterr().err == (f"bubble: error: cannot read the sensor registry {tmp_path / 'locked' / 'reg'}: "
+                                       "Permission denied\n")
+    monkeypatch.undo()
     (tmp_path / "plain").write_text("x")
     assert main(["sensors", "--registry", str(tmp_path / "plain" / "reg")]) == 2
     assert capsys.readouterr().err == (f"bubble: error: sensor registry {tmp_path / 'plain' / 'reg'} cannot be made: "
