@@ -22,7 +22,7 @@ def session_summary(path) -> dict:
     increase: a camera that restarted its numbering, the frames it lost uncounted),
     non_increasing_t and non_increasing_t_host (frames whose device / host time did not increase), objects
     ({name: {phase: frames, "poses": contact poses pressed, held and let go, "reference": n}}),
-    unassigned_frames, arm_samples, pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
+    planned_poses_per_object (the stored plan's, None without one), unassigned_frames, arm_samples, pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
     """
     with Session.open(path) as s:
         n = s.n_frames
@@ -56,6 +56,7 @@ def session_summary(path) -> dict:
             "non_increasing_t": int(np.count_nonzero(np.diff(s.t_device) <= 0)),
             "non_increasing_t_host": int(np.count_nonzero(np.diff(s.t_host) <= 0)),
             "objects": objects,
+            "planned_poses_per_object": s.planned_poses_per_object(),
             "unassigned_frames": int(np.count_nonzero(s.object_index < 0)),
             "arm_samples": len(s.arm().t),
             "pressure_samples": len(s.pressure().t),
@@ -80,13 +81,27 @@ def describe_session(path) -> str:
         f" non-increasing timestamps {info['non_increasing_t']} camera / {info['non_increasing_t_host']} host",
         f"  streams: {info['arm_samples']} arm samples, {info['pressure_samples']} pressure readings",
         f"  size: {mb:.1f} MB ({per_min})",
-        "  " + f"{'object':<16}{'poses':>6}{'ref':>6}" + "".join(f"{p:>9}" for p in _PHASE_ORDER),
     ]
+    if not info["objects"]:  # was: the table's header alone, and these frames called "between objects"
+        lines.append(f"  objects: none; {info['unassigned_frames']} frames of no object (e.g. a commissioning run's "
+                     "reference.h5)")
+    else:
+        lines.append("  " + f"{'object':<16}{'poses':>10}{'ref':>6}" + "".join(f"{p:>9}" for p in _PHASE_ORDER))
+    planned = info["planned_poses_per_object"]
     for name, counts in info["objects"].items():
-        lines.append("  " + f"{name:<16}{counts['poses']:>6}{counts['reference']:>6}"
+        poses = f"{counts['poses']}/{planned}" if planned else str(counts["poses"])
+        lines.append("  " + f"{name:<16}{poses:>10}{counts['reference']:>6}"
                      + "".join(f"{counts[p]:>9}" for p in _PHASE_ORDER))
-    if info["unassigned_frames"]:
+    short = {name: counts["poses"] for name, counts in info["objects"].items() if planned and counts["poses"] < planned}
+    if short:  # was: a run cut short by a fault read like a finished session of fewer poses
+        done = sum(counts["poses"] for counts in info["objects"].values())
+        lines.append(f"  incomplete: {done} of {planned * len(info['objects'])} planned poses recorded ("
+                     + ", ".join(f"{name} {n}/{planned}" for name, n in short.items())
+                     + "); the same `bubble collect` with --resume (or `bubble commission` again, for a run's "
+                       "session) records the rest")
+    if info["unassigned_frames"] and info["objects"]:
         lines.append(f"  {info['unassigned_frames']} frames between objects (travel, phase free)")
-    big = sorted(info["dataset_bytes"].items(), key=lambda kv: -kv[1])[:4]
-    lines.append("  largest datasets: " + ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in big))
+    big = [(k, v) for k, v in sorted(info["dataset_bytes"].items(), key=lambda kv: -kv[1])[:4] if v >= 0.05e6]
+    if big:  # those that show as 0.1 MB or more (was: "objects/meshes/mug/faces 0.0 MB")
+        lines.append("  largest datasets: " + ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in big))
     return "\n".join(lines)

@@ -101,11 +101,39 @@ def open_h5(path, *, locking: bool = True) -> h5py.File:
     except BlockingIOError:
         raise in_use_error(path) from None
     except OSError as err:
-        hint = ""
-        if _cut_off_at_creation(path, size):  # was: no hint, and `collect` refused the name ("use --resume")
+        hint, stored_eof = "", _stored_end_of_file(path)
+        if stored_eof is not None and stored_eof >= UNFINISHED_CREATION_BYTES and size < stored_eof:
+            hint = (f"; it is cut short: {size} of the {stored_eof} bytes its HDF5 header records (a copy or a transfer "
+                    "that stopped: copy it again; or a disk that filled as it was written)")  # was: "delete it"
+        elif _cut_off_at_creation(path, size):  # was: no hint, and `collect` refused the name ("use --resume")
             hint = (f"; at {size} bytes it holds no recording (cut off as it was created: the command that created it "
                     "was killed at once): delete it and record again")
         raise InputError(f"{path}: not a readable HDF5 session ({h5_error_text(err)}){hint}") from None
+
+
+def _stored_end_of_file(path: str) -> int | None:
+    """The end-of-file address (bytes) that the HDF5 superblock at the start of ``path`` records: the
+    file's size when it was last flushed (HDF5 file format, superblock versions 0-3). None where the
+    file does not start with a superblock, or the address is undefined or cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError:
+        return None
+    if len(head) < 12 or not head.startswith(HDF5_SIGNATURE):
+        return None
+    version = head[8]
+    if version in (0, 1):  # base address after 16 bytes of fields (20 in version 1), then free space, end of file
+        offsets, base_at = head[13], 24 if version == 0 else 28
+    elif version in (2, 3):  # base address after 4 bytes of fields, then the extension, end of file
+        offsets, base_at = head[9], 12
+    else:
+        return None
+    if offsets not in (2, 4, 8) or len(head) < base_at + 3 * offsets:
+        return None
+    base, eof = (int.from_bytes(head[at : at + offsets], "little") for at in (base_at, base_at + 2 * offsets))
+    undefined = (1 << (8 * offsets)) - 1
+    return None if undefined in (base, eof) else base + eof
 
 
 def _cut_off_at_creation(path: str, size: int) -> bool:
@@ -473,6 +501,13 @@ class Session:
     def collection_plan(self) -> dict | None:
         """The pose-plan settings stored by ``bubble collect`` (None if the file has none)."""
         return self._collection_plan
+
+    def planned_poses_per_object(self) -> int | None:
+        """The contact poses the stored plan presses on each object (``bubble collect
+        --poses-per-object``); None if the file has no plan, or its plan gives no such count."""
+        settings = (self._collection_plan or {}).get("settings")
+        count = settings.get("poses_per_object") if isinstance(settings, dict) else None
+        return count if isinstance(count, int) and not isinstance(count, bool) and count > 0 else None
 
     def _load(self, name: str, idx, stream: bool = False) -> np.ndarray:
         """Frames ``idx`` of dataset ``name`` (``stream``: rows ``idx``, a slice, of an arm or pressure

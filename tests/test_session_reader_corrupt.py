@@ -7,6 +7,8 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -297,7 +299,8 @@ def test_a_file_cut_off_as_it_was_created_says_to_delete_it(tmp_path, small_sess
     readable HDF5 session (truncated file ...)" without more, and `collect` refused the name: "use
     --resume", which failed the same way)."""
     path = tmp_path / "cut.h5"
-    path.write_bytes(small_session.read_bytes()[:48])
+    subprocess.run([sys.executable, "-c", "import os, sys, h5py; from collect.session_writer import LIBVER; "
+                    "f = h5py.File(sys.argv[1], 'w', libver=LIBVER); os._exit(0)", str(path)], check=True)  # killed at once
     for argv in (["info", str(path)], ["collect", "--sim", "--objects", "box", "--resume", "--out", str(path)]):
         assert main(argv) == 2
         err = capsys.readouterr().err
@@ -305,8 +308,14 @@ def test_a_file_cut_off_as_it_was_created_says_to_delete_it(tmp_path, small_sess
         assert err.endswith("; at 48 bytes it holds no recording (cut off as it was created: the command that created "
                             "it was killed at once): delete it and record again\n"), err
     assert path.stat().st_size == 48
-    path.write_bytes(small_session.read_bytes()[:-1000])  # a recording cut off later: no such hint
-    assert main(["info", str(path)]) == 2 and "holds no recording" not in capsys.readouterr().err
+    for cut in (2000, len(small_session.read_bytes()) - 1000):  # a copy cut short (was, at 2000 bytes: "delete it")
+        path.write_bytes(small_session.read_bytes()[:cut])
+        assert main(["info", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert "holds no recording" not in err and err.count("\n") == 1, err
+        assert err.endswith(f"; it is cut short: {cut} of the {small_session.stat().st_size} bytes its HDF5 header "
+                            "records (a copy or a transfer that stopped: copy it again; or a disk that filled as it "
+                            "was written)\n"), err
     path.write_text("x = 1\n")  # a small file of another kind (was, in b18db75: told to delete it)
     assert main(["info", str(path)]) == 2 and "holds no recording" not in capsys.readouterr().err
     path.write_bytes(b"")  # empty: no recording either way

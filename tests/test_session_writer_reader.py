@@ -744,6 +744,41 @@ def test_info_counts_pressed_poses_and_recording_time_without_the_pause_of_a_res
     assert info["fps"] == pytest.approx(45.0) and info["duration_s"] == pytest.approx(44 / 45 + 59 / 45)
 
 
+def test_info_says_a_session_holds_fewer_poses_than_its_plan_or_no_object(tmp_path):
+    """A recording a fault cut short after 1 of its plan's 2 poses (was: "poses 1", "closed cleanly", as a
+    finished session of a 1-pose plan reads); a file without a plan, or whose plan gives no count, shows
+    the count alone; a file of no object (a run's reference.h5) says so (was: a table's header alone)."""
+    from collect.session_info import describe_session, session_summary
+
+    plan = {"objects": ["mug"], "settings": {"poses_per_object": 2, "seed": 0}}
+    path = tmp_path / "s.h5"
+    with SessionWriter(path, **_metadata("S1"), collection_plan=plan) as w:
+        for i, phase in enumerate([sf.PHASE_APPROACH, sf.PHASE_PRESS, sf.PHASE_HOLD, sf.PHASE_RETRACT]):
+            w.append_frame(*_frame(i), i / 45, i / 45, i, 0, 0, phase, np.zeros(6))
+    assert session_summary(path)["planned_poses_per_object"] == 2
+    text = describe_session(path)
+    assert "  mug                    1/2" in text
+    assert ("  incomplete: 1 of 2 planned poses recorded (mug 1/2); the same `bubble collect` with --resume (or "
+            "`bubble commission` again, for a run's session) records the rest") in text
+    with SessionWriter(path, **_metadata("S1"), collection_plan=plan, resume=True) as w:
+        for i, phase in enumerate([sf.PHASE_APPROACH, sf.PHASE_PRESS, sf.PHASE_HOLD, sf.PHASE_RETRACT]):
+            w.append_frame(*_frame(i), 1 + i / 45, 1 + i / 45, 4 + i, 0, 1, phase, np.zeros(6))
+    text = describe_session(path)
+    assert "  mug                    2/2" in text and "incomplete" not in text
+    for name, stored in (("none.h5", None), ("odd.h5", {"settings": {"poses_per_object": "2"}})):
+        with SessionWriter(tmp_path / name, **_metadata("S1"), collection_plan=stored) as w:
+            w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, 0, sf.PHASE_FREE, np.zeros(6))
+        assert session_summary(tmp_path / name)["planned_poses_per_object"] is None
+        text = describe_session(tmp_path / name)
+        assert "  mug                      0" in text and "incomplete" not in text
+    with _writer(tmp_path / "reference.h5", objects=()) as w:  # frames of the membrane alone
+        for i in range(3):
+            w.append_frame(*_frame(i), i / 45, i / 45, i, -1, -1, sf.PHASE_FREE, np.zeros(6))
+    text = describe_session(tmp_path / "reference.h5")  # was: a table header without rows, "3 frames between objects"
+    assert "  objects: none; 3 frames of no object (e.g. a commissioning run's reference.h5)" in text
+    assert "object  " not in text and "between objects" not in text and "largest datasets" not in text  # all < 0.05 MB
+
+
 def test_a_segment_start_left_by_a_crash_is_replaced_not_repeated(tmp_path):
     """A crash after the attribute's write and before its segment's first frames reached the disk: the
     next resume starts at the same frame. Was: the index listed twice, and bubble info counted the
