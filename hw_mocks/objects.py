@@ -298,6 +298,9 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         object_name(path).encode("utf-8")
     except UnicodeEncodeError:  # bytes of another encoding in the name (was: trimesh's UnicodeEncodeError)
         raise InputError(f"mesh {path}: its file name is not UTF-8 text, and names the object; rename the file") from None
+    if not object_name(path).isprintable():  # was: a line break or a terminal escape recorded as the name, printed raw
+        raise InputError(f"mesh {str(path)!r}: its file name holds control characters (a line break, a tab, a terminal "
+                         "escape), and names the object; rename the file")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)  # merged below, once its vertices are checked
     except ImportError:  # a file that is no binary mesh is read as text, whose encoding needs an optional package

@@ -236,6 +236,13 @@ def test_mesh_files_that_are_repaired_or_named_wrong(tmp_path):
     with pytest.raises(InputError) as info:  # was: "UnicodeEncodeError: 'utf-8' codec can't encode character"
         load_object(latin1)
     assert str(info.value) == f"mesh {latin1}: its file name is not UTF-8 text, and names the object; rename the file"
+    escape = _brick(tmp_path, "cup\x1b[31m\nrow.stl")  # was: recorded, and `bubble info` printed its row in two, coloured
+    with pytest.raises(InputError) as info:
+        load_object(escape)
+    assert str(info.value) == (f"mesh {str(escape)!r}: its file name holds control characters (a line break, a tab, a "
+                               "terminal escape), and names the object; rename the file")
+    assert "\x1b" not in str(info.value) and "\n" not in str(info.value)
+    assert load_object(_brick(tmp_path, "tasse à café.stl")).name == "tasse à café"  # spaces and accents are text
 
 
 def test_a_mesh_in_kilometres_is_refused_by_its_size_without_a_warning(tmp_path):
