@@ -45,7 +45,7 @@ from calibrate.pose_estimation import (
 )
 from collect.atomic_files import replacing
 from collect.errors import InputError
-from collect.output_files import PNG_WRITER_KEY
+from collect.output_files import PNG_WRITER_KEY, remove_earlier_png
 from collect.transforms import invert, pose_to_matrix
 from trainer.contact import CONTACT_THRESHOLD_M, reference_depth
 from trainer.metrics import METRIC_KEYS, depth_metrics
@@ -57,7 +57,7 @@ SOURCES = ("predicted", "measured", "true")
 SKIP_NO_CONTACT = "no_contact"  # no pixel pushed in beyond the threshold, in some source
 SKIP_TOO_FEW_POINTS = "too_few_points"  # a patch with fewer than MIN_POINTS points
 SKIP_NON_FINITE = "non_finite_prediction"  # the network returned NaN/inf for the frame
-SKIP_FIT_FAILED = "fit_failed"  # the solver did not converge
+SKIP_FIT_FAILED = "fit_failed"  # the solver did not converge, or its poses' errors overflow
 
 
 @dataclass(frozen=True)
@@ -329,16 +329,22 @@ def run_pose_check(model, session_path: str | Path, object_name: str = "mug", *,
         if reason is not None:
             skipped[reason] += 1
             continue
+        with np.errstate(over="ignore", invalid="ignore"):  # poses so far apart that their error overflows
+            errors = _errors(shape, fits["predicted"].pose, fits["measured"].pose)
+            vs_true = {s: _errors(shape, f.pose, truth) for s, f in fits.items()} if simulated else {}
+        if "true" in vs_true and not np.all(np.isfinite(list(vs_true["true"].values()))):
+            del fits["true"], vs_true["true"]  # as a failed fit of the simulator's depth: no vs-true row
+        if not np.all(np.isfinite([v for e in (errors, *vs_true.values()) for v in e.values()])):
+            skipped[SKIP_FIT_FAILED] += 1  # was: used, its e_x inf, and `--plots` a traceback
+            continue
         warm = {src: fit.pose for src, fit in fits.items()}
         frames.append(FramePoses(
-            frame=int(frame), pose_id=int(pose_ids[k]),
-            **_errors(shape, fits["predicted"].pose, fits["measured"].pose),
+            frame=int(frame), pose_id=int(pose_ids[k]), **errors,
             n_points={s: f.n_points for s, f in fits.items()},
             n_outliers={s: f.n_outliers for s, f in fits.items()},
             rms_mm={s: 1e3 * f.rms_m for s, f in fits.items()},
             poses={**{s: f.pose.theta().tolist() for s, f in fits.items()}, "bench": truth.theta().tolist()},
-            vs_true={s: _errors(shape, f.pose, truth)
-                     for s, f in fits.items()} if simulated else {},
+            vs_true=vs_true,
         ))
     if not frames:
         reasons = ", ".join(f"{k} {v}" for k, v in skipped.items() if v) or "none"
@@ -375,7 +381,8 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
     """Histograms of the errors (the paper's Fig. 7) as PNG files in ``plots_dir``; returns their paths.
 
     ``pose_errors.png``: e_x (mm) and e_theta, predicted vs measured depth.
-    ``pose_vs_true.png`` (simulated sessions): the same errors of each source vs the true pose.
+    ``pose_vs_true.png`` (simulated sessions): the same errors of each source vs the true pose; for
+    a session of a real bench, an earlier ``bubble pose`` image of that name is deleted.
     """
     import matplotlib
 
@@ -410,6 +417,8 @@ def write_histograms(result: PoseCheckResult, plots_dir: str | Path) -> list[Pat
         fig.tight_layout()
         written.append(vs_true_png)
         _save_figure(fig, written[-1])
+    else:  # a session of a real bench (no true pose): an earlier run's image would read as this run's
+        remove_earlier_png(vs_true_png, PLOTS_WRITER)
     return written
 
 

@@ -43,8 +43,9 @@ from collect.errors import InputError
 #: Fewest contact points a fit accepts (the pose has 6 degrees of freedom; a handful of points
 #: gives a meaningless fit).
 MIN_POINTS = 30
-#: Largest object a mesh may describe (m, across): the bench's objects (``hw_mocks.objects``, 5 mm
-#: to 0.5 m). Beyond, a mesh is in other units, and its signed-distance grid would not fit in memory.
+#: Largest object a mesh or a cylinder primitive may describe (m, across): the bench's objects
+#: (``hw_mocks.objects``, 5 mm to 0.5 m). Beyond, it is in other units, and a mesh's signed-distance
+#: grid would not fit in memory.
 MAX_MESH_SIZE_M = 0.5
 #: Relative tolerances (``xtol``, ``ftol``) of the Levenberg-Marquardt fit. Tighter ones (1e-10)
 #: made a quarter to half of the fits of a held-out mug pose run out of evaluations while creeping
@@ -264,6 +265,9 @@ def shape_from_object(primitive: dict | None, vertices: np.ndarray | None = None
         if (numbers is None or not np.all(np.isfinite(numbers)) or not (radius > 0.0 and height > 0.0)
                 or np.linalg.norm(axis) < 1e-9):  # json reads NaN and Infinity; an axis of 1e-320 has no direction
             raise InputError(f"bad cylinder primitive: {primitive}")
+        size = max(2.0 * radius, height)
+        if size > MAX_MESH_SIZE_M:  # was: taken as is, and a radius of 1e200 m "fitted" 42 mm off the true pose
+            raise InputError(f"cylinder primitive is {size:.3g} m across; expected metres (at most {MAX_MESH_SIZE_M:g} m)")
         return Cylinder(radius=radius, height=height, center=center, axis=axis)
     if vertices is not None and faces is not None and len(faces):
         return GridSDF.from_mesh(vertices, faces)
@@ -508,15 +512,19 @@ class ProximityPoseEstimator:
         q = sol.x[3:] / np.linalg.norm(sol.x[3:])
         if q[0] < 0:
             q = -q
-        rms = float(np.sqrt(np.mean(sol.fun[: len(points)] ** 2)))
+        with np.errstate(over="ignore", invalid="ignore"):
+            rms = float(np.sqrt(np.mean(sol.fun[: len(points)] ** 2)))
+        # converged to numbers that overflow (points from absurd intrinsics) is no fit (was: success, inf errors)
+        success = sol.status > 0 and bool(np.all(np.isfinite(sol.x))) and np.isfinite(rms)
         return FitResult(pose=Pose(sol.x[:3].copy(), q), rms_m=rms, n_points=len(points),
-                         n_outliers=n_outliers, iterations=evaluations, success=bool(sol.status > 0))
+                         n_outliers=n_outliers, iterations=evaluations, success=bool(success))
 
     def _solve(self, x0: np.ndarray, points: np.ndarray, theta_prior: np.ndarray):
         self._cache = None
-        try:
-            return least_squares(self._residuals, x0, jac=self._jacobian, method="lm",
-                                 args=(points, theta_prior), xtol=FIT_TOLERANCE, ftol=FIT_TOLERANCE,
-                                 max_nfev=self.max_evaluations)
+        try:  # points so far off that the costs overflow end as a failed fit (``fit``), not as warnings on stderr
+            with np.errstate(over="ignore", invalid="ignore"):
+                return least_squares(self._residuals, x0, jac=self._jacobian, method="lm",
+                                     args=(points, theta_prior), xtol=FIT_TOLERANCE, ftol=FIT_TOLERANCE,
+                                     max_nfev=self.max_evaluations)
         finally:
             self._cache = None

@@ -71,6 +71,14 @@ def check_png_output(path, command: str) -> None:
         raise InputError(f"{path} exists and is not an earlier `{command}` image; refusing to overwrite it")
 
 
+def remove_earlier_png(path, command: str) -> None:
+    """Delete ``path`` if it is a PNG image that ``command`` wrote: an earlier run's image of which this
+    run makes none, that would otherwise lie beside this run's images as if one of them."""
+    path = Path(path)
+    if path.is_file() and _png_written_by(path) == command:
+        path.unlink()
+
+
 def _png_written_by(path: Path) -> str | None:
     """The ``PNG_WRITER_KEY`` text of the PNG image ``path``; None for any other file, and for one that
     cannot be read (nothing then tells what wrote it)."""

@@ -7,7 +7,7 @@ import h5py
 import numpy as np
 import pytest
 
-from calibrate.pose_check import (SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, perturbed_prior, pooled_result,
+from calibrate.pose_check import (SKIP_FIT_FAILED, SKIP_NO_CONTACT, SKIP_NON_FINITE, bench_pose, perturbed_prior, pooled_result,
                                   run_pose_check)
 from calibrate.pose_estimation import Pose, align_symmetry, position_error, quat_to_matrix, shape_from_object
 from collect import session_format as sf
@@ -264,3 +264,31 @@ def test_non_finite_true_depth_costs_a_frame_its_vs_true_row_of_the_true_depth_a
     by_frame = {f.frame: f for f in result.frames}
     assert "true" not in by_frame[int(hold[0])].vs_true
     assert all("true" in by_frame[int(k)].vs_true for k in hold[1:])
+
+
+def test_fits_on_poses_whose_errors_overflow_are_failed_fits_without_warnings(tmp_path):
+    """A session whose focal length reads 1e-300 px lifts its contact points 1e298 m away (was: some
+    frames used with e_x inf, RuntimeWarnings on stderr, and `--plots` a ValueError traceback)."""
+    import warnings
+
+    path = write_cylinder_session(tmp_path / "cyl.h5", n_poses=2, hold_frames=2)
+    with h5py.File(path, "a") as f:
+        f.attrs[sf.ATTR_INTRINSICS] = json.dumps({**INTR, "fx": 1e-300, "fy": 1e-300})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=f"no usable hold frame .*{SKIP_FIT_FAILED} 4"):
+            run_pose_check(DecodingEstimator(), path, "mug", plots_dir=tmp_path / "plots")
+
+
+def test_a_real_sessions_histograms_replace_the_vs_true_image_of_an_earlier_simulated_one(tmp_path):
+    """Was: `pose_vs_true.png` of the earlier run left beside the new `pose_errors.png`, as if this run's;
+    an image that `bubble pose` did not write stays."""
+    plots = tmp_path / "plots"
+    run_pose_check(DecodingEstimator(), write_cylinder_session(tmp_path / "sim.h5", n_poses=1), "mug", plots_dir=plots)
+    assert sorted(p.name for p in plots.iterdir()) == ["pose_errors.png", "pose_vs_true.png"]
+    real = write_cylinder_session(tmp_path / "real.h5", n_poses=1, simulated=False)
+    run_pose_check(DecodingEstimator(), real, "mug", plots_dir=plots)
+    assert sorted(p.name for p in plots.iterdir()) == ["pose_errors.png"]
+    (plots / "pose_vs_true.png").write_bytes(b"placeholder")  # another file: the CLI refuses it before the run
+    run_pose_check(DecodingEstimator(), real, "mug", plots_dir=plots)
+    assert (plots / "pose_vs_true.png").read_bytes() == b"placeholder"

@@ -338,3 +338,24 @@ def test_grid_sdf_gradient_matches_finite_differences_off_the_grid_too():
     numeric = np.stack([(grid.signed_distance(points + h * e)[0] - grid.signed_distance(points - h * e)[0]) / (2 * h)
                         for e in np.eye(3)], axis=1)
     np.testing.assert_allclose(grad, numeric, atol=1e-4)
+
+
+def test_a_cylinder_in_other_units_than_metres_is_refused():
+    """Was: a radius of 1e200 m taken as is (the fits ran, 42 mm off the true pose); a mug in mm failed
+    every fit, saying nothing of units."""
+    for radius, height, across in ((1e200, 0.095, r"2e\+200"), (41.0, 95.0, "95")):
+        with pytest.raises(InputError, match=rf"cylinder primitive is {across} m across; expected metres \(at most 0.5 m\)"):
+            shape_from_object({"type": "cylinder", "radius": radius, "height": height})
+    assert shape_from_object({"type": "cylinder", "radius": 0.041, "height": 0.095}).radius == 0.041
+
+
+def test_points_whose_costs_overflow_give_a_failed_fit_without_warnings():
+    """Contact points 1e300 m away (a session's absurd intrinsics): was a success with an infinite RMS,
+    and scipy's overflow RuntimeWarnings on stderr."""
+    import warnings
+
+    points = np.random.default_rng(0).normal(size=(200, 3)) * 1e300
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = ProximityPoseEstimator(CYL).fit(points, Pose(np.array([0.0, 0.0, 0.1]), np.array([1.0, 0.0, 0.0, 0.0])))
+    assert not fit.success
