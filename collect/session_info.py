@@ -22,7 +22,8 @@ def session_summary(path) -> dict:
     increase: a camera that restarted its numbering, the frames it lost uncounted),
     non_increasing_t and non_increasing_t_host (frames whose device / host time did not increase), objects
     ({name: {phase: frames, "poses": contact poses pressed, held and let go, "reference": n}}),
-    planned_poses_per_object (the stored plan's, None without one), unassigned_frames, arm_samples, pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
+    planned_poses_per_object (the stored plan's, None without one), unassigned_frames, arm_samples,
+    pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
     """
     with Session.open(path) as s:
         n = s.n_frames

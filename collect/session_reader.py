@@ -113,8 +113,9 @@ def open_h5(path, *, locking: bool = True) -> h5py.File:
 
 def _stored_end_of_file(path: str) -> int | None:
     """The end-of-file address (bytes) that the HDF5 superblock at the start of ``path`` records: the
-    file's size when it was last flushed (HDF5 file format, superblock versions 0-3). None where the
-    file does not start with a superblock, or the address is undefined or cannot be read."""
+    size HDF5 gave the file when it last wrote its header (HDF5 file format, superblock versions 0-3;
+    2048 bytes in a file just created, before any flush). None where the file does not start with a
+    superblock, or the address is undefined or cannot be read."""
     try:
         with open(path, "rb") as f:
             head = f.read(64)
