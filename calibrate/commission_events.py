@@ -56,7 +56,7 @@ class CollectionProgress:
     object_name: str
     pose_index: int  # 0-based pose within the object, -1 for reference frames
     poses_per_object: int
-    phase: str  # free / approach / press / hold / retract
+    phase: str  # free / approach / press / hold / retract, or stopping (the retract after a stop or a fault)
     frames: int  # frames recorded so far in the session
     force_n: float  # |F| at the TCP, N
     pressure_hpa: float  # bubble pressure, hPa absolute

@@ -146,7 +146,8 @@ def run_collect(args: argparse.Namespace) -> int:
                 raise_interrupt(signalled[0])
             frames = writer.n_frames
     skipped = f", {len(result.poses_without_contact)} without contact" if result.poses_without_contact else ""
-    print(f"recorded {result.frames} frames ({len(result.poses_done)} poses{skipped}, {result.dropped} dropped) "
+    poses = _count(len(result.poses_done), "pose")
+    print(f"recorded {result.frames} frames ({poses}{skipped}, {result.dropped} dropped) "
           f"in {result.duration_s:.1f} s of bench time; {args.out} holds {frames} frames")
     return 0
 

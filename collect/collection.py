@@ -60,6 +60,10 @@ log = logging.getLogger(__name__)
 
 #: Progress reports per second (at most), besides one on every phase change.
 PROGRESS_HZ = 10.0
+#: The progress reports' phase of the safe stop's retract after a stop or a fault, which belongs to no
+#: pose (its frames are recorded as ``retract`` of pose id -1). Was: reported as ``retract`` of the pose
+#: under way, which read as that pose pressed and let go when the stop came during its approach.
+STOPPING_PHASE = "stopping"
 #: How long the recorder waits for a frame before the camera counts as stalled (s).
 FRAME_TIMEOUT_S = 0.5
 #: Arm samples kept for stamping frames with the pose at their capture time (~1 s at 500 Hz).
@@ -349,11 +353,12 @@ class _Recorder(threading.Thread):
         arm = self.bench.arm.state()
         reading = self.bench.pressure.latest()
         name = self.plan.objects[stamp.object_index].name if stamp.object_index >= 0 else ""
+        stopping = stamp.phase == sf.PHASE_RETRACT and stamp.pose_id < 0  # the safe stop's (``_safe_stop``)
         self.progress.post(dict(
             object_name=name,
             pose_index=stamp.pose_index,
             poses_per_object=self.plan.settings.poses_per_object,
-            phase=sf.PHASE_NAMES[stamp.phase],
+            phase=STOPPING_PHASE if stopping else sf.PHASE_NAMES[stamp.phase],
             frames=self.writer.n_frames,
             force_n=float(np.linalg.norm(arm.tcp_wrench[:3])) if arm is not None else 0.0,
             pressure_hpa=float(reading.hpa) if reading is not None else float("nan"),

@@ -317,9 +317,11 @@ def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
     stop = threading.Event()
     at_stop = {}
     slow_press = MotionSettings(press_speed=0.005)
+    phases = []
     with open_bench(BenchConfig.create("sim", objects=("box",), seed=1, motion=slow_press)) as bench:
 
         def progress(**fields):
+            phases.append(fields["phase"])
             if fields["phase"] == "press" and not stop.is_set():
                 at_stop["t"] = bench.clock()
                 stop.set()
@@ -336,6 +338,8 @@ def test_stop_mid_press_halts_the_arm_at_once_then_retracts(tmp_path):
     # further (seeds 1-3; seed 1: 1.0 mm); at 5 mm/s, 0.5 mm leaves 100 ms for the stop to reach a loaded arm
     assert z_stop - z_after.min() < 0.5e-3
     assert z_after[-1] > z_stop + 1e-3  # then the safe stop retracted it
+    after = phases[phases.index("press"):]  # shown as stopping (was: retract, as if the pose were let go)
+    assert "stopping" in after and "retract" not in after, after
 
 
 @pytest.mark.parametrize("signum, code, last_line", [

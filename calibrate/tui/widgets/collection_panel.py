@@ -9,7 +9,8 @@ from textual.widgets import Static
 from calibrate.commission_events import CollectionProgress
 from calibrate.tui.widgets.formatting import text_bar
 
-_PHASE_STYLES = {"press": "bold red", "hold": "bold magenta", "approach": "yellow", "retract": "cyan", "free": "dim"}
+_PHASE_STYLES = {"press": "bold red", "hold": "bold magenta", "approach": "yellow", "retract": "cyan", "free": "dim",
+                 "stopping": "bold yellow"}
 
 
 class CollectionPanel(Static):
