@@ -20,11 +20,9 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from collect.errors import InputError
 from collect.numbers import real_number
-from collect.yaml_files import load_yaml, yaml_error_text
+from collect.yaml_files import read_yaml_file
 
 #: Packaged thresholds, used when no ``--thresholds`` file is given.
 DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("acceptance_thresholds.yaml")
@@ -173,14 +171,7 @@ def _parse_checks(raw: object, where: str, base: dict[str, Threshold] | None) ->
 
 
 def _read_yaml(path: Path) -> dict:
-    try:
-        text = Path(path).read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read thresholds file {path}: {getattr(err, 'strerror', None) or err}") from None
-    try:
-        raw = load_yaml(text)
-    except yaml.YAMLError as err:
-        raise InputError(f"thresholds file {path} is not valid YAML: {yaml_error_text(err)}") from None
+    raw = read_yaml_file(path, "thresholds file")
     if not isinstance(raw, dict):
         raise InputError(f"thresholds file {path} must hold 'version' and 'checks'")
     unknown = sorted(str(key) for key in raw if key not in ("version", "checks"))

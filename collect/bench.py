@@ -135,9 +135,15 @@ class BenchConfig(ABC):
     @classmethod
     def create(cls, type_name: str, **kwargs) -> "BenchConfig":
         """The config of registered type ``type_name`` with ``kwargs``; ``InputError`` for unknown types/fields."""
+        return cls._created(type_name, kwargs)
+
+    @classmethod
+    def _created(cls, type_name: str, fields_given: dict) -> "BenchConfig":
+        """``create`` with the fields as a mapping, whose keys may be of any type (a YAML file's ``1:``
+        is an unknown field; was, through ``**``, a TypeError traceback)."""
         if type_name not in cls._registry:
             raise InputError(f"unknown bench type '{type_name}' (one of {', '.join(cls._registry)})")
-        return _built(cls._registry[type_name], kwargs, f"bench '{type_name}'")
+        return _built(cls._registry[type_name], fields_given, f"bench '{type_name}'")
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "bench config") -> "BenchConfig":
@@ -156,23 +162,14 @@ class BenchConfig(ABC):
         for key, value in kwargs.items():
             if isinstance(value, list):
                 kwargs[key] = tuple(value)
-        return cls.create(type_name, **kwargs)
+        return cls._created(type_name, kwargs)
 
     @classmethod
     def from_yaml(cls, path) -> "BenchConfig":
         """Read a config YAML file (see ``from_dict``); ``InputError`` for a missing or bad file."""
-        import yaml
+        from collect.yaml_files import read_yaml_file
 
-        from collect.yaml_files import load_yaml, yaml_error_text
-
-        path = Path(path)
-        try:
-            data = load_yaml(path.read_text())
-        except (OSError, UnicodeDecodeError) as err:
-            raise InputError(f"cannot read bench config {path}: {getattr(err, 'strerror', None) or err}") from None
-        except yaml.YAMLError as err:
-            raise InputError(f"bench config {path} is not valid YAML: {yaml_error_text(err)}") from None
-        return cls.from_dict(data, source=f"bench config {path}")
+        return cls.from_dict(read_yaml_file(path, "bench config"), source=f"bench config {path}")
 
     @abstractmethod
     def open(self) -> "Bench":

@@ -11,11 +11,24 @@ with the same resolver, so text such as ``'1e6'`` is written quoted and reads ba
 
 from __future__ import annotations
 
+import os
 import re
+import stat
+from pathlib import Path
 
 import yaml
 
+from collect.errors import InputError
+
 FLOAT_TAG = "tag:yaml.org,2002:float"
+MERGE_TAG = "tag:yaml.org,2002:merge"
+#: Values (list items, mapping keys and values) that aliases (``*name``) may add to a file by
+#: repeating what an anchor holds. A few nested aliases repeat it exponentially ("billion laughs":
+#: 383 bytes read as 4.8 million values, and an error message of 39 MB quoting them).
+MAX_ALIAS_VALUES = 10_000
+#: Largest YAML file read (bytes): the biggest config, a sensor spec listing every pixel of its
+#: image as dead, is about 1 MB (was: ``/dev/zero`` read until memory ran out).
+MAX_YAML_BYTES = 16_000_000
 
 #: Floats as YAML 1.2 writes them (exponent without a decimal point, unsigned exponent, a sign
 #: before a leading ``.``), plus YAML 1.1's sexagesimal floats (``190:20:30.15``) as before.
@@ -36,12 +49,23 @@ def _with_yaml12_floats(resolvers: dict) -> dict:
 class Loader(yaml.SafeLoader):
     """``yaml.SafeLoader`` reading YAML 1.2 floats (``1e6`` is 1000000.0, not the text '1e6'), that
     refuses a key given twice in one mapping (PyYAML keeps the last, and a limit written twice
-    was silently the second one)."""
+    was silently the second one; also beside a merge key ``<<``, which until session 51 turned the
+    check off), and aliases that add more than ``MAX_ALIAS_VALUES`` values to the file."""
+
+    def construct_document(self, node):
+        added = _expanded_size(node, {}) - _distinct_size(node, set())
+        if added > MAX_ALIAS_VALUES:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"its aliases (*name) repeat what their anchors hold into {added} more values, over "
+                            f"{MAX_ALIAS_VALUES}; write the values out", node.start_mark)
+        return super().construct_document(node)
 
     def construct_mapping(self, node, deep=False):
-        if isinstance(node, yaml.MappingNode) and not any(k.tag == "tag:yaml.org,2002:merge" for k, _ in node.value):
+        if isinstance(node, yaml.MappingNode):
             seen = set()
             for key_node, _ in node.value:
+                if key_node.tag == MERGE_TAG:  # what it merges in is overridden by the keys given
+                    continue
                 key = self.construct_object(key_node, deep=deep)
                 if isinstance(key, (str, int, float, bool)) or key is None:
                     if key in seen:
@@ -49,6 +73,31 @@ class Loader(yaml.SafeLoader):
                             None, None, f"duplicate key {key!r}: give each key once", key_node.start_mark)
                     seen.add(key)
         return super().construct_mapping(node, deep)
+
+
+def _children(node: yaml.Node) -> list:
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    if isinstance(node, yaml.MappingNode):
+        return [item for pair in node.value for item in pair]
+    return []
+
+
+def _expanded_size(node: yaml.Node, sizes: dict) -> int:
+    """Values under ``node``, itself included, each alias counted as a copy of its anchor's
+    (``sizes``: by node id, memoized; a node within itself counts once)."""
+    if id(node) not in sizes:
+        sizes[id(node)] = 1
+        sizes[id(node)] = 1 + sum(_expanded_size(child, sizes) for child in _children(node))
+    return sizes[id(node)]
+
+
+def _distinct_size(node: yaml.Node, seen: set) -> int:
+    """Distinct nodes under ``node``, itself included (the values written in the file)."""
+    if id(node) in seen:
+        return 0
+    seen.add(id(node))
+    return 1 + sum(_distinct_size(child, seen) for child in _children(node))
 
 
 class Dumper(yaml.SafeDumper):
@@ -73,6 +122,31 @@ def yaml_error_text(err: yaml.YAMLError) -> str:
 def load_yaml(text: str):
     """``text`` parsed like ``yaml.safe_load``, with YAML 1.2 floats; ``yaml.YAMLError`` if bad."""
     return yaml.load(text, Loader=Loader)  # noqa: S506 (Loader is a SafeLoader)
+
+
+def read_yaml_file(path, what: str):
+    """The data of the YAML file ``path`` (``load_yaml``), a ``what`` (e.g. "sensor spec"): one-line
+    ``InputError`` for a file that cannot be read (missing, a folder, a device, over
+    ``MAX_YAML_BYTES``, not UTF-8) or is not valid YAML. A pipe is read (``--sensor <(...)``)."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+            raise InputError(f"cannot read {what} {path}: it is a device, not a file")  # was: /dev/zero read forever
+        with open(path, "rb") as f:
+            data = f.read(MAX_YAML_BYTES + 1)
+        if len(data) > MAX_YAML_BYTES:
+            raise InputError(f"cannot read {what} {path}: it is over {MAX_YAML_BYTES // 1_000_000} MB, "
+                             "not a config file")
+        text = data.decode()
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"cannot read {what} {path}: {getattr(err, 'strerror', None) or err}") from None
+    try:
+        return load_yaml(text)
+    except yaml.YAMLError as err:
+        raise InputError(f"{what} {path} is not valid YAML: {yaml_error_text(err)}") from None
+    except RecursionError:  # PyYAML parses nested blocks recursively (was: a RecursionError traceback)
+        raise InputError(f"{what} {path} is not valid YAML: its lists or mappings are nested too deeply") from None
 
 
 def dump_yaml(data, **options) -> str:

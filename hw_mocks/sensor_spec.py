@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from collect.camera import STALL_TIMEOUT_S
 from collect.errors import InputError
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
@@ -153,7 +154,7 @@ class SensorSpec:
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected a mapping of sensor fields, got {type(data).__name__}")
         names = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - set(names))
+        unknown = sorted(set(data) - set(names), key=str)  # keys of several types: 1, null (was: a TypeError)
         if unknown:
             raise InputError(f"{source}: unknown field '{unknown[0]}'")
         kwargs = {}
@@ -170,20 +171,9 @@ class SensorSpec:
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SensorSpec":
         """Read a spec; unreadable files, bad YAML, missing or out-of-range fields raise ``InputError``."""
-        import yaml
+        from collect.yaml_files import read_yaml_file
 
-        from collect.yaml_files import load_yaml, yaml_error_text
-
-        path = Path(path)
-        try:
-            text = path.read_text()
-        except (OSError, UnicodeDecodeError) as err:
-            raise InputError(f"cannot read sensor spec {path}: {getattr(err, 'strerror', None) or err}") from None
-        try:
-            data = load_yaml(text)
-        except yaml.YAMLError as err:
-            raise InputError(f"sensor spec {path} is not valid YAML: {yaml_error_text(err)}") from None
-        return cls.from_dict(data, source=f"sensor spec {path}")
+        return cls.from_dict(read_yaml_file(path, "sensor spec"), source=f"sensor spec {path}")
 
     def yaml_text(self) -> str:
         """The spec as YAML text (round-trips through ``from_yaml``)."""
@@ -246,7 +236,7 @@ _RANGES = {
     "height": (16, 4096),
     "fx": (20.0, 5000.0),
     "fy": (20.0, 5000.0),
-    "fps": (1.0, 240.0),
+    "fps": (2.0 / STALL_TIMEOUT_S, 240.0),  # fewer frames than two per stall timeout read as a stalled camera
     "dome_semi_x_m": (0.02, 0.2),
     "dome_semi_y_m": (0.02, 0.2),
     "dome_height_m": (0.005, 0.08),

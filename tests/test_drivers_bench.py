@@ -380,9 +380,17 @@ def test_a_short_fault_before_the_devices_stream_is_moved_to_when_they_do(caplog
 def test_parse_sim_fault():
     assert parse_sim_fault("camera-stall@12.5") == SimFault("camera-stall", 12.5)
     assert parse_sim_fault(" force-spike@3 ").at_s == 3.0
+    assert parse_sim_fault("force-spike@1e1").at_s == 10.0  # was: "expected KIND@SECONDS"
     for bad in ("camera-stall", "camera-stall@", "melt@3", "force-spike@-1", "x@y", ""):
         with pytest.raises(InputError):
             parse_sim_fault(bad)
+    with pytest.raises(InputError, match="unknown fault 'Camera-Stall'"):  # was: "expected KIND@SECONDS"
+        parse_sim_fault("Camera-Stall@3")
+    for seconds in ("-3", "nan", "inf", "9" * 400, "soon"):  # 400 digits: was inf, a fault that never came
+        with pytest.raises(InputError) as refused:
+            parse_sim_fault(f"camera-stall@{seconds}")
+        assert str(refused.value) == (f"--sim-fault 'camera-stall@{seconds}': SECONDS must be a number of seconds "
+                                      f">= 0, got '{seconds}'")
     with pytest.raises(InputError):
         BenchConfig.create("sim", faults=("bogus@1",)).open()
     with pytest.raises(InputError):
@@ -509,6 +517,45 @@ def test_bench_config_yaml_round_trip_and_errors(tmp_path):
     assert BenchConfig.from_yaml(one).objects == ("teapot",)
     with pytest.raises(InputError):
         BenchConfig.create("ur").open()  # no robot_ip: refused before any connection attempt
+
+
+def test_yaml_files_refuse_a_key_given_twice_beside_a_merge_alias_floods_devices_and_odd_keys(tmp_path, monkeypatch):
+    """Found by an audit of the config files (bench, sensor spec and thresholds share the reader). Was:
+    a merge key turned the duplicate check off (a force limit written twice was the second one); a
+    383-byte file of nested aliases read as 4.8 million values and quoted in a 39 MB error line;
+    /dev/zero read until memory ran out; a key `1:` a TypeError traceback."""
+    import collect.yaml_files
+
+    def refused(text, match):
+        path = tmp_path / "bench.yaml"
+        path.write_text(text)
+        with pytest.raises(InputError, match=match) as info:
+            BenchConfig.from_yaml(path)
+        assert "\n" not in str(info.value) and len(str(info.value)) < 500, str(info.value)[:200]
+
+    limits = "type: sim\nlimits: {%s}\n"
+    refused(limits % "force_limit_n: 10, <<: {}, force_limit_n: 140",
+            r"line 2, column 37: duplicate key 'force_limit_n': give each key once")
+    merged = tmp_path / "merged.yaml"
+    merged.write_text(limits % "<<: {force_limit_n: 20, max_tilt_deg: 10}, force_limit_n: 15")  # the key given wins
+    read = BenchConfig.from_yaml(merged).limits
+    assert (read.force_limit_n, read.max_tilt_deg) == (15, 10)
+    flood = "type: sim\nfaults: [&a0 [x, x, x, x, x, x, x, x, x]"
+    flood += "".join(f", &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]" for k in range(1, 7)) + "]\n"
+    refused(flood, r"line 1, column 1: its aliases \(\*name\) repeat what their anchors hold into \d+ more values, "
+                   r"over 10000; write the values out")
+    few = tmp_path / "few.yaml"  # a few aliases of a short block read as before
+    few.write_text("type: sim\nstart_pose: &p [0.45, 0.0, 0.2, 3.14159, 0, 0]\nhome_pose: *p\n")
+    with pytest.raises(InputError, match="unknown field 'home_pose'"):  # read, then refused as a sim bench's field
+        BenchConfig.from_yaml(few)
+    refused("type: ur\nrobot_ip: 192.0.2.1\n1: 2\n", r"bench 'ur': unknown field '1' \(fields: ")
+    with pytest.raises(InputError, match="^cannot read bench config /dev/zero: it is a device, not a file$"):
+        BenchConfig.from_yaml("/dev/zero")
+    monkeypatch.setattr(collect.yaml_files, "MAX_YAML_BYTES", 2_000_000)
+    big = tmp_path / "big.yaml"
+    big.write_text("type: sim\n" + "#" * 2_000_000 + "\n")
+    with pytest.raises(InputError, match=f"^cannot read bench config {big}: it is over 2 MB, not a config file$"):
+        BenchConfig.from_yaml(big)
 
 
 UR_BENCH = "type: ur\nrobot_ip: 192.0.2.1\nhome_pose: [0.45, 0.0, 0.25, 3.14159, 0, 0]\n"

@@ -110,6 +110,18 @@ def test_bad_yaml_and_missing_file(tmp_path):
         SensorSpec.from_yaml(path)
     with pytest.raises(InputError, match="cannot read"):
         SensorSpec.from_yaml(tmp_path / "nope.yaml")
+    good = yaml.safe_dump(draw_sensor(1).to_dict())
+    path.write_text(good + "colour: red\n1: 2\n")  # keys of two types (was: a TypeError traceback from their sort)
+    with pytest.raises(InputError, match="unknown field '1'"):
+        SensorSpec.from_yaml(path)
+    path.write_text("fx: " + "[" * 3000 + "]" * 3000 + "\n")  # was: a RecursionError traceback
+    with pytest.raises(InputError, match="not valid YAML: its lists or mappings are nested too deeply$"):
+        SensorSpec.from_yaml(path)
+    path.write_text(good.replace("fps: 45.0", "fps: 3.9"))  # a frame every 0.26 s: was accepted, then a stalled camera
+    with pytest.raises(InputError, match=r"field 'fps' = 3.9 is outside \[4.0, 240.0\]"):
+        SensorSpec.from_yaml(path)
+    path.write_text(good.replace("fps: 45.0", "fps: 4.0"))
+    assert SensorSpec.from_yaml(path).fps == 4.0
 
 
 def test_a_camera_that_spreads_the_rim_over_millions_of_pixels_is_refused():
