@@ -5,8 +5,11 @@ PyYAML's ``safe_load`` follows YAML 1.1, where a float needs a decimal point and
 ``1e6``, ``1e-3``, ``1.5e3`` and ``-.5`` are read there as *text*, and a field that wants a number
 then refuses them. ``Loader`` is ``yaml.SafeLoader`` with the float syntax of YAML 1.2 (a
 superset: every YAML 1.1 float, ``.inf``, ``.nan`` and ``1_000.5`` included, still reads as
-before); nothing else (ints, bools, nulls, timestamps) changes. ``Dumper`` is ``yaml.SafeDumper``
-with the same resolver, so text such as ``'1e6'`` is written quoted and reads back as text.
+before), and with whole numbers written in decimal alone (``INT_RE``): YAML 1.1's other ones,
+``0123`` (octal: 83), ``0x1A``, ``0b11``, ``1_000`` and ``1:30`` (sexagesimal: 90), read as the
+text written (until session 51 a device name ``camera_id: 0123`` became '83'; a field that wants a
+number refuses them). Bools, nulls and timestamps do not change. ``Dumper`` is ``yaml.SafeDumper``
+with the same resolvers, so text such as ``'1e6'`` is written quoted and reads back as text.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import yaml
 from collect.errors import InputError
 
 FLOAT_TAG = "tag:yaml.org,2002:float"
+INT_TAG = "tag:yaml.org,2002:int"
 MERGE_TAG = "tag:yaml.org,2002:merge"
 #: Values (list items, mapping keys and values) that aliases (``*name``) may add to a file by
 #: repeating what an anchor holds. A few nested aliases repeat it exponentially ("billion laughs":
@@ -40,14 +44,20 @@ FLOAT_RE = re.compile(r"""^(?:[-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?
                           |\.(?:nan|NaN|NAN))$""", re.X)
 
 
-def _with_yaml12_floats(resolvers: dict) -> dict:
-    """``resolvers`` (first character -> [(tag, regexp)]) with ``FLOAT_RE`` in place of the float one."""
-    return {first: [(tag, FLOAT_RE if tag == FLOAT_TAG else regexp) for tag, regexp in pairs]
-            for first, pairs in resolvers.items()}
+#: Whole numbers: decimal digits, a sign, no leading zero (YAML 1.2's decimal ints).
+INT_RE = re.compile(r"^[-+]?(?:0|[1-9][0-9]*)$")
+
+
+def _with_plain_numbers(resolvers: dict) -> dict:
+    """``resolvers`` (first character -> [(tag, regexp)]) with ``FLOAT_RE`` and ``INT_RE`` in place of
+    the float and int ones."""
+    swap = {FLOAT_TAG: FLOAT_RE, INT_TAG: INT_RE}
+    return {first: [(tag, swap.get(tag, regexp)) for tag, regexp in pairs] for first, pairs in resolvers.items()}
 
 
 class Loader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` reading YAML 1.2 floats (``1e6`` is 1000000.0, not the text '1e6'), that
+    """``yaml.SafeLoader`` reading YAML 1.2 floats (``1e6`` is 1000000.0, not the text '1e6') and
+    decimal ints (``0123`` is the text '0123', not 83), that
     refuses a key given twice in one mapping (PyYAML keeps the last, and a limit written twice
     was silently the second one; also beside a merge key ``<<``, which until session 51 turned the
     check off), and aliases that add more than ``MAX_ALIAS_VALUES`` values to the file."""
@@ -104,8 +114,8 @@ class Dumper(yaml.SafeDumper):
     """``yaml.SafeDumper`` that quotes text ``Loader`` would read as a float (``'1e6'``)."""
 
 
-Loader.yaml_implicit_resolvers = _with_yaml12_floats(yaml.SafeLoader.yaml_implicit_resolvers)
-Dumper.yaml_implicit_resolvers = _with_yaml12_floats(yaml.SafeDumper.yaml_implicit_resolvers)
+Loader.yaml_implicit_resolvers = _with_plain_numbers(yaml.SafeLoader.yaml_implicit_resolvers)
+Dumper.yaml_implicit_resolvers = _with_plain_numbers(yaml.SafeDumper.yaml_implicit_resolvers)
 
 
 def yaml_error_text(err: yaml.YAMLError) -> str:
@@ -120,7 +130,8 @@ def yaml_error_text(err: yaml.YAMLError) -> str:
 
 
 def load_yaml(text: str):
-    """``text`` parsed like ``yaml.safe_load``, with YAML 1.2 floats; ``yaml.YAMLError`` if bad."""
+    """``text`` parsed like ``yaml.safe_load`` by ``Loader`` (YAML 1.2 floats, decimal ints, the checks
+    above); ``yaml.YAMLError`` if bad."""
     return yaml.load(text, Loader=Loader)  # noqa: S506 (Loader is a SafeLoader)
 
 

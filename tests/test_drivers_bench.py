@@ -713,6 +713,12 @@ def test_a_numeric_camera_id_and_the_home_pose_as_a_list_are_taken_as_written(tm
     bench.write_text(UR_BENCH + "camera_id: 184430\n")  # an all-digit device name, read by YAML as a number
     config = BenchConfig.from_yaml(bench)
     assert config.camera_id == "184430" and config.home_pose == (0.45, 0.0, 0.25, 3.14159, 0, 0)
+    for written in ("0123", "1_000", "0x1A", "1:30", "0b11"):  # YAML 1.1's other ints (was: '83', '1000', '26', ...)
+        bench.write_text(UR_BENCH + f"camera_id: {written}\n")
+        assert BenchConfig.from_yaml(bench).camera_id == written
+    bench.write_text(UR_BENCH + "state_hz: 0x7D\n")  # text now, to a field that wants a number (was: 125)
+    with pytest.raises(InputError, match="state_hz"):
+        BenchConfig.from_yaml(bench)
 
 
 def test_a_cpu_starved_camera_twin_slows_simulated_time_instead_of_stalling(monkeypatch):
