@@ -195,8 +195,8 @@ def load_thresholds(path: Path | None = None) -> Thresholds:
         return Thresholds(version, checks, str(DEFAULT_THRESHOLDS_PATH))
     raw = _read_yaml(Path(path))
     if isinstance(raw["version"], str):  # version: "1" in quotes is text
-        raise InputError(f"thresholds file {path}: version must be the number {version} (without quotes), "
-                         f"got the text {raw['version']!r}")
+        raise InputError(f"thresholds file {path}: version must be the number {version} (without quotes or "
+                         f"leading zeros), got the text {raw['version']!r}")
     if raw["version"] != version or isinstance(raw["version"], bool):
         raise InputError(f"thresholds file {path} has version {raw['version']!r}; this bubble expects version {version}")
     checks = _parse_checks(raw["checks"], str(path), checks)

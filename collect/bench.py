@@ -29,7 +29,7 @@ from typing import ClassVar
 import numpy as np
 
 from collect.arm import STATE_HZ_RANGE, Arm, MotionSettings, check_motion_settings
-from collect.camera import STALL_TIMEOUT_S, ToFCamera, check_tof_profile
+from collect.camera import MIN_FPS, ToFCamera, check_tof_profile
 from collect.errors import HardwareFault, InputError
 from collect.native_output import folded, native_output_into
 from collect.numbers import real_number, real_numbers, whole_number
@@ -47,8 +47,8 @@ DEFAULT_OBJECTS = ("mug", "wine_glass", "box", "fingers")
 #: data between updates, and below 4 Hz the monitor takes a still clock for a dead link.
 RTDE_HZ_RANGE = (125.0, 500.0)
 #: Frame rates (fps) of the OAK ToF camera: its 33D sensor runs at up to 80 fps (depthai's RVC2
-#: driver limit), and below two frames per stall timeout the camera driver would see a stall.
-CAMERA_FPS_RANGE = (2.0 / STALL_TIMEOUT_S, 80.0)
+#: driver limit), and below ``MIN_FPS`` the camera driver would see a stall.
+CAMERA_FPS_RANGE = (MIN_FPS, 80.0)
 
 
 def arm_lock(robot_ip: str) -> contextlib.AbstractContextManager:

@@ -36,6 +36,9 @@ from collect.stop_signals import raise_pending_stop
 #: Unit of the depth frames the OAK ToF node outputs.
 DEPTHAI_TOF_DEPTH_UNIT_M = 1e-3
 STALL_TIMEOUT_S = 0.5
+#: Slowest frame rate (fps) a camera may run at: below two frames per stall timeout, the gap between
+#: two frames reads as a stall.
+MIN_FPS = 2.0 / STALL_TIMEOUT_S
 #: Polling interval of the frame queues (s of real time).
 POLL_S = 0.002
 

@@ -130,11 +130,11 @@ def _stored_end_of_file(path: str) -> int | None:
         offsets, base_at = head[9], 12
     else:
         return None
-    if offsets not in (2, 4, 8) or len(head) < base_at + 3 * offsets:
+    eof_at = base_at + 2 * offsets
+    if offsets not in (2, 4, 8) or len(head) < eof_at + offsets:
         return None
-    base, eof = (int.from_bytes(head[at : at + offsets], "little") for at in (base_at, base_at + 2 * offsets))
-    undefined = (1 << (8 * offsets)) - 1
-    return None if undefined in (base, eof) else base + eof
+    eof = int.from_bytes(head[eof_at : eof_at + offsets], "little")  # an absolute address
+    return None if eof == (1 << (8 * offsets)) - 1 else eof  # all ones: undefined
 
 
 def _cut_off_at_creation(path: str, size: int) -> bool:

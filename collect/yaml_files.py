@@ -9,7 +9,8 @@ before), and with whole numbers written in decimal alone (``INT_RE``): YAML 1.1'
 ``0123`` (octal: 83), ``0x1A``, ``0b11``, ``1_000`` and ``1:30`` (sexagesimal: 90), read as the
 text written (until session 51 a device name ``camera_id: 0123`` became '83'; a field that wants a
 number refuses them). Bools, nulls and timestamps do not change. ``Dumper`` is ``yaml.SafeDumper``
-with the same resolvers, so text such as ``'1e6'`` is written quoted and reads back as text.
+with the same float resolver, so text such as ``'1e6'`` is written quoted and reads back as text,
+and YAML 1.1's int one (``'0123'`` is written quoted too: other readers take YAML 1.1's ints).
 """
 
 from __future__ import annotations
@@ -48,44 +49,46 @@ FLOAT_RE = re.compile(r"""^(?:[-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?
 INT_RE = re.compile(r"^[-+]?(?:0|[1-9][0-9]*)$")
 
 
-def _with_plain_numbers(resolvers: dict) -> dict:
-    """``resolvers`` (first character -> [(tag, regexp)]) with ``FLOAT_RE`` and ``INT_RE`` in place of
-    the float and int ones."""
-    swap = {FLOAT_TAG: FLOAT_RE, INT_TAG: INT_RE}
+def _with_plain_numbers(resolvers: dict, ints: bool = True) -> dict:
+    """``resolvers`` (first character -> [(tag, regexp)]) with ``FLOAT_RE`` in place of the float
+    one, and (``ints``) ``INT_RE`` in place of the int one."""
+    swap = {FLOAT_TAG: FLOAT_RE, **({INT_TAG: INT_RE} if ints else {})}
     return {first: [(tag, swap.get(tag, regexp)) for tag, regexp in pairs] for first, pairs in resolvers.items()}
 
 
 class Loader(yaml.SafeLoader):
     """``yaml.SafeLoader`` reading YAML 1.2 floats (``1e6`` is 1000000.0, not the text '1e6') and
-    decimal ints (``0123`` is the text '0123', not 83), that
-    refuses a key given twice in one mapping (PyYAML keeps the last, and a limit written twice
-    was silently the second one; also beside a merge key ``<<``, which until session 51 turned the
-    check off), and aliases that add more than ``MAX_ALIAS_VALUES`` values to the file."""
+    decimal ints (``0123`` is the text '0123', not 83), that refuses a key given twice in one
+    mapping (PyYAML keeps the last, and a limit written twice was silently the second one; also in
+    a mapping with a merge key ``<<`` or merged in by one, which until session 51 went unchecked),
+    a value that holds itself, and aliases that add more than ``MAX_ALIAS_VALUES`` values."""
 
     def construct_document(self, node):
-        added = _expanded_size(node, {}) - _distinct_size(node, set())
+        added = _expanded_size(node, {}, set()) - _distinct_size(node, set())
         if added > MAX_ALIAS_VALUES:
             raise yaml.constructor.ConstructorError(
                 None, None, f"its aliases (*name) repeat what their anchors hold into {added} more values, over "
                             f"{MAX_ALIAS_VALUES}; write the values out", node.start_mark)
         return super().construct_document(node)
 
-    def construct_mapping(self, node, deep=False):
-        if isinstance(node, yaml.MappingNode):
-            seen = set()
-            for key_node, _ in node.value:
-                if key_node.tag == MERGE_TAG:  # what it merges in is overridden by the keys given
-                    continue
-                key = self.construct_object(key_node, deep=deep)
-                if isinstance(key, (str, int, float, bool)) or key is None:
-                    if key in seen:
-                        raise yaml.constructor.ConstructorError(
-                            None, None, f"duplicate key {key!r}: give each key once", key_node.start_mark)
-                    seen.add(key)
-        return super().construct_mapping(node, deep)
+    def compose_mapping_node(self, anchor):
+        """The mapping's node, once its keys are checked: as written, before a merge key (``<<``) of
+        it or of a mapping that merges it in changes its list of keys."""
+        node = super().compose_mapping_node(anchor)
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == MERGE_TAG or not isinstance(key_node, yaml.ScalarNode):
+                continue  # what a merge key merges in is overridden by the keys given
+            key = self.construct_object(key_node)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r}: give each key once", key_node.start_mark)
+            seen.add(key)
+        return node
 
 
 def _children(node: yaml.Node) -> list:
+    """The nodes right under ``node``: a list's items, a mapping's keys and values."""
     if isinstance(node, yaml.SequenceNode):
         return list(node.value)
     if isinstance(node, yaml.MappingNode):
@@ -93,12 +96,18 @@ def _children(node: yaml.Node) -> list:
     return []
 
 
-def _expanded_size(node: yaml.Node, sizes: dict) -> int:
+def _expanded_size(node: yaml.Node, sizes: dict, open_nodes: set) -> int:
     """Values under ``node``, itself included, each alias counted as a copy of its anchor's
-    (``sizes``: by node id, memoized; a node within itself counts once)."""
+    (``sizes``: by node id, memoized). ``ConstructorError`` for a value that holds itself (an alias
+    within its own anchor's value): no config has one, and each copy of it printed in an error
+    message printed the whole value again (a 12 kB file gave a 9.7 MB error line)."""
+    if id(node) in open_nodes:
+        raise yaml.constructor.ConstructorError(
+            None, None, "an alias (*name) inside its own anchor's value: write the values out", node.start_mark)
     if id(node) not in sizes:
-        sizes[id(node)] = 1
-        sizes[id(node)] = 1 + sum(_expanded_size(child, sizes) for child in _children(node))
+        open_nodes.add(id(node))
+        sizes[id(node)] = 1 + sum(_expanded_size(child, sizes, open_nodes) for child in _children(node))
+        open_nodes.discard(id(node))
     return sizes[id(node)]
 
 
@@ -115,7 +124,8 @@ class Dumper(yaml.SafeDumper):
 
 
 Loader.yaml_implicit_resolvers = _with_plain_numbers(yaml.SafeLoader.yaml_implicit_resolvers)
-Dumper.yaml_implicit_resolvers = _with_plain_numbers(yaml.SafeDumper.yaml_implicit_resolvers)
+# YAML 1.1's ints stay in the dumper's: text such as '0123' is written quoted, as any reader takes it
+Dumper.yaml_implicit_resolvers = _with_plain_numbers(yaml.SafeDumper.yaml_implicit_resolvers, ints=False)
 
 
 def yaml_error_text(err: yaml.YAMLError) -> str:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import unicodedata
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -274,6 +275,15 @@ def object_name(name_or_path: str | Path) -> str:
     return key if key in _BUILDERS else Path(key).stem
 
 
+def _holds_control_characters(name: str) -> bool:
+    """Whether ``name`` holds a character that would break or restyle a line of text it is printed in:
+    a control character (line break, tab, terminal escape), a line or paragraph separator, or a
+    bidirectional override or isolate (which reorders the text after it). Spaces of any script and
+    joiners are text."""
+    return any(unicodedata.category(c) in ("Cc", "Zl", "Zp") or "\u202a" <= c <= "\u202e" or "\u2066" <= c <= "\u2069"
+               for c in name)
+
+
 def load_object(name_or_path: str | Path) -> BenchObject:
     """A built-in object by name or a watertight mesh file by path, at the object-frame origin.
 
@@ -298,7 +308,7 @@ def load_object(name_or_path: str | Path) -> BenchObject:
         object_name(path).encode("utf-8")
     except UnicodeEncodeError:  # bytes of another encoding in the name (was: trimesh's UnicodeEncodeError)
         raise InputError(f"mesh {path}: its file name is not UTF-8 text, and names the object; rename the file") from None
-    if not object_name(path).isprintable():  # was: a line break or a terminal escape recorded as the name, printed raw
+    if _holds_control_characters(object_name(path)):  # was: a line break or a terminal escape recorded as the name
         raise InputError(f"mesh {str(path)!r}: its file name holds control characters (a line break, a tab, a terminal "
                          "escape), and names the object; rename the file")
     try:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from collect.camera import STALL_TIMEOUT_S
+from collect.camera import MIN_FPS
 from collect.errors import InputError
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
@@ -236,7 +236,7 @@ _RANGES = {
     "height": (16, 4096),
     "fx": (20.0, 5000.0),
     "fy": (20.0, 5000.0),
-    "fps": (2.0 / STALL_TIMEOUT_S, 240.0),  # fewer frames than two per stall timeout read as a stalled camera
+    "fps": (MIN_FPS, 240.0),  # fewer frames than two per stall timeout read as a stalled camera
     "dome_semi_x_m": (0.02, 0.2),
     "dome_semi_y_m": (0.02, 0.2),
     "dome_height_m": (0.005, 0.08),
@@ -273,7 +273,7 @@ _STR_FIELDS = {"serial"}
 def _coerce(name: str, value, source: str):
     """Convert one YAML value to the field's type, or raise ``InputError``."""
     try:
-        if name in _STR_FIELDS:  # text only: YAML reads serial: 0042 as the octal 34, 1:30 as 90
+        if name in _STR_FIELDS:  # text only: YAML reads serial: 42 as a number (0042 is text: yaml_files)
             if not isinstance(value, str):  # the hint quotes no value: YAML's (34 for 0042) would register a
                 # sensor under the wrong serial (was: "quote it (serial: '34')")
                 raise InputError(f"{source}: field '{name}' must be text, but YAML read it as {value!r}; quote it "

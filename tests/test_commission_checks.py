@@ -45,7 +45,9 @@ def test_lab_override_tightens_only_named_checks(tmp_path):
         ("version: true\nchecks:\n  heldout_a1: {min: 0.9}\n", "has version True"),
         # was: "has version '1'; this bubble expects version 1"
         ("version: '1'\nchecks:\n  heldout_a1: {min: 0.9}\n",
-         r"version must be the number 1 \(without quotes\), got the text '1'"),
+         r"version must be the number 1 \(without quotes or leading zeros\), got the text '1'"),
+        ("version: 01\nchecks:\n  heldout_a1: {min: 0.9}\n",  # text since session 51 (YAML 1.1: octal 1)
+         r"version must be the number 1 \(without quotes or leading zeros\), got the text '01'"),
         # limits no sensor could meet (was: accepted, then every run rejected and the rejection registered)
         ("version: 1\nchecks:\n  heldout_a1: {min: 5}\n",
          r"check 'heldout_a1': min must be in 0\.\.1 \(heldout_a1 is a fraction\), got 5$"),

@@ -24,6 +24,7 @@ from collect.pose_planner import PlanSettings
 from collect.pressure_board import MAX_FROZEN_RUN
 from collect.session_reader import Session
 from collect.transforms import rotation_between_rad
+from collect.yaml_files import dump_yaml
 from hw_mocks.pressure_firmware import RATE_HZ
 from hw_mocks.sim_bench import FAULT_KINDS, SimFault, parse_sim_fault
 
@@ -544,6 +545,12 @@ def test_yaml_files_refuse_a_key_given_twice_beside_a_merge_alias_floods_devices
     flood += "".join(f", &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]" for k in range(1, 7)) + "]\n"
     refused(flood, r"line 1, column 1: its aliases \(\*name\) repeat what their anchors hold into \d+ more values, "
                    r"over 10000; write the values out")
+    refused("type: sim\nfaults: &A [x, *A]\n", r"line 2, column 9: an alias \(\*name\) inside its own anchor's "
+                                              r"value: write the values out")  # was: a 12 kB file, a 9.7 MB error line
+    refused(limits % "<<: {force_limit_n: 10, force_limit_n: 140}", "duplicate key 'force_limit_n'")  # in a merged one
+    nested = tmp_path / "nested.yaml"  # a mapping merged in that has a merge key of its own: no false duplicate
+    nested.write_text("type: sim\nlimits: {<<: &b {<<: {force_limit_n: 20}, max_tilt_deg: 10}, force_limit_n: 15}\n")
+    assert BenchConfig.from_yaml(nested).limits.force_limit_n == 15
     few = tmp_path / "few.yaml"  # a few aliases of a short block read as before
     few.write_text("type: sim\nstart_pose: &p [0.45, 0.0, 0.2, 3.14159, 0, 0]\nhome_pose: *p\n")
     with pytest.raises(InputError, match="unknown field 'home_pose'"):  # read, then refused as a sim bench's field
@@ -716,6 +723,7 @@ def test_a_numeric_camera_id_and_the_home_pose_as_a_list_are_taken_as_written(tm
     for written in ("0123", "1_000", "0x1A", "1:30", "0b11"):  # YAML 1.1's other ints (was: '83', '1000', '26', ...)
         bench.write_text(UR_BENCH + f"camera_id: {written}\n")
         assert BenchConfig.from_yaml(bench).camera_id == written
+        assert dump_yaml({"camera_id": written}) == f"camera_id: '{written}'\n"  # quoted for any other reader
     bench.write_text(UR_BENCH + "state_hz: 0x7D\n")  # text now, to a field that wants a number (was: 125)
     with pytest.raises(InputError, match="state_hz"):
         BenchConfig.from_yaml(bench)

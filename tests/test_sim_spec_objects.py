@@ -122,6 +122,8 @@ def test_bad_yaml_and_missing_file(tmp_path):
         SensorSpec.from_yaml(path)
     path.write_text(good.replace("fps: 45.0", "fps: 4.0"))
     assert SensorSpec.from_yaml(path).fps == 4.0
+    path.write_text(good.replace(f"serial: {draw_sensor(1).serial}", "serial: 0042"))  # was: read as the octal 34
+    assert SensorSpec.from_yaml(path).serial == "0042"
 
 
 def test_a_camera_that_spreads_the_rim_over_millions_of_pixels_is_refused():
@@ -254,7 +256,10 @@ def test_mesh_files_that_are_repaired_or_named_wrong(tmp_path):
     assert str(info.value) == (f"mesh {str(escape)!r}: its file name holds control characters (a line break, a tab, a "
                                "terminal escape), and names the object; rename the file")
     assert "\x1b" not in str(info.value) and "\n" not in str(info.value)
-    assert load_object(_brick(tmp_path, "tasse à café.stl")).name == "tasse à café"  # spaces and accents are text
+    for text in ("tasse à café", "cup\u00a0big", "cup\u202fbig", "カップ\u3000大", "👩\u200d🔧"):  # spaces of any script, joiners
+        assert load_object(_brick(tmp_path, f"{text}.stl")).name == text
+    with pytest.raises(InputError, match="holds control characters"):  # a right-to-left override reorders the line
+        load_object(_brick(tmp_path, "cup\u202egnp.stl"))
 
 
 def test_a_mesh_in_kilometres_is_refused_by_its_size_without_a_warning(tmp_path):
