@@ -152,12 +152,14 @@ class _ProgressRelay(threading.Thread):
     recorder, which never waits on it: a display that blocks (a terminal paused with Ctrl-S, whose
     writes then wait) delays only itself (was: the recorder waited in the callback, the camera and the
     pressure board unwatched while the arm pressed on). Over ``PROGRESS_BACKLOG`` pending reports the
-    oldest are dropped. An exception of the callback ends the relay and is kept in ``error``, which
-    the recorder raises."""
+    oldest are dropped. An exception of the callback ends the relay, is kept in ``error`` and handed
+    to ``on_error`` at once (the recorder's, which stops the arm: was, at the recorder's next frame,
+    0.13 s later on a loaded machine), and the recorder raises it."""
 
-    def __init__(self, callback: Callable[..., None]):
+    def __init__(self, callback: Callable[..., None], on_error: Callable[[BaseException], None]):
         super().__init__(name="collection-progress", daemon=True)
         self.callback = callback
+        self.on_error = on_error
         self.error: BaseException | None = None
         self._pending: collections.deque = collections.deque(maxlen=PROGRESS_BACKLOG)
         self._wake = threading.Condition()
@@ -180,6 +182,7 @@ class _ProgressRelay(threading.Thread):
                 self.callback(**report)
             except BaseException as err:  # noqa: BLE001 - raised by the recorder
                 self.error = err
+                self.on_error(err)
                 return
 
     def close(self, timeout_s: float = 1.0) -> None:
@@ -210,7 +213,7 @@ class _Recorder(threading.Thread):
         self.bench = bench
         self.plan = plan
         self.writer = writer
-        self.progress = _ProgressRelay(progress_callback) if progress_callback is not None else None
+        self.progress = _ProgressRelay(progress_callback, self.stop_on) if progress_callback is not None else None
         self.result = result
         self.stamp = _Stamp()  # the latest stamp (what the arm is doing now)
         self._timeline_t: list[float] = [-np.inf]  # bench-clock start time of each stamp
@@ -225,6 +228,18 @@ class _Recorder(threading.Thread):
         self.beat = bench.clock()  # bench time (s) at which the loop last began: _watch_recorder
         self.halted_at = np.inf  # bench time (s) of the halt (_end_recording): the frames to drain
         self._error_lock = threading.Lock()
+
+    def stop_on(self, err: BaseException) -> None:
+        """Keep ``err`` as the recorder's error unless it has one and, if kept and a fault, stop the
+        running motion with it (``arm.abort``). An exception other than a device fault (a frame of
+        another shape, a failing progress callback) becomes a ``recorder`` fault: the arm must not go
+        on unrecorded and unwatched (was: the phase ran to its end, then a traceback)."""
+        if isinstance(err, Exception) and not isinstance(err, HardwareFault):
+            log.debug("recorder thread failed", exc_info=err)
+            wrapped = HardwareFault(RECORDER_FAULT, f"recorder: stopped recording ({type(err).__name__}: {err})")
+            wrapped.__cause__, err = err, wrapped
+        if self.fail(err) and isinstance(err, HardwareFault):
+            self.bench.arm.abort(err)  # the running motion stops now and raises it
 
     def fail(self, err: BaseException) -> bool:
         """Keep ``err`` as the recorder's error unless it has one; whether it was kept."""
@@ -274,14 +289,7 @@ class _Recorder(threading.Thread):
                 self._report()
             self._drain_frames(self.halted_at)
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
-            if isinstance(err, Exception) and not isinstance(err, HardwareFault):
-                # a frame of another shape, a failing progress callback: the arm must not go on
-                # unrecorded and unwatched (was: the phase ran to its end, then a traceback)
-                log.debug("recorder thread failed", exc_info=err)
-                wrapped = HardwareFault(RECORDER_FAULT, f"recorder: stopped recording ({type(err).__name__}: {err})")
-                wrapped.__cause__, err = err, wrapped
-            if self.fail(err) and isinstance(err, HardwareFault):
-                self.bench.arm.abort(err)  # the running motion stops now and raises it
+            self.stop_on(err)
         finally:
             try:
                 self._write_streams()
