@@ -21,7 +21,8 @@ def session_summary(path) -> dict:
     back), fps, dropped (missing sequence numbers), seq_restarts (frames whose sequence number did not
     increase: a camera that restarted its numbering, the frames it lost uncounted),
     non_increasing_t and non_increasing_t_host (frames whose device / host time did not increase), objects
-    ({name: {phase: frames, "poses": contact poses pressed, held and let go, "reference": n}}),
+    ({name: {phase: frames, "poses": contact poses pressed, held and let go, "no_contact": poses
+    approached and let go without touching, "reference": n}}),
     planned_poses_per_object (the stored plan's, None without one), unassigned_frames, arm_samples,
     pressure_samples, file_bytes, dataset_bytes ({name: stored bytes}).
     """
@@ -33,11 +34,15 @@ def session_summary(path) -> dict:
         forward = steps[steps > 0]
         duration = float(forward.sum())
         complete = sf.completed_pose_ids(s.phase, s.pose_id)
+        pressed = set(np.unique(s.pose_id[(s.phase == sf.PHASE_PRESS) | (s.phase == sf.PHASE_HOLD)]).tolist())
+        let_go = set(np.unique(s.pose_id[(s.phase == sf.PHASE_RETRACT) & (s.pose_id >= 0)]).tolist())
         objects = {}
         for obj in s.objects:
             mine = s.object_index == obj.index
             counts = {name: int(np.count_nonzero(mine & (s.phase == sf.PHASES[name]))) for name in _PHASE_ORDER}
-            counts["poses"] = len(complete & set(np.unique(s.pose_id[mine]).tolist()))
+            ids = set(np.unique(s.pose_id[mine]).tolist())
+            counts["poses"] = len(complete & ids)
+            counts["no_contact"] = len((let_go - pressed - complete) & ids)
             counts["reference"] = int(len(s.reference_frames(obj.name)))
             objects[obj.name] = counts
         return {
@@ -96,10 +101,12 @@ def describe_session(path) -> str:
     short = {name: counts["poses"] for name, counts in info["objects"].items() if planned and counts["poses"] < planned}
     if short:  # was: a run cut short by a fault read like a finished session of fewer poses
         done = sum(counts["poses"] for counts in info["objects"].values())
+        missed = sum(counts["no_contact"] for counts in info["objects"].values())
         lines.append(f"  incomplete: {done} of {planned * len(info['objects'])} planned poses recorded ("
                      + ", ".join(f"{name} {n}/{planned}" for name, n in short.items())
+                     + (f"; {missed} approached without contact" if missed else "")
                      + "); the same `bubble collect` with --resume (or `bubble commission` again, for a run's "
-                       "session) records the rest")
+                       "session) records the rest" + (", trying those again" if missed else ""))
     if info["unassigned_frames"] and info["objects"]:
         lines.append(f"  {info['unassigned_frames']} frames between objects (travel, phase free)")
     big = [(k, v) for k, v in sorted(info["dataset_bytes"].items(), key=lambda kv: -kv[1])[:4] if v >= 0.05e6]

@@ -765,6 +765,17 @@ def test_info_says_a_session_holds_fewer_poses_than_its_plan_or_no_object(tmp_pa
             w.append_frame(*_frame(i), 1 + i / 45, 1 + i / 45, 4 + i, 0, 1, phase, np.zeros(6))
     text = describe_session(path)
     assert "  mug                    2/2" in text and "incomplete" not in text
+    plan3 = {"objects": ["mug"], "settings": {"poses_per_object": 3, "seed": 0}}
+    with SessionWriter(tmp_path / "missed.h5", **_metadata("S1"), collection_plan=plan3) as w:
+        for i, (pose, phase) in enumerate([(0, sf.PHASE_APPROACH), (0, sf.PHASE_PRESS), (0, sf.PHASE_HOLD),
+                                           (0, sf.PHASE_RETRACT), (1, sf.PHASE_APPROACH), (1, sf.PHASE_RETRACT),
+                                           (2, sf.PHASE_APPROACH), (-1, sf.PHASE_RETRACT)]):
+            w.append_frame(*_frame(i), i / 45, i / 45, i, 0, pose, phase, np.zeros(6))
+    # pose 1 approached and let go without touching; pose 2 cut short by a stop (its retract the safe stop's)
+    assert session_summary(tmp_path / "missed.h5")["objects"]["mug"]["no_contact"] == 1
+    assert ("  incomplete: 1 of 3 planned poses recorded (mug 1/3; 1 approached without contact); the same `bubble "
+            "collect` with --resume (or `bubble commission` again, for a run's session) records the rest, trying those "
+            "again") in describe_session(tmp_path / "missed.h5")
     for name, stored in (("none.h5", None), ("odd.h5", {"settings": {"poses_per_object": "2"}})):
         with SessionWriter(tmp_path / name, **_metadata("S1"), collection_plan=stored) as w:
             w.append_frame(*_frame(0), 0.0, 0.0, 0, 0, 0, sf.PHASE_FREE, np.zeros(6))
