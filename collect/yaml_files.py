@@ -64,7 +64,8 @@ class Loader(yaml.SafeLoader):
     a value that holds itself, and aliases that add more than ``MAX_ALIAS_VALUES`` values."""
 
     def construct_document(self, node):
-        added = _expanded_size(node, {}, set()) - _distinct_size(node, set())
+        sizes = {}  # by node id: one entry per value written in the file
+        added = _expanded_size(node, sizes, set()) - len(sizes)
         if added > MAX_ALIAS_VALUES:
             raise yaml.constructor.ConstructorError(
                 None, None, f"its aliases (*name) repeat what their anchors hold into {added} more values, over "
@@ -109,14 +110,6 @@ def _expanded_size(node: yaml.Node, sizes: dict, open_nodes: set) -> int:
         sizes[id(node)] = 1 + sum(_expanded_size(child, sizes, open_nodes) for child in _children(node))
         open_nodes.discard(id(node))
     return sizes[id(node)]
-
-
-def _distinct_size(node: yaml.Node, seen: set) -> int:
-    """Distinct nodes under ``node``, itself included (the values written in the file)."""
-    if id(node) in seen:
-        return 0
-    seen.add(id(node))
-    return 1 + sum(_distinct_size(child, seen) for child in _children(node))
 
 
 class Dumper(yaml.SafeDumper):
