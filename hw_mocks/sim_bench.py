@@ -109,7 +109,7 @@ def parse_sim_fault(text: str) -> SimFault:
         seconds = float(seconds_text)
     except ValueError:
         seconds = float("nan")
-    if not (np.isfinite(seconds) and seconds >= 0.0):
+    if not (real_number(seconds) and seconds >= 0.0):
         raise InputError(f"--sim-fault '{text}': SECONDS must be a number of seconds >= 0, got '{seconds_text}'")
     return SimFault(kind, seconds)
 
