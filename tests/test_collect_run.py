@@ -145,14 +145,15 @@ def test_a_fault_scheduled_after_the_run_says_it_did_not_happen(tmp_path, caplog
 
 def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes_it(tmp_path, capsys, monkeypatch):
     """The recorder stops while it can still close the file cleanly (``MIN_FREE_BYTES`` set 12 MB
-    under the disk's free space, ~1 s of recording): one fault line, every flushed frame kept; once
-    space is free again, ``--resume`` completes the plan."""
-    import shutil
-
+    under the free space of a disk that only this recording uses up, ~1 s of recording; was the real
+    disk, where another test worker's writes could cross the limit before the run started): one
+    fault line, every flushed frame kept; once space is free again, ``--resume`` completes the plan."""
     import collect.session_writer as session_writer
 
-    monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", shutil.disk_usage(tmp_path).free - 12 * 2**20)
-    rc, out = _collect(tmp_path)
+    out, disk = tmp_path / "s.h5", 2**40
+    monkeypatch.setattr(session_writer, "_free_bytes", lambda p: disk - (out.stat().st_size if out.exists() else 0))
+    monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", disk - 12 * 2**20)
+    rc, _ = _collect(tmp_path)
     assert rc == 3
     err = capsys.readouterr().err
     assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err
