@@ -209,3 +209,13 @@ def ctrl_c_once_it_exists(path: Path, delay_s: float = 0.0):
     finally:
         done.set()
         thread.join()
+
+
+def disk_only_this_file_fills(monkeypatch, path: Path, disk_bytes: int) -> None:
+    """Make the session writer see a disk of ``disk_bytes`` that only ``path`` uses up: its free
+    space is ``disk_bytes`` less the file's size (0 before the file exists). Other programs or test
+    workers writing to the real disk then cannot move where a free-space limit is crossed."""
+    from collect import session_writer
+
+    monkeypatch.setattr(session_writer, "_free_bytes",
+                        lambda _: disk_bytes - (path.stat().st_size if path.exists() else 0))

@@ -23,7 +23,8 @@ from collect.pose_planner import PlanSettings
 from collect.session_reader import Session
 from collect.session_writer import SessionWriter
 from collect.stop_signals import INTERRUPTS, STILL_STOPPING
-from conftest import ctrl_c_once_it_exists, interrupt_once_recording, losing_the_first_interrupt, wait_until
+from conftest import (ctrl_c_once_it_exists, disk_only_this_file_fills, interrupt_once_recording,
+                      losing_the_first_interrupt, wait_until)
 
 
 def _collect(tmp_path, *extra, name="s.h5"):
@@ -151,9 +152,9 @@ def test_a_filling_disk_stops_the_run_with_a_complete_file_then_resume_completes
     import collect.session_writer as session_writer
 
     out, disk = tmp_path / "s.h5", 2**40
-    monkeypatch.setattr(session_writer, "_free_bytes", lambda p: disk - (out.stat().st_size if out.exists() else 0))
+    disk_only_this_file_fills(monkeypatch, out, disk)
     monkeypatch.setattr(session_writer, "MIN_FREE_BYTES", disk - 12 * 2**20)
-    rc, _ = _collect(tmp_path)
+    rc, _ = _collect(tmp_path, name=out.name)
     assert rc == 3
     err = capsys.readouterr().err
     assert err.startswith("bubble: fault: recorder: cannot write") and err.count("\n") == 1, err

@@ -178,6 +178,8 @@ def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_pa
     resumable. Refused at the start on the real disk; then a disk whose free space only this file
     uses up (other programs writing to the real one would move the stop), stopping 256 kB in
     (~85 noisy frames)."""
+    from conftest import disk_only_this_file_fills  # here: the SIGKILL test's child imports this module
+
     path = tmp_path / "full.h5"
     rng = np.random.default_rng(0)
     free = shutil.disk_usage(tmp_path).free
@@ -185,7 +187,7 @@ def test_the_writer_stops_before_the_disk_fills_and_keeps_a_complete_file(tmp_pa
         SessionWriter(path, **_metadata("S1"), min_free_bytes=free + 2**40)
     assert not path.exists() and len(str(refused.value).splitlines()) == 1
     disk = 2**30
-    monkeypatch.setattr(session_writer, "_free_bytes", lambda p: disk - (path.stat().st_size if path.exists() else 0))
+    disk_only_this_file_fills(monkeypatch, path, disk)
     w = SessionWriter(path, **_metadata("S1"), min_free_bytes=disk - 2**18, flush_interval_s=0.05)
     written = []
     with pytest.raises(HardwareFault, match="left on its disk.*free some space, then resume the recording") as stopped:
