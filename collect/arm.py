@@ -67,6 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collect.errors import HOST_STALLED_FAULT, HardwareFault, InputError, StopRequested
+from collect.frozen_heap import freeze_heap, thaw_heap
 from collect.loop_thread import LoopThread
 from collect.numbers import real_number
 from collect.safety import (MAX_FORCE_LIMIT_N, MAX_TCP_ACCEL_M_S2, MAX_TCP_SPEED_M_S, SafetyLimits,
@@ -285,6 +286,7 @@ class Arm:
         self._kicked_at: float | None = None  # time.monotonic() of the watchdog's last kick (or arming)
         #: longest time (s, host clock, as the robot's watchdog counts) the watchdog went without a kick
         self.longest_kick_gap_s = 0.0
+        self._heap_frozen = False  # this arm froze the heap (``collect.frozen_heap``) and thaws it on close
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -297,6 +299,9 @@ class Arm:
             if ended:
                 raise fault or HardwareFault("arm-monitor", "arm: the state monitor has ended")
             return
+        if not self._heap_frozen:  # before the watchdog runs: no full garbage collection outlasts its 0.5 s
+            freeze_heap()
+            self._heap_frozen = True
         with self._commanding():
             self._arm_watchdog()
             self._kicked_at = time.monotonic()
@@ -305,8 +310,11 @@ class Arm:
         self._next_sample(timeout_s=2.0)
 
     def close(self) -> None:
-        """Stop the monitor and disconnect both interfaces."""
+        """Stop the monitor and disconnect both interfaces; the heap this arm froze is thawed."""
         self._monitor_loop.stop()
+        if self._heap_frozen:
+            thaw_heap()
+            self._heap_frozen = False
         for iface in (self._ctl, self._rcv):
             iface.disconnect()
 
@@ -510,11 +518,16 @@ class Arm:
         self._kicked_at = now
 
     def _refused(self, message: str) -> HardwareFault:
-        """The fault of a command the robot refused: ``host-stalled`` (this computer's, judged neither
-        way) once the watchdog has gone without a kick for longer than it allows, which shut the
-        robot's control program down (a computer that froze, a link that paused); else
-        ``arm-refused`` with ``message`` (was: ``arm-refused`` either way, and the sensor of a run on
-        a computer that froze for a second registered as rejected)."""
+        """The fault of a command the robot refused: ``arm-refused`` with ``message``, unless the
+        watchdog ran out (``_stalled_or``)."""
+        return self._stalled_or(HardwareFault("arm-refused", message))
+
+    def _stalled_or(self, fault: HardwareFault) -> HardwareFault:
+        """``host-stalled`` (this computer's, judged neither way) in place of ``fault`` once the watchdog
+        has gone without a kick for longer than it allows, which shut the robot's control program down
+        (a computer that froze, a link that paused): the robot braked the move under way and refuses
+        the next command. Else ``fault`` (was: ``arm-refused``, or ``arm-timeout`` for the braked move,
+        and the sensor of a run on a computer that froze for a second registered as rejected)."""
         allowed_s = 1.0 / self.watchdog_hz
         if self._kicked_at is not None:  # a gap still open: the monitor has not kicked since the freeze
             self.longest_kick_gap_s = max(self.longest_kick_gap_s, time.monotonic() - self._kicked_at)
@@ -523,7 +536,7 @@ class Arm:
                                                      f"not reach it for {self.longest_kick_gap_s:.2f} s, over its "
                                                      f"{allowed_s:g} s watchdog (a computer too busy or frozen, or a "
                                                      "link that paused); nothing judged")
-        return HardwareFault("arm-refused", message)
+        return fault
 
     def _send_move(self, target: np.ndarray, speed: float, accel: float, check_faults: bool) -> None:
         """Send the move unless (``check_faults``) a fault or the operator's stop is recorded: the check
@@ -592,7 +605,7 @@ class Arm:
                     and np.linalg.norm(self._rcv.getActualTCPSpeed()[:3]) < ARRIVAL_SPEED_M_S):
                 return sample, False
             if self.clock() > t_end or time.monotonic() > t_end_real:
-                raise HardwareFault("arm-timeout", f"arm: move did not finish within {budget:.1f} s")
+                raise self._stalled_or(HardwareFault("arm-timeout", f"arm: move did not finish within {budget:.1f} s"))
 
     def _settle(self) -> ArmState:
         """Wait until the TCP is at rest after a stop; returns the sample at rest."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import re
 import threading
 import time
@@ -216,6 +217,56 @@ def test_a_move_refused_after_the_watchdog_ran_out_is_this_computers_fault():
                             r"paused\); nothing judged", str(err.value)), str(err.value)
     finally:
         arm.close()
+
+
+def test_a_move_the_watchdog_braked_is_this_computers_fault_not_a_timeout():
+    """This computer froze mid-move for over the watchdog's 0.5 s: the robot braked the move short of
+    its target, and the move's end is ``host-stalled`` (was: ``arm-timeout`` once the move's time ran
+    out, as for an arm held back by the rig, and a commissioning registered the sensor as rejected)."""
+    controller = SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN])
+    arm = Arm(FakeRTDEControl(controller), FakeRTDEReceive(controller), LIMITS, settings=MOTION, state_hz=200)
+
+    def freeze_mid_move():
+        time.sleep(0.2)
+        with arm._ctl_lock:  # the monitor's kicks wait here: over the watchdog's 0.5 s, under the 1 s
+            time.sleep(0.7)  # the move waits for a state sample
+
+    freezer = threading.Thread(target=freeze_mid_move)
+    try:
+        arm.start()
+        freezer.start()
+        with pytest.raises(HardwareFault) as err:
+            arm.move_to([0.5, 0.0, 0.2, *DOWN], speed=0.1)  # 1.2 s as planned
+        assert controller.watchdog_fired and err.value.kind == "host-stalled", str(err.value)
+        assert "this computer did not reach it for 0.7" in str(err.value)
+        assert arm.state().tcp_pose[0] < 0.49  # braked short of the target
+    finally:
+        freezer.join()
+        arm.close()
+
+
+def test_the_heap_stays_frozen_while_any_arm_is_monitored():
+    """A full garbage collection holds the GIL while it walks the heap: 0.5 s for 7 M objects on the
+    2-core reference machine, as long for 0.5-0.8 M in a loaded pytest worker, and the watchdog then
+    stopped the robot (``host-stalled``; a resumed run's ``arm-timeout`` in session 60). Whatever was
+    tracked when an arm started is frozen (collections walk only what came after) until the last
+    monitored arm closes."""
+    heap = [[k] for k in range(50_000)]  # tracked before any arm starts
+    arms = [Arm(FakeRTDEControl(c), FakeRTDEReceive(c), LIMITS, settings=MOTION, state_hz=200)
+            for c in (SimURController(_Still(), [0.4, 0.0, 0.2, *DOWN]) for _ in range(2))]
+    assert gc.get_freeze_count() == 0
+    try:
+        arms[0].start()
+        assert gc.get_freeze_count() >= len(heap)
+        arms[1].start()
+        arms[0].move_to([0.42, 0.0, 0.2, *DOWN])
+        arms[0].close()  # another arm is still monitored: nothing thawed
+        assert gc.get_freeze_count() >= len(heap)
+    finally:
+        for arm in arms:
+            arm.close()
+    assert gc.get_freeze_count() == 0
+    arms[0].close()  # closing twice thaws nothing twice
 
 
 def test_a_contact_move_refuses_to_zero_a_sensor_that_already_feels_a_force():
