@@ -26,6 +26,7 @@ import numpy as np
 
 from collect.camera import MIN_FPS
 from collect.errors import InputError
+from collect.numbers import is_number
 from collect.pressure_board import SENSOR_SERIAL_RE, SENSOR_SERIAL_RULE
 
 #: Defects ``draw_sensor`` can give a sensor; commissioning must reject each.
@@ -282,12 +283,14 @@ def _coerce(name: str, value, source: str):
         if name == "defect":
             return None if value is None else str(value)
         if name == "camera_in_tcp":
+            if not all(map(is_number, value)):  # text in quotes is no number (was: '-0.093' read as -0.093)
+                raise TypeError
             return [float(v) for v in value]
         if name == "dead_pixels":  # whole pixel indices (was: 1.7 taken as 1)
             if any(isinstance(v, bool) or int(v) != v for rc in value for v in rc):
                 raise ValueError
             return [[int(r), int(c)] for r, c in value]
-        if isinstance(value, bool):
+        if not is_number(value):  # a bool, or text: a number in quotes too (was: fx: '122.7' read as 122.7)
             raise TypeError
         if name in _INT_FIELDS:
             if float(value) != int(value):

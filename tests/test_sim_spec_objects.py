@@ -81,6 +81,10 @@ def test_draw_sensor_is_deterministic_and_varied():
         (lambda d: d.update(colour="red"), "colour"),
         # was: 1.7 taken as pixel 1; a serial written as a number taken as its text, 0042 as "34"
         (lambda d: d.update(dead_pixels=[[1.7, 2.9]]), "field 'dead_pixels' has a bad value"),
+        # a number in quotes is text, as in every other file the tool reads (was: read as the number)
+        (lambda d: d.update(fx=str(d["fx"])), r"field 'fx' has a bad value '\d+\.\d+'"),
+        (lambda d: d.update(width="224"), "field 'width' has a bad value '224'"),
+        (lambda d: d.update(camera_in_tcp=["0", 0, -0.093, 0, 0, 0]), "field 'camera_in_tcp' has a bad value"),
         (lambda d: d.update(serial=34), r"field 'serial' must be text, but YAML read it as 34; quote it exactly as "
                                         r"the file writes it \(serial: '\.\.\.'\)"),
         # a slipped decimal point: a 10-degree view (was: a physics grid 100 times as large, no end to a preview)
